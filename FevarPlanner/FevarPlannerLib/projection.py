@@ -1,0 +1,204 @@
+"""Perspective projection of LPS points onto the fluoroscopic frame (paper eq. 1).
+
+Conventions (DESIGN.md section 3)
+---------------------------------
+* World points are DICOM patient LPS in millimetres.
+* Image coordinates: ``u`` = column, ``v`` = row, 0-based, (0, 0) is the centre of the
+  first stored pixel.
+* ``P`` is a 3x4 matrix with ``[w*u, w*v, w]^T = P @ [x, y, z, 1]^T``. Nothing here assumes
+  that its 3x3 part is a rotation times intrinsics: a mirrored display is a valid ``P``.
+
+C-arm convention (the one place it is written down)
+---------------------------------------------------
+The C-arm rotates about its isocentre ``c`` (LPS mm). At PositionerPrimaryAngle = 0 and
+PositionerSecondaryAngle = 0 the view is antero-posterior: the source lies posterior to
+the patient at ``c + SOD * (0, +1, 0)``, the detector anterior, and the image is shown as
+seen from the front (radiological display): columns (``+u``) run towards the patient's
+left (``+x``), rows (``+v``) towards the feet (``-z``).
+
+The primary angle ``a`` (LAO positive, RAO negative) turns the detector towards the
+patient's left about the cranio-caudal axis; the secondary angle ``b`` (cranial positive,
+caudal negative) tilts it towards the head. With ``d`` the unit vector from source to
+detector,
+
+    d      = (sin a cos b, -cos a cos b, sin b)
+    u_axis = (cos a, sin a, 0)          (stays in the axial plane)
+    v_axis = u_axis x d
+
+The principal point is the detector centre, ``((cols-1)/2, (rows-1)/2)``, and the
+magnification follows from SID (source-detector) and the detector pixel size
+(ImagerPixelSpacing = [row spacing, column spacing] in mm). DICOM XA frames do not say
+where the isocentre lies in the CT; callers pass it (the case reader uses the centre of
+the CT volume, which is where the phantoms put it).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "CArmGeometry",
+    "project",
+    "depth",
+    "projection_matrix_from_carm",
+    "image_directions",
+    "source_position",
+    "validate_projection_matrix",
+    "read_geometry_json",
+    "write_geometry_json",
+    "in_plane_transform",
+]
+
+
+@dataclass(frozen=True)
+class CArmGeometry:
+    """The C-arm tags of an XA/RF frame that define its projection.
+
+    Attributes
+    ----------
+    sid, sod : float
+        DistanceSourceToDetector and DistanceSourceToPatient (isocentre), mm.
+    pixel_spacing : tuple of float
+        ImagerPixelSpacing ``(row spacing, column spacing)`` at the detector, mm.
+    primary_angle, secondary_angle : float
+        PositionerPrimaryAngle (LAO +) and PositionerSecondaryAngle (cranial +), degrees.
+    rows, cols : int
+        Image size in pixels.
+    """
+
+    sid: float
+    sod: float
+    pixel_spacing: tuple[float, float]
+    primary_angle: float
+    secondary_angle: float
+    rows: int
+    cols: int
+
+
+def _homogeneous(points: np.ndarray) -> np.ndarray:
+    points = np.asarray(points, dtype=float)
+    return np.concatenate([points, np.ones((*points.shape[:-1], 1))], axis=-1)
+
+
+def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Project LPS points (..., 3) to image coordinates (..., 2): ``f(Y)`` of eq. (1)."""
+    # eq. (1): f(Y) = (p1^T Y^h / p3^T Y^h, p2^T Y^h / p3^T Y^h)
+    h = _homogeneous(points) @ np.asarray(P, dtype=float).T
+    return h[..., :2] / h[..., 2:3]
+
+
+def depth(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The homogeneous weight ``w = p3^T y^h`` of each point (proportional to depth)."""
+    return _homogeneous(points) @ np.asarray(P, dtype=float)[2]
+
+
+def carm_axes(primary_deg: float, secondary_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors (source->detector ``d``, image ``u`` axis, image ``v`` axis) in LPS."""
+    a, b = np.deg2rad(primary_deg), np.deg2rad(secondary_deg)
+    d = np.array([np.sin(a) * np.cos(b), -np.cos(a) * np.cos(b), np.sin(b)])
+    u_axis = np.array([np.cos(a), np.sin(a), 0.0])
+    v_axis = np.cross(u_axis, d)
+    return d, u_axis, v_axis
+
+
+def projection_matrix_from_carm(geometry: CArmGeometry, isocenter=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Build ``P`` from the C-arm tags, with the isocentre at ``isocenter`` (LPS mm).
+
+    Parameters
+    ----------
+    geometry : CArmGeometry
+        SID, SOD, detector pixel spacing, angles and image size.
+    isocenter : array_like, shape (3,)
+        Where the C-arm isocentre lies in the CT's LPS frame.
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 4)
+    """
+    g = geometry
+    if not (g.sid > 0 and 0 < g.sod < g.sid):
+        raise ValueError(f"C-arm distances must satisfy 0 < SOD < SID (got SOD={g.sod}, SID={g.sid})")
+    if min(g.pixel_spacing) <= 0 or g.rows <= 0 or g.cols <= 0:
+        raise ValueError("C-arm pixel spacing and image size must be positive")
+    d, u_axis, v_axis = carm_axes(g.primary_angle, g.secondary_angle)
+    source = np.asarray(isocenter, dtype=float) - g.sod * d
+    row_mm, col_mm = g.pixel_spacing
+    cu, cv = (g.cols - 1) / 2.0, (g.rows - 1) / 2.0
+    p3 = np.append(d, -d @ source)
+    p1 = (g.sid / col_mm) * np.append(u_axis, -u_axis @ source) + cu * p3
+    p2 = (g.sid / row_mm) * np.append(v_axis, -v_axis @ source) + cv * p3
+    return np.vstack([p1, p2, p3])
+
+
+def source_position(P: np.ndarray) -> np.ndarray:
+    """The camera centre (X-ray source) of ``P``: its right null vector, in LPS mm."""
+    P = np.asarray(P, dtype=float)
+    return -np.linalg.solve(P[:, :3], P[:, 3])
+
+
+def validate_projection_matrix(P, name: str = "projection matrix") -> np.ndarray:
+    """Return ``P`` as a float (3, 4) array or raise ``ValueError`` saying what is wrong."""
+    try:
+        P = np.asarray(P, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: not a numeric 3x4 matrix ({exc})") from None
+    if P.shape != (3, 4):
+        raise ValueError(f"{name}: expected a 3x4 matrix, got shape {P.shape}")
+    if not np.all(np.isfinite(P)):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    if abs(np.linalg.det(P[:, :3])) < 1e-12 * max(1.0, np.abs(P[:, :3]).max() ** 3):
+        raise ValueError(f"{name}: degenerate (its 3x3 part is singular)")
+    return P
+
+
+def image_directions(P: np.ndarray, at: np.ndarray, step_mm: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+    """Unit image vectors of the patient's left (+x) and superior (+z) directions at ``at``.
+
+    They let 2D code name left/right and up/down whatever the view (mirrored displays,
+    LAO/RAO, a flipped detector) without decomposing ``P``.
+    """
+    at = np.asarray(at, dtype=float)
+    base = project(P, at)
+    left = project(P, at + [step_mm, 0, 0]) - base
+    superior = project(P, at + [0, 0, step_mm]) - base
+    return left / np.linalg.norm(left), superior / np.linalg.norm(superior)
+
+
+def in_plane_transform(P: np.ndarray, translation=(0.0, 0.0), rotation_deg: float = 0.0,
+                       scale: float = 1.0, center=(0.0, 0.0)) -> np.ndarray:
+    """Compose ``P`` with a similarity transform of the image plane about ``center`` (u, v).
+
+    Used to simulate misaligned frames (paper Fig. 5) and by the in-plane pose refinement.
+    """
+    t = np.deg2rad(rotation_deg)
+    c = np.asarray(center, dtype=float)
+    R = scale * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    A = np.eye(3)
+    A[:2, :2] = R
+    A[:2, 2] = c - R @ c + np.asarray(translation, dtype=float)
+    return A @ np.asarray(P, dtype=float)
+
+
+def read_geometry_json(path) -> np.ndarray:
+    """Read ``{"projection_matrix": [[4], [4], [4]]}`` and return a validated ``P``."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read geometry JSON ({exc})") from None
+    if not isinstance(data, dict) or "projection_matrix" not in data:
+        raise ValueError(f"{path}: no 'projection_matrix' key")
+    return validate_projection_matrix(data["projection_matrix"], name=str(path))
+
+
+def write_geometry_json(path, P: np.ndarray, **extra) -> None:
+    """Write ``P`` (and any JSON-serialisable extras) to ``path`` atomically."""
+    from .io import write_text_atomic
+
+    P = validate_projection_matrix(P)
+    payload = {"projection_matrix": P.tolist(), **extra}
+    write_text_atomic(path, json.dumps(payload, indent=2))

@@ -1,0 +1,73 @@
+import json
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib.projection import (
+    CArmGeometry, image_directions, in_plane_transform, project, projection_matrix_from_carm,
+    read_geometry_json, source_position, validate_projection_matrix, write_geometry_json)
+
+AP = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.4, 0.4), primary_angle=0.0,
+                  secondary_angle=0.0, rows=512, cols=640)
+
+
+def test_isocentre_lands_on_detector_centre():
+    iso = np.array([10.0, -20.0, 30.0])
+    P = projection_matrix_from_carm(AP, iso)
+    np.testing.assert_allclose(project(P, iso), [(640 - 1) / 2, (512 - 1) / 2], atol=1e-9)
+
+
+def test_ap_view_magnification_and_orientation_by_hand():
+    P = projection_matrix_from_carm(AP)
+    # 10 mm to the patient's left at the isocentre: magnified by SID/SOD, in pixels of 0.4 mm
+    du = project(P, [10.0, 0, 0])[0] - project(P, [0.0, 0, 0])[0]
+    assert du == pytest.approx(10.0 * 1100 / 750 / 0.4)
+    # superior (+z) goes up the image (smaller v)
+    assert project(P, [0, 0, 10.0])[1] < project(P, [0, 0, 0.0])[1]
+    np.testing.assert_allclose(source_position(P), [0, 750.0, 0], atol=1e-9)
+
+
+def test_lao_moves_source_to_the_right_posterior():
+    lao = CArmGeometry(**{**AP.__dict__, "primary_angle": 30.0})
+    src = source_position(projection_matrix_from_carm(lao))
+    assert src[0] < 0 and src[1] > 0
+    assert np.linalg.norm(src) == pytest.approx(750.0)
+
+
+def test_image_directions_follow_the_view():
+    P = projection_matrix_from_carm(AP)
+    left, sup = image_directions(P, np.zeros(3))
+    np.testing.assert_allclose(left, [1, 0], atol=1e-9)
+    np.testing.assert_allclose(sup, [0, -1], atol=1e-9)
+    mirrored = np.diag([-1.0, 1.0, 1.0]) @ P
+    mirrored[0] += 639 * mirrored[2]
+    left_m, _ = image_directions(mirrored, np.zeros(3))
+    np.testing.assert_allclose(left_m, [-1, 0], atol=1e-9)
+
+
+def test_geometry_json_round_trip(tmp_path):
+    P = projection_matrix_from_carm(CArmGeometry(**{**AP.__dict__, "primary_angle": -20.0, "secondary_angle": 15.0}),
+                                    [5.0, 6.0, 7.0])
+    pts = np.random.default_rng(0).normal(scale=50, size=(20, 3))
+    write_geometry_json(tmp_path / "geometry.json", P)
+    P2 = read_geometry_json(tmp_path / "geometry.json")
+    np.testing.assert_allclose(project(P2, pts), project(P, pts), atol=1e-9)
+
+
+def test_in_plane_transform_moves_projections():
+    P = projection_matrix_from_carm(AP)
+    pts = np.random.default_rng(1).normal(scale=30, size=(10, 3))
+    moved = project(in_plane_transform(P, translation=(5, -3), rotation_deg=90, center=(0, 0)), pts)
+    uv = project(P, pts)
+    np.testing.assert_allclose(moved, np.c_[-uv[:, 1] + 5, uv[:, 0] - 3], atol=1e-9)
+
+
+@pytest.mark.parametrize("bad, why", [
+    (np.zeros((3, 4)), "degenerate"), (np.ones((2, 4)), "3x4"), ([[np.nan] * 4] * 3, "NaN")])
+def test_bad_projection_matrices_are_named(bad, why, tmp_path):
+    path = tmp_path / "geometry.json"
+    path.write_text(json.dumps({"projection_matrix": np.asarray(bad).tolist()}).replace("NaN", "NaN"))
+    with pytest.raises(ValueError, match=why):
+        read_geometry_json(path)
+    with pytest.raises(ValueError, match=why):
+        validate_projection_matrix(bad)
