@@ -1,0 +1,172 @@
+"""``fevar-planner``: the command line (plan, phantoms, demo, benchmark, train-unet)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main", "ProgressBar"]
+
+
+class ProgressBar:
+    """A one-line text progress bar on stderr, callable as ``progress(fraction, message)``."""
+
+    def __init__(self, stream=sys.stderr, width: int = 30, enabled: bool = True):
+        self.stream, self.width, self.enabled = stream, width, enabled
+        self.start = time.perf_counter()
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if not self.enabled:
+            return
+        fraction = min(max(float(fraction), 0.0), 1.0)
+        filled = int(round(fraction * self.width))
+        elapsed = time.perf_counter() - self.start
+        line = f"\r[{'#' * filled}{'.' * (self.width - filled)}] {fraction * 100:5.1f}% {elapsed:6.1f}s {message[:60]:<60}"
+        self.stream.write(line)
+        if fraction >= 1.0:
+            self.stream.write("\n")
+        self.stream.flush()
+
+    def count(self, i: int, n: int, message: str = "") -> None:
+        """Adapter for ``(i, n, name)`` style callbacks."""
+        self(i / max(n, 1), message)
+
+
+def _add_case_overrides(parser: argparse.ArgumentParser) -> None:
+    for flag, what in (("ct", "CT (DICOM folder or NRRD/NIfTI/MHA)"), ("aorta-mask", "binary lumen label"),
+                       ("skeleton3d", "binary 3D skeleton volume"), ("fluoro", "fluoroscopic frame"),
+                       ("fluoro-mask", "binary 2D vessel mask PNG"), ("geometry", "geometry.json")):
+        parser.add_argument(f"--{flag}", type=Path, default=None, help=f"override the case folder's {what}")
+    parser.add_argument("--frame", type=int, default=0, help="frame index in a multi-frame DICOM (default 0)")
+
+
+def _cmd_plan(args) -> int:
+    from .pipeline import plan_case
+
+    progress = ProgressBar(enabled=not args.quiet)
+    result = plan_case(args.case, args.out, method=args.method, progress=progress,
+                       ct=args.ct, aorta_mask=args.aorta_mask, skeleton3d=args.skeleton3d, fluoro=args.fluoro,
+                       fluoro_mask=args.fluoro_mask, geometry=args.geometry, frame=args.frame,
+                       start=args.start, target=args.target, refine_pose=not args.no_pose_refinement)
+    _print_summary(result, args.out)
+    return 0
+
+
+def _print_summary(result, out_dir) -> None:
+    t = result.timings
+    print(f"method {result.method}: {len(result.deformed)} nodes, path {result.path.start_label} -> "
+          f"{result.path.target_label} {result.path.length_mm:.1f} mm")
+    print(f"time: total {t['total']:.2f} s, intra-operative registration {t['registration'] * 1000:.1f} ms")
+    errors = result.errors or {}
+    for key, unit in (("2d_px", "px"), ("3d_mm", "mm"), ("3d_reverse_mm", "mm")):
+        if errors.get(key):
+            print(f"error {key}: mean {errors[key]['mean']:.3f} {unit}, std {errors[key]['std']:.3f} {unit}")
+    if out_dir is not None:
+        print(f"outputs in {out_dir}")
+
+
+def _cmd_phantoms(args) -> int:
+    from .phantom import write_phantom_set
+
+    bar = ProgressBar(enabled=not args.quiet)
+    folders = write_phantom_set(args.out, n=args.n, seed=args.seed, preset=args.preset, mask_only=args.mask_only,
+                                progress=bar.count)
+    bar(1.0, f"{len(folders)} cases")
+    print(f"wrote {len(folders)} phantom cases to {args.out}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from .phantom import generate_case, random_params, write_case
+    from .pipeline import plan_case
+    import numpy as np
+
+    out = Path(args.out)
+    bar = ProgressBar(enabled=not args.quiet)
+    bar(0.0, "generating a phantom case (CT, XA frame, masks)")
+    case_dir = write_case(generate_case(random_params(np.random.default_rng(args.seed))), out / "case")
+    results = {}
+    for method in ("rigid", "proposed"):
+        results[method] = plan_case(case_dir, out / method, method=method, progress=bar)
+    for method, result in results.items():
+        _print_summary(result, out / method)
+    return 0
+
+
+def _cmd_benchmark(args) -> int:
+    from .benchmark import run_benchmark
+
+    summary = run_benchmark(args.out, quick=args.quick, seed=args.seed, progress=ProgressBar(enabled=not args.quiet))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_train_unet(args) -> int:
+    from .segmentation import train_unet
+
+    path = train_unet(args.cases, args.out, iterations=args.iterations, seed=args.seed, resume=args.resume,
+                      progress=ProgressBar(enabled=not args.quiet))
+    print(f"weights written to {path}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fevar-planner", description=__doc__)
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    plan = sub.add_parser("plan", help="register a case and plan the catheter path")
+    plan.add_argument("case", type=Path, help="case folder (DESIGN.md section 4)")
+    plan.add_argument("--out", type=Path, required=True, help="output folder")
+    plan.add_argument("--method", choices=("proposed", "icp-tps", "rigid"), default="proposed")
+    plan.add_argument("--start", default="iliac_right", help="access vessel (default iliac_right)")
+    plan.add_argument("--target", default="renal_left", help="target vessel ostium (default renal_left)")
+    plan.add_argument("--no-pose-refinement", action="store_true", help="use P exactly as given")
+    _add_case_overrides(plan)
+    plan.set_defaults(func=_cmd_plan)
+
+    phantoms = sub.add_parser("phantoms", help="write synthetic AAA cases with ground truth")
+    phantoms.add_argument("--out", type=Path, required=True)
+    phantoms.add_argument("--n", type=int, default=20)
+    phantoms.add_argument("--seed", type=int, default=0)
+    phantoms.add_argument("--preset", choices=("paper", "random"), default="paper")
+    phantoms.add_argument("--mask-only", action="store_true", help="skip the CT series and the XA frame")
+    phantoms.set_defaults(func=_cmd_phantoms)
+
+    demo = sub.add_parser("demo", help="run the whole job on a built-in phantom case")
+    demo.add_argument("--out", type=Path, default=Path("demo_out"))
+    demo.add_argument("--seed", type=int, default=7)
+    demo.set_defaults(func=_cmd_demo)
+
+    bench = sub.add_parser("benchmark", help="the paper's experiments: SV / ICP-TPS / proposed")
+    bench.add_argument("--out", type=Path, required=True)
+    bench.add_argument("--quick", action="store_true", help="a small subset (about 2 minutes)")
+    bench.add_argument("--seed", type=int, default=0)
+    bench.set_defaults(func=_cmd_benchmark)
+
+    train = sub.add_parser("train-unet", help="train the CT aorta UNet on phantom (or other) case folders")
+    train.add_argument("cases", type=Path, nargs="+", help="case folders holding ct/ and aorta_mask.nrrd")
+    train.add_argument("--out", type=Path, required=True, help="checkpoint / weights path (.pt)")
+    train.add_argument("--iterations", type=int, default=20000)
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--resume", type=Path, default=None)
+    train.set_defaults(func=_cmd_train_unet)
+    return parser
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``fevar-planner`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, OSError) as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"fevar-planner: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,297 @@
+"""The one logic entry point that the CLI, the Slicer module, the workstation and the tests call.
+
+Pre-operative work (CT side) is done once per patient by :func:`prepare_preop`; the
+intra-operative side (:func:`register_frame`) runs per fluoroscopic frame and is kept
+free of anything that does not depend on the frame (paper Algorithm 2):
+
+    rows 1-2   3D skeleton graph and node classification          prepare_preop
+    rows 3-4   2D skeleton graph and node classification          register_frame
+    row  5     branch / trunk matching                             matching
+    rows 6-12  soft assignment (eqs. 5-6)                          matching
+    rows 13-15 deformation S_D + alpha S_L + beta S_S (eqs. 7-9)   deformation
+    row  16    branch-wise TPS for the unassigned nodes            deformation
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import baselines, deformation, evaluation, export, graph, matching, planning, skeleton
+from .alignment import refine_in_plane_pose
+from .centerline import Centerline
+from .io import Case, InputError, load_case
+from .projection import image_directions, project
+
+__all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "prepare_preop", "register_frame",
+           "run_case", "plan_case", "write_outputs"]
+
+METHODS = ("proposed", "icp-tps", "rigid")
+#: Branches shorter than this are spurs and deleted (Algorithm 1's iota), mm; 2D uses the
+#: same length converted to pixels at the anatomy's depth.
+IOTA_MM = 10.0
+
+
+@contextmanager
+def _timed(timings: dict, name: str):
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - start
+
+
+def _report(progress, fraction: float, message: str) -> None:
+    if progress is not None:
+        progress(fraction, message)
+
+
+@dataclass
+class Preoperative:
+    """The pre-operative 3D skeleton graph, classified and labelled (computed once per patient)."""
+
+    graph: graph.SkeletonGraph
+    classification: graph.Classification
+    kept: np.ndarray
+    centerline: Centerline
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.centerline.points.mean(axis=0)
+
+
+@dataclass
+class FrameResult:
+    """One frame's registration: the deformed kept nodes and how they were found."""
+
+    deformed: Centerline
+    P: np.ndarray
+    skeleton2d: graph.SkeletonGraph
+    classification2d: graph.Classification | None
+    energy: float | None
+    correspondence: str
+    timings: dict
+
+
+@dataclass
+class PlanResult:
+    """Everything a caller shows or writes about one case (see DESIGN.md section 4)."""
+
+    method: str
+    preop: Centerline
+    deformed: Centerline
+    path: planning.CatheterPath
+    P: np.ndarray
+    skeleton2d_points: np.ndarray
+    skeleton2d_edges: np.ndarray
+    fluoro_image: np.ndarray
+    timings: dict
+    errors: dict | None = None
+    inputs: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs}
+        if self.errors is not None:
+            extra["errors"] = self.errors
+        return export.build_result_dict(self.method, self.preop, self.deformed, self.path, self.timings, **extra)
+
+
+def _induced_edges(graph_: graph.SkeletonGraph, nodes: np.ndarray) -> np.ndarray:
+    """Edges of ``graph_`` between ``nodes``, renumbered to positions in ``nodes``."""
+    index = np.full(len(graph_.positions), -1)
+    index[nodes] = np.arange(len(nodes))
+    edges = index[graph_.edges()]
+    return edges[np.all(edges >= 0, axis=1)]
+
+
+def _skeleton3d_volume(case: Case, progress=None):
+    if case.skeleton3d is not None:
+        return case.skeleton3d
+    mask = case.aorta_mask
+    if mask is None:
+        from . import segmentation
+
+        _report(progress, 0.05, "segmenting the aorta in the CT")
+        mask = segmentation.segment_ct(case.ct)
+    _report(progress, 0.15, "thinning the 3D lumen")
+    return skeleton.skeletonize_3d(mask)
+
+
+def prepare_preop(case: Case, progress=None) -> Preoperative:
+    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1) and labelled."""
+    timings = {}
+    with _timed(timings, "preop_skeleton3d"):
+        skeleton_volume = _skeleton3d_volume(case, progress)
+    with _timed(timings, "preop_graph3d"):
+        g3 = graph.SkeletonGraph.from_volume(skeleton_volume)
+        c3 = graph.classify(g3, iota=IOTA_MM)
+        c3 = graph.label_anatomy(g3, c3, left=np.array([1.0, 0, 0]), superior=np.array([0, 0, 1.0]))
+    kept = np.asarray(c3.kept_nodes())
+    labels = [c3.node_labels[i] for i in kept]
+    centerline = Centerline(g3.positions[kept], _induced_edges(g3, kept), labels)
+    return Preoperative(g3, c3, kept, centerline, timings)
+
+
+def _pixels_per_mm(P: np.ndarray, at: np.ndarray) -> float:
+    uv = project(P, np.array([at, at + [1.0, 0, 0], at + [0, 0, 1.0]]))
+    return float(np.mean(np.linalg.norm(uv[1:] - uv[0], axis=1)))
+
+
+def _skeleton2d_graph(mask: np.ndarray) -> graph.SkeletonGraph:
+    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask))
+
+
+def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
+    c2 = graph.classify(g2, iota=IOTA_MM * _pixels_per_mm(P, at))
+    left, superior = image_directions(P, at)
+    return graph.label_anatomy(g2, c2, left=left, superior=superior)
+
+
+def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
+    """Algorithm 2 rows 6-16 for one correspondence; returns (kept positions, energy)."""
+    g3, c3 = preop.graph, preop.classification
+    assignment = matching.soft_assign(g3, c3, g2, c2, P, correspondence)
+    assigned = np.flatnonzero(assignment.assigned)
+    result = deformation.deform_assigned(g3.positions[assigned], assignment.targets[assigned],
+                                         _induced_edges(g3, assigned), P, alpha=alpha, beta=beta)
+    moved = np.array(g3.positions, dtype=float)
+    moved[assigned] = result.points
+    sub = g3.subgraph(preop.kept)
+    keep_assigned = assignment.assigned[preop.kept]
+    filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], keep_assigned,
+                                         sub.adjacency)
+    return filled, float(result.energy_final)
+
+
+def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, method: str = "proposed",
+                   refine_pose: bool = True, alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
+    """Register the pre-operative skeleton to one frame's 2D vessel mask (the per-frame part).
+
+    Parameters
+    ----------
+    preop : Preoperative
+    mask2d : (rows, cols) bool
+        Vessel mask on the frame's grid.
+    P : (3, 4)
+        Projection matrix (rigid pre-alignment, eq. 1).
+    method : {"proposed", "icp-tps", "rigid"}
+    refine_pose : bool
+        Correct the in-plane pose first (alignment.refine_in_plane_pose).
+    alpha, beta : float
+        Weights of the length and smoothness terms (eq. 7).
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    timings = {}
+    with _timed(timings, "skeleton2d"):
+        g2 = _skeleton2d_graph(mask2d)
+    if refine_pose:
+        with _timed(timings, "pose_refinement"):
+            P = refine_in_plane_pose(preop.centerline.points, g2.positions, P, mask2d.shape).P
+    points = preop.centerline.points
+    c2, energy, source = None, None, method
+    if method == "rigid":
+        deformed = points
+    elif method == "icp-tps":
+        with _timed(timings, "registration"):
+            deformed = baselines.icp_tps(points, preop.centerline.edges, g2.positions, P).points
+    else:
+        with _timed(timings, "graph2d"):
+            c2 = _classify_2d(g2, P, preop.centre)
+        with _timed(timings, "matching"):
+            candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
+        with _timed(timings, "deformation"):
+            trials = [(_deform_with(preop, g2, c2, P, c, alpha, beta), c) for c in candidates]
+            (deformed, energy), best = min(trials, key=lambda t: t[0][1])
+        source = f"{best.source} ({len(candidates)} candidate(s))"
+    timings["intraop"] = sum(timings.values())
+    return FrameResult(preop.centerline.with_points(deformed), P, g2, c2, energy, source, timings)
+
+
+def _read_ground_truth(case: Case) -> Centerline | None:
+    path = Path(case.case_dir) / "gt.json" if case.case_dir is not None else None
+    if path is None or not path.is_file():
+        return None
+    try:
+        return Centerline.from_dict(json.loads(path.read_text())["intraop_centerline"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"{path}: unreadable ground truth ({exc})") from None
+
+
+def _vessel_mask(case: Case, progress=None) -> np.ndarray:
+    if case.fluoro_mask is not None:
+        return case.fluoro_mask
+    from . import segmentation
+
+    _report(progress, 0.4, "segmenting vessels in the frame")
+    return segmentation.segment_fluoro(case.fluoro.image)
+
+
+def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
+             target: str = "renal_left", refine_pose: bool = True, alpha: float = 500.0,
+             beta: float = 10.0) -> PlanResult:
+    """Run the whole job on a loaded case: pre-op graph, frame registration, path, errors."""
+    t0 = time.perf_counter()
+    _report(progress, 0.0, "pre-operative skeleton graph")
+    preop = prepare_preop(case, progress)
+    timings = dict(preop.timings)
+    with _timed(timings, "segmentation2d"):
+        mask2d = _vessel_mask(case, progress)
+    _report(progress, 0.5, f"registering ({method})")
+    frame = register_frame(preop, mask2d, case.P, method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
+    timings.update(frame.timings)
+    timings["registration"] = frame.timings["intraop"]
+    _report(progress, 0.85, "planning the catheter path")
+    with _timed(timings, "planning"):
+        path = planning.plan_path(frame.deformed, start=start, target=target)
+    sk_edges = frame.skeleton2d.edges()
+    gt = _read_ground_truth(case)
+    errors = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions, sk_edges)
+    timings["total"] = time.perf_counter() - t0
+    _report(progress, 1.0, "done")
+    return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
+                      sk_edges, case.fluoro.image, timings, errors,
+                      {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence})
+
+
+def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
+    """Load a case folder (DESIGN.md section 4), run it, and write the outputs if ``out_dir``.
+
+    ``overrides`` are the case-file flags (``ct``, ``aorta_mask``, ``skeleton3d``, ``fluoro``,
+    ``fluoro_mask``, ``geometry``, ``frame``) and the options of :func:`run_case`.
+    """
+    load_keys = {"ct", "aorta_mask", "skeleton3d", "fluoro", "fluoro_mask", "geometry", "frame"}
+    case = load_case(case_dir, **{k: v for k, v in overrides.items() if k in load_keys and v is not None})
+    result = run_case(case, method=method, progress=progress,
+                      **{k: v for k, v in overrides.items() if k not in load_keys})
+    if out_dir is not None:
+        write_outputs(result, out_dir)
+    return result
+
+
+def write_outputs(result: PlanResult, out_dir) -> dict:
+    """Write result.json, deformed_centerline.vtp, path.mrk.json and overlay.png into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {name: out_dir / name for name in
+             ("deformed_centerline.vtp", "path.mrk.json", "overlay.png", "result.json")}
+    export.write_centerline_vtp(paths["deformed_centerline.vtp"], result.deformed)
+    export.write_path_markups(paths["path.mrk.json"], result.path.points)
+    layers = [
+        export.OverlayLayer("pre-operative (projected)", project(result.P, result.preop.points),
+                            result.preop.edges, "tab:orange"),
+        export.OverlayLayer("deformed (projected)", project(result.P, result.deformed.points),
+                            result.deformed.edges, "tab:cyan"),
+        export.OverlayLayer("catheter path", project(result.P, result.path.points), None, "lime"),
+    ]
+    export.render_overlay(paths["overlay.png"], result.fluoro_image, skeleton2d=result.skeleton2d_points,
+                          layers=layers)
+    # result.json last: its presence means every other output is complete
+    export.write_result_json(paths["result.json"], result.to_dict())
+    return paths
