@@ -13,7 +13,8 @@ import hashlib
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,12 +22,13 @@ import pydicom
 import SimpleITK as sitk
 from PIL import Image
 from pydicom.dataset import FileDataset, FileMetaDataset
+from pydicom.pixels import pixel_array as decode_dicom_pixels
 from pydicom.tag import Tag
 from pydicom.uid import (CTImageStorage, ExplicitVRLittleEndian, PYDICOM_IMPLEMENTATION_UID,
                          XRayAngiographicImageStorage, generate_uid)
 from pydicom.valuerep import format_number_as_ds
 
-from .projection import CArmGeometry
+from .projection import CArmGeometry, projection_matrix_from_carm, read_geometry_json
 
 __all__ = [
     "InputError",
@@ -41,9 +43,25 @@ __all__ = [
     "write_fluoro_dicom",
     "write_png",
     "write_mask_png",
+    "read_ct",
+    "read_mask",
+    "check_same_grid",
+    "Fluoro",
+    "read_fluoro",
+    "read_mask_2d",
+    "Case",
+    "CASE_INPUTS",
+    "find_case_file",
+    "load_case",
 ]
 
 VOLUME_SUFFIXES = (".nrrd", ".nii.gz", ".nii", ".mha", ".mhd")
+DICOM_SUFFIXES = (".dcm", ".dicom")
+RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: Refuse 2D frames larger than this many pixels (a 10k x 10k frame), before decoding them.
+MAX_FRAME_PIXELS = 100_000_000
+#: BT.601 luma weights, as used to turn RGB frames into grey.
+LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
 
 
 class InputError(ValueError):
@@ -429,3 +447,510 @@ def write_mask_png(path, mask) -> None:
     """Write a 2D mask as an 8-bit PNG: non-zero -> 255, zero -> 0."""
     mask = _check_2d(mask, f"{path}")
     write_png(path, np.where(mask != 0, 255, 0).astype(np.uint8))
+
+
+# --------------------------------------------------------------------------- CT and masks
+
+def read_ct(path) -> Volume:
+    """Read a CT from a DICOM series folder or an NRRD / NIfTI / MHA file.
+
+    A folder holding several series gives the one with the most slices (with a warning
+    naming the folder and the series UIDs). Missing slices, uneven slice spacing, sheared
+    (gantry-tilted) stacks or mixed slice sizes raise :class:`InputError` naming the folder.
+    """
+    path = Path(path)
+    _check_readable(path)
+    if path.is_dir():
+        return _read_dicom_series(path)
+    if _is_dicom_file(path):
+        raise InputError(f"{path}: a single DICOM file; give the folder holding the CT series")
+    volume = read_volume(path)
+    if min(volume.shape) < 2:
+        raise InputError(f"{path}: volume of shape {tuple(volume.shape)} is not 3D (a single slice?)")
+    return volume
+
+
+def _read_dicom_series(folder: Path) -> Volume:
+    files, series_uid = _pick_dicom_series(folder)
+    _check_slice_geometry(folder, files, series_uid)
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(list(files))
+    try:
+        image = reader.Execute()
+    except RuntimeError as exc:
+        raise InputError(f"{folder}: cannot read DICOM series {series_uid} ({_last_line(exc)})") from None
+    return Volume.from_sitk(image)
+
+
+def _last_line(exc: Exception) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[-1] if text else type(exc).__name__
+
+
+def _pick_dicom_series(folder: Path) -> tuple[tuple[str, ...], str]:
+    """The file names (sorted by GDCM along the slice normal) of the longest series in ``folder``."""
+    series_ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+    if not series_ids:
+        raise InputError(f"{folder}: no DICOM series found in the folder")
+    files = {uid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), uid) for uid in series_ids}
+    chosen = max(sorted(series_ids), key=lambda uid: len(files[uid]))
+    if len(series_ids) > 1:
+        others = ", ".join(f"{uid} ({len(files[uid])} slices)" for uid in sorted(series_ids) if uid != chosen)
+        warnings.warn(f"{folder}: {len(series_ids)} DICOM series found; using {chosen} "
+                      f"({len(files[chosen])} slices), ignoring {others}", stacklevel=3)
+    return files[chosen], chosen
+
+
+def _read_slice_header(file: str) -> pydicom.Dataset:
+    try:
+        return pydicom.dcmread(file, stop_before_pixels=True)
+    except Exception as exc:  # any parser failure of a foreign file is bad input
+        raise InputError(f"{file}: not a readable DICOM file ({_last_line(exc)})") from None
+
+
+def _header_vector(ds: pydicom.Dataset, keyword: str, size: int, file: str) -> np.ndarray:
+    value = ds.get(keyword)
+    if value is None or len(value) != size:
+        raise InputError(f"{file}: missing or malformed {keyword}")
+    return np.array([float(v) for v in value])
+
+
+def _check_slice_geometry(folder: Path, files, series_uid: str) -> None:
+    """Refuse series whose slices do not form one regular grid (missing or uneven slices)."""
+    if len(files) < 2:
+        raise InputError(f"{folder}: DICOM series {series_uid} has only {len(files)} slice; a CT needs at least 2")
+    headers = [_read_slice_header(f) for f in files]
+    orientations = np.array([_header_vector(h, "ImageOrientationPatient", 6, f) for h, f in zip(headers, files)])
+    positions = np.array([_header_vector(h, "ImagePositionPatient", 3, f) for h, f in zip(headers, files)])
+    in_plane = {(int(h.get("Rows", 0)), int(h.get("Columns", 0)),
+                 tuple(np.round(_header_vector(h, "PixelSpacing", 2, f), 6))) for h, f in zip(headers, files)}
+    if np.abs(orientations - orientations[0]).max() > 1e-4:
+        raise InputError(f"{folder}: slices of series {series_uid} have different orientations")
+    if len(in_plane) > 1:
+        raise InputError(f"{folder}: slices of series {series_uid} differ in size or pixel spacing")
+    normal = np.cross(orientations[0, :3], orientations[0, 3:])
+    steps = np.diff(positions, axis=0)
+    along = steps @ normal
+    step = float(np.median(np.abs(along)))
+    if step < 1e-6:
+        raise InputError(f"{folder}: several slices of series {series_uid} share one position")
+    sideways = np.linalg.norm(steps - np.outer(along, normal), axis=1)
+    if sideways.max() > max(0.01, 0.01 * step):
+        raise InputError(f"{folder}: slices of series {series_uid} are sheared (gantry tilt of "
+                         f"{np.degrees(np.arctan2(sideways.max(), step)):.2f} deg); resample them first")
+    worst = int(np.argmax(np.abs(np.abs(along) - step)))
+    if abs(abs(along[worst]) - step) > max(0.01, 0.01 * step):
+        gap = abs(along[worst])
+        problem = "missing slices" if gap > 1.5 * step else "inconsistent slice spacing"
+        raise InputError(f"{folder}: {problem} in series {series_uid} ({gap:.4g} mm between slices "
+                         f"{worst + 1} and {worst + 2} where the spacing is {step:.4g} mm)")
+
+
+def read_mask(path) -> Volume:
+    """Read a binary 3D mask or skeleton (non-zero = foreground) as a bool :class:`Volume`."""
+    path = Path(path)
+    volume = read_ct(path) if path.is_dir() else read_volume(path)
+    mask = volume.array != 0
+    if not mask.any():
+        raise InputError(f"{path}: no foreground voxels (the mask is empty)")
+    if mask.all():
+        raise InputError(f"{path}: every voxel is foreground (an inverted or non-binary mask?)")
+    return volume.with_array(mask)
+
+
+def check_same_grid(volume: Volume, reference: Volume, path, reference_name: str = "the CT") -> None:
+    """Raise :class:`InputError` unless ``volume`` lies on the grid of ``reference``."""
+    same = (volume.shape == reference.shape
+            and np.allclose(volume.spacing, reference.spacing, rtol=0, atol=1e-4)
+            and np.allclose(volume.origin, reference.origin, rtol=0, atol=1e-3)
+            and np.allclose(volume.direction, reference.direction, rtol=0, atol=1e-5))
+    if not same:
+        raise InputError(f"{path}: its grid (shape {tuple(volume.shape)}, spacing {np.round(volume.spacing, 4).tolist()}, "
+                         f"origin {np.round(volume.origin, 3).tolist()}) differs from {reference_name}'s "
+                         f"(shape {tuple(reference.shape)}, spacing {np.round(reference.spacing, 4).tolist()}, "
+                         f"origin {np.round(reference.origin, 3).tolist()})")
+
+
+# --------------------------------------------------------------------------- fluoroscopy
+
+CARM_TAGS = ("DistanceSourceToDetector", "DistanceSourceToPatient", "ImagerPixelSpacing",
+             "PositionerPrimaryAngle", "PositionerSecondaryAngle", "Rows", "Columns")
+
+
+@dataclass
+class Fluoro:
+    """One fluoroscopic frame.
+
+    Attributes
+    ----------
+    image : numpy.ndarray, float32, shape (rows, cols)
+        Intensities in the MONOCHROME2 sense (bigger = brighter); ``u`` = column, ``v`` = row.
+    pixel_spacing : tuple of float or None
+        ``(row, col)`` mm: ImagerPixelSpacing, else PixelSpacing, else None.
+    carm : CArmGeometry or None
+        The C-arm geometry from the DICOM tags, None if any of :data:`CARM_TAGS` is missing.
+    path : Path or None
+        The file it was read from.
+    frame, n_frames : int
+        Which frame of how many in the file.
+    missing_tags : tuple of str
+        The C-arm tags the file lacks (empty when ``carm`` is set).
+    """
+
+    image: np.ndarray
+    pixel_spacing: tuple[float, float] | None
+    carm: CArmGeometry | None
+    path: Path | None
+    frame: int = 0
+    n_frames: int = 1
+    missing_tags: tuple[str, ...] = ()
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape
+
+
+def _is_dicom_file(path: Path) -> bool:
+    if path.suffix.lower() in DICOM_SUFFIXES:
+        return True
+    if path.suffix.lower() in RASTER_SUFFIXES:
+        return False
+    with open(path, "rb") as handle:
+        return handle.read(132)[128:132] == b"DICM"
+
+
+def read_fluoro(path, frame: int = 0) -> Fluoro:
+    """Read one frame of a DICOM XA / RF file or a PNG / JPG / TIFF / BMP image.
+
+    DICOM frames may be single- or multi-frame (``frame`` picks one); MONOCHROME1 is
+    inverted so that bigger is always brighter; a Rescale Slope / Intercept is applied;
+    colour images become grey (BT.601 luma). An out-of-range ``frame``, a corrupt or empty
+    file, NaN pixels or a frame over :data:`MAX_FRAME_PIXELS` raise :class:`InputError`.
+    """
+    path = Path(path)
+    _check_readable(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder; expected a fluoroscopy image file")
+    if _is_dicom_file(path):
+        fluoro = _read_fluoro_dicom(path, frame)
+    elif path.suffix.lower() in RASTER_SUFFIXES:
+        fluoro = _read_fluoro_raster(path, frame)
+    else:
+        raise InputError(f"{path}: unknown image format (expected DICOM, PNG, JPG, TIFF or BMP)")
+    if not np.all(np.isfinite(fluoro.image)):
+        raise InputError(f"{path}: image contains NaN or infinite values")
+    return fluoro
+
+
+def _check_frame_index(path: Path, frame: int, n_frames: int) -> int:
+    if not isinstance(frame, (int, np.integer)) or not 0 <= frame < n_frames:
+        raise InputError(f"{path}: frame {frame} out of range (the file has {n_frames} frame"
+                         f"{'s' if n_frames != 1 else ''})")
+    return int(frame)
+
+
+def _check_frame_size(path: Path, rows: int, cols: int) -> None:
+    if rows <= 0 or cols <= 0:
+        raise InputError(f"{path}: image has no pixels ({rows}x{cols})")
+    if rows * cols > MAX_FRAME_PIXELS:
+        raise InputError(f"{path}: image of {rows}x{cols} pixels is larger than the {MAX_FRAME_PIXELS} pixel limit")
+
+
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    return (rgb[..., :3].astype(np.float64) @ LUMA_WEIGHTS).astype(np.float32)
+
+
+def _read_fluoro_dicom(path: Path, frame: int) -> Fluoro:
+    try:
+        ds = pydicom.dcmread(path)
+    except Exception as exc:  # any parser failure of a foreign file is bad input
+        raise InputError(f"{path}: not a readable DICOM file ({_last_line(exc)})") from None
+    if "PixelData" not in ds:
+        raise InputError(f"{path}: DICOM file holds no pixel data")
+    rows, cols = int(ds.get("Rows") or 0), int(ds.get("Columns") or 0)
+    _check_frame_size(path, rows, cols)
+    n_frames = int(ds.get("NumberOfFrames") or 1)
+    frame = _check_frame_index(path, frame, n_frames)
+    try:
+        pixels = decode_dicom_pixels(ds, index=frame)
+    except Exception as exc:  # decoder plugins raise many types; all mean "cannot decode"
+        syntax = ds.file_meta.get("TransferSyntaxUID", "unknown")
+        raise InputError(f"{path}: cannot decode pixel data (transfer syntax {syntax}: {_last_line(exc)})") from None
+    image = _luminance(pixels) if pixels.ndim == 3 else pixels.astype(np.float32)
+    if image.shape != (rows, cols):
+        raise InputError(f"{path}: decoded frame is {image.shape}, expected {rows}x{cols}")
+    if ds.get("PhotometricInterpretation") == "MONOCHROME1":
+        image = _invert_stored_range(ds, image)
+    slope, intercept = float(ds.get("RescaleSlope") or 1.0), float(ds.get("RescaleIntercept") or 0.0)
+    image = (image * slope + intercept).astype(np.float32)
+    carm, missing = _carm_from_dataset(ds, path)
+    return Fluoro(image=image, pixel_spacing=_dicom_pixel_spacing(ds), carm=carm, path=path,
+                  frame=frame, n_frames=n_frames, missing_tags=missing)
+
+
+def _invert_stored_range(ds: pydicom.Dataset, image: np.ndarray) -> np.ndarray:
+    """MONOCHROME1 -> MONOCHROME2: mirror the stored values in their representable range."""
+    bits = int(ds.get("BitsStored") or ds.get("BitsAllocated") or 16)
+    if int(ds.get("PixelRepresentation") or 0) == 1:
+        low, high = -(2 ** (bits - 1)), 2 ** (bits - 1) - 1
+    else:
+        low, high = 0, 2 ** bits - 1
+    return (low + high - image).astype(np.float32)
+
+
+def _dicom_pixel_spacing(ds: pydicom.Dataset) -> tuple[float, float] | None:
+    for keyword in ("ImagerPixelSpacing", "PixelSpacing"):
+        value = ds.get(keyword)
+        if value is not None and len(value) == 2:
+            return float(value[0]), float(value[1])
+    return None
+
+
+def _carm_from_dataset(ds: pydicom.Dataset, path: Path) -> tuple[CArmGeometry | None, tuple[str, ...]]:
+    """The C-arm geometry of the tags, or ``(None, missing tag names)``."""
+    missing = tuple(tag for tag in CARM_TAGS if ds.get(tag) in (None, "") or
+                    (tag == "ImagerPixelSpacing" and len(ds.get(tag)) != 2))
+    if missing:
+        return None, missing
+    carm = CArmGeometry(sid=float(ds.DistanceSourceToDetector), sod=float(ds.DistanceSourceToPatient),
+                        pixel_spacing=(float(ds.ImagerPixelSpacing[0]), float(ds.ImagerPixelSpacing[1])),
+                        primary_angle=float(ds.PositionerPrimaryAngle),
+                        secondary_angle=float(ds.PositionerSecondaryAngle),
+                        rows=int(ds.Rows), cols=int(ds.Columns))
+    if not (0 < carm.sod < carm.sid) or min(carm.pixel_spacing) <= 0:
+        raise InputError(f"{path}: inconsistent C-arm tags (need 0 < DistanceSourceToPatient={carm.sod} < "
+                         f"DistanceSourceToDetector={carm.sid} and positive ImagerPixelSpacing)")
+    return carm, ()
+
+
+def _read_fluoro_raster(path: Path, frame: int) -> Fluoro:
+    try:
+        with Image.open(path) as opened:
+            _check_frame_size(path, opened.height, opened.width)
+            n_frames = int(getattr(opened, "n_frames", 1))
+            frame = _check_frame_index(path, frame, n_frames)
+            opened.seek(frame)
+            image = _raster_to_grey(opened)
+    except InputError:
+        raise
+    except Exception as exc:  # Pillow raises many types for truncated or foreign files
+        raise InputError(f"{path}: not a readable image ({_last_line(exc)})") from None
+    return Fluoro(image=image, pixel_spacing=None, carm=None, path=path, frame=frame, n_frames=n_frames,
+                  missing_tags=CARM_TAGS)
+
+
+def _raster_to_grey(image: Image.Image) -> np.ndarray:
+    """A Pillow image as float32 grey: grey modes as stored, colour through BT.601 luma."""
+    if image.mode in ("1", "L", "I", "F") or image.mode.startswith("I;16"):
+        return np.asarray(image).astype(np.float32)
+    if image.mode in ("LA", "La"):
+        return np.asarray(image)[..., 0].astype(np.float32)
+    return _luminance(np.asarray(image.convert("RGB")))
+
+
+def read_mask_2d(path, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read a 2D vessel mask (non-zero = vessel) as a bool array of the frame's shape.
+
+    Lossy JPEG masks are thresholded at half their maximum instead, since compression
+    turns the background's zeros into small values.
+    """
+    path = Path(path)
+    grey = read_fluoro(path).image
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        mask = grey > 0.5 * grey.max()
+    else:
+        mask = grey != 0
+    if shape is not None and mask.shape != tuple(shape):
+        raise InputError(f"{path}: mask is {mask.shape[0]}x{mask.shape[1]} pixels but the frame is "
+                         f"{shape[0]}x{shape[1]}")
+    if not mask.any():
+        raise InputError(f"{path}: no foreground pixels (the mask is empty)")
+    if mask.all():
+        raise InputError(f"{path}: every pixel is foreground (an inverted or non-binary mask?)")
+    return mask
+
+
+# --------------------------------------------------------------------------- case folder
+
+#: Case-folder inputs (DESIGN.md section 4): name -> (file stem, accepted suffixes in the
+#: order they are tried; "/" means a folder, i.e. a DICOM series).
+CASE_INPUTS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "ct": ("ct", ("/",) + VOLUME_SUFFIXES),
+    "aorta_mask": ("aorta_mask", VOLUME_SUFFIXES),
+    "skeleton3d": ("skeleton3d", VOLUME_SUFFIXES),
+    "fluoro": ("fluoro", DICOM_SUFFIXES + RASTER_SUFFIXES),
+    "fluoro_mask": ("fluoro_mask", (".png", ".tif", ".tiff", ".bmp")),
+    "geometry": ("geometry", (".json",)),
+}
+#: 3D inputs, most processed first: the first one present is used.
+PRECEDENCE_3D = ("skeleton3d", "aorta_mask", "ct")
+_READERS_3D = {"skeleton3d": read_mask, "aorta_mask": read_mask, "ct": read_ct}
+
+
+def find_case_file(case_dir, stem: str, suffixes) -> Path | None:
+    """The first ``case_dir/stem + suffix`` that exists (``"/"`` = a folder), or None.
+
+    When several exist, the first in ``suffixes`` order is used and a warning names the others.
+    """
+    case_dir = Path(case_dir)
+    found = []
+    for suffix in suffixes:
+        candidate = case_dir / stem if suffix == "/" else case_dir / f"{stem}{suffix}"
+        if (candidate.is_dir() if suffix == "/" else candidate.is_file()):
+            found.append(candidate)
+    if len(found) > 1:
+        warnings.warn(f"{case_dir}: several {stem} inputs ({', '.join(p.name for p in found)}); "
+                      f"using {found[0].name}", stacklevel=2)
+    return found[0] if found else None
+
+
+@dataclass
+class Case:
+    """The inputs of one planning case, as read by :func:`load_case`.
+
+    Only the most processed 3D input is read (``skeleton3d`` > ``aorta_mask`` > ``ct``);
+    the other 3D fields stay None. ``paths`` names the files used, ``available`` every
+    input the folder and the flags offered.
+    """
+
+    case_dir: Path | None
+    ct: Volume | None
+    aorta_mask: Volume | None
+    skeleton3d: Volume | None
+    fluoro: Fluoro
+    fluoro_mask: np.ndarray | None
+    P: np.ndarray
+    paths: dict[str, Path] = field(default_factory=dict)
+    available: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def stage_3d(self) -> str:
+        """Which 3D input was loaded: ``"skeleton3d"``, ``"aorta_mask"`` or ``"ct"``."""
+        return next(name for name in PRECEDENCE_3D if getattr(self, name) is not None)
+
+    @property
+    def reference_volume(self) -> Volume:
+        """Whichever 3D volume was loaded (they all share the CT grid)."""
+        return getattr(self, self.stage_3d)
+
+    def load_input(self, name: str) -> Volume:
+        """Read another available 3D input (e.g. the aorta mask for the surface) on the same grid.
+
+        Raises :class:`InputError` if the case has no such input or its grid differs from
+        :attr:`reference_volume`'s.
+        """
+        if name not in _READERS_3D:
+            raise ValueError(f"unknown 3D input {name!r}; expected one of {PRECEDENCE_3D}")
+        if getattr(self, name) is not None:
+            return getattr(self, name)
+        if name not in self.available:
+            raise InputError(f"{self.case_dir}: the case has no {name} input")
+        volume = _READERS_3D[name](self.available[name])
+        check_same_grid(volume, self.reference_volume, self.available[name], f"the {self.stage_3d}")
+        return volume
+
+
+def _gather_inputs(case_dir: Path | None, flags: dict[str, Path | None]) -> dict[str, Path]:
+    """Every input on offer, flags first.
+
+    A flag for one side (3D: ct / aorta_mask / skeleton3d; 2D: fluoro / fluoro_mask) hides
+    the folder's files of that side that it could contradict: any 3D flag hides all folder
+    3D inputs, and a ``fluoro`` flag hides the folder's ``fluoro_mask`` (drawn on another frame).
+    """
+    chosen = {name: Path(path) for name, path in flags.items() if path is not None}
+    hidden = set()
+    if any(name in chosen for name in PRECEDENCE_3D):
+        hidden.update(PRECEDENCE_3D)
+    if "fluoro" in chosen:
+        hidden.add("fluoro_mask")
+    if case_dir is not None:
+        for name, (stem, suffixes) in CASE_INPUTS.items():
+            if name not in chosen and name not in hidden:
+                found = find_case_file(case_dir, stem, suffixes)
+                if found is not None:
+                    chosen[name] = found
+    for name, path in chosen.items():
+        if not path.exists():
+            raise InputError(f"{path}: no such file (given for {name})")
+    return chosen
+
+
+def _folder_listing(case_dir: Path | None, limit: int = 20) -> str:
+    if case_dir is None:
+        return "no case folder was given"
+    names = sorted(p.name + ("/" if p.is_dir() else "") for p in case_dir.iterdir())
+    shown = ", ".join(names[:limit]) + (f", ... ({len(names)} entries)" if len(names) > limit else "")
+    return f"the folder holds: {shown or 'nothing'}"
+
+
+def _require_inputs(case_dir: Path | None, available: dict[str, Path]) -> None:
+    where = case_dir if case_dir is not None else "case"
+    if not any(name in available for name in PRECEDENCE_3D):
+        raise InputError(f"{where}: no 3D input (skeleton3d.*, aorta_mask.* or ct/ / ct.nrrd|.nii.gz|.mha); "
+                         f"{_folder_listing(case_dir)}")
+    if "fluoro" not in available:
+        raise InputError(f"{where}: no fluoroscopy frame (fluoro.dcm or fluoro.png|.jpg|.tif); "
+                         f"{_folder_listing(case_dir)}")
+
+
+def _projection_for_case(case_dir: Path | None, available: dict[str, Path], fluoro: Fluoro,
+                         reference: Volume) -> tuple[np.ndarray, Path]:
+    """P from geometry.json, else from the frame's C-arm tags with the isocentre at the volume centre."""
+    if "geometry" in available:
+        try:
+            return read_geometry_json(available["geometry"]), available["geometry"]
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    if fluoro.carm is None:
+        where = case_dir if case_dir is not None else fluoro.path
+        raise InputError(f"{where}: geometry.json is missing and {fluoro.path} has no C-arm tags "
+                         f"(lacks {', '.join(fluoro.missing_tags)})")
+    try:
+        return projection_matrix_from_carm(fluoro.carm, reference.center_lps()), fluoro.path
+    except ValueError as exc:
+        raise InputError(f"{fluoro.path}: {exc}") from None
+
+
+def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluoro=None, fluoro_mask=None,
+              geometry=None, frame: int = 0) -> Case:
+    """Read a case folder (DESIGN.md section 4); keyword paths override the folder's files.
+
+    On the 3D side only the most processed input present is read: ``skeleton3d`` >
+    ``aorta_mask`` > ``ct`` (a 500 MB CT is not read when a skeleton is there; use
+    :meth:`Case.load_input` for another one). Any 3D flag replaces all the folder's 3D
+    inputs. On the 2D side the frame ``fluoro`` (frame number ``frame``) is always read and
+    ``fluoro_mask``, if present, must match its pixel grid; a ``fluoro`` flag hides the
+    folder's ``fluoro_mask``.
+
+    ``P`` comes from ``geometry.json`` when present. Otherwise it is built from the DICOM
+    frame's C-arm tags with :func:`projection.projection_matrix_from_carm`, placing the
+    C-arm isocentre at the centre of the loaded 3D volume (:meth:`Volume.center_lps`),
+    since an XA file does not say where the isocentre lies in the CT.
+
+    Raises
+    ------
+    InputError
+        A missing input (the message lists what the folder holds), an unreadable or empty
+        file, a mask off the frame's grid, or no geometry at all.
+    """
+    if case_dir is not None:
+        case_dir = Path(case_dir)
+        if not case_dir.is_dir():
+            raise InputError(f"{case_dir}: case folder does not exist")
+    flags = {"ct": ct, "aorta_mask": aorta_mask, "skeleton3d": skeleton3d, "fluoro": fluoro,
+             "fluoro_mask": fluoro_mask, "geometry": geometry}
+    available = _gather_inputs(case_dir, flags)
+    _require_inputs(case_dir, available)
+    stage = next(name for name in PRECEDENCE_3D if name in available)
+    volumes = {name: None for name in PRECEDENCE_3D}
+    volumes[stage] = _READERS_3D[stage](available[stage])
+    frame_2d = read_fluoro(available["fluoro"], frame=frame)
+    paths = {stage: available[stage], "fluoro": available["fluoro"]}
+    mask_2d = None
+    if "fluoro_mask" in available:
+        mask_2d = read_mask_2d(available["fluoro_mask"], shape=frame_2d.shape)
+        paths["fluoro_mask"] = available["fluoro_mask"]
+    P, paths["geometry"] = _projection_for_case(case_dir, available, frame_2d, volumes[stage])
+    return Case(case_dir=case_dir, ct=volumes["ct"], aorta_mask=volumes["aorta_mask"],
+                skeleton3d=volumes["skeleton3d"], fluoro=frame_2d, fluoro_mask=mask_2d, P=P,
+                paths=paths, available=available)
