@@ -501,9 +501,12 @@ def _pick_dicom_series(folder: Path) -> tuple[tuple[str, ...], str]:
     return files[chosen], chosen
 
 
+SLICE_GEOMETRY_TAGS = ["ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "Rows", "Columns"]
+
+
 def _read_slice_header(file: str) -> pydicom.Dataset:
     try:
-        return pydicom.dcmread(file, stop_before_pixels=True)
+        return pydicom.dcmread(file, stop_before_pixels=True, specific_tags=SLICE_GEOMETRY_TAGS)
     except Exception as exc:  # any parser failure of a foreign file is bad input
         raise InputError(f"{file}: not a readable DICOM file ({_last_line(exc)})") from None
 
