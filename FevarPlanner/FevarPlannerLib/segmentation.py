@@ -1,0 +1,912 @@
+"""Segmentation stage: CT -> aorta lumen mask -> surface, and fluoroscopy frame -> vessel mask.
+
+CT side (paper Section II-A): a 6-block UNet (convolution, max-pooling, transposed
+convolution) segments the lumen slice by slice; it is trained with cross-entropy, SGD with
+momentum 0.9, learning rate 1e-3 and batch size 1, with "linear mapping" (random linear
+intensity maps) and "window slicing" (random crop windows, i.e. varying aorta position) as
+augmentation. The result is cleaned like MATLAB's ``regionprops`` / ``bwareaopen`` (largest
+component, small objects removed) plus hole filling, and turned into a surface by marching
+cubes. A learning-free alternative (HU window + seeded region growing) serves for
+comparison and as a fallback.
+
+Fluoroscopy side: multi-scale Hessian vesselness (Frangi) on a reduced-resolution copy of the
+frame, hysteresis thresholding and a local-contrast refinement, upsampled back to the frame
+grid.
+
+Volumes are :class:`io.Volume` objects, arrays indexed ``(k, j, i)``; world coordinates are
+LPS millimetres.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+import torch
+import vtk
+from scipy import ndimage as ndi
+from skimage import measure
+from skimage.filters import apply_hysteresis_threshold
+from torch import nn
+from torch.nn import functional as F
+from vtk.util import numpy_support
+
+from .io import InputError, Volume, atomic_path, read_volume
+
+__all__ = [
+    "UNet",
+    "train_unet",
+    "load_unet",
+    "default_model_path",
+    "segment_ct_unet",
+    "segment_ct_threshold",
+    "find_aorta_seed",
+    "segment_ct",
+    "postprocess_mask",
+    "mask_surface",
+    "write_surface_vtp",
+    "segment_fluoro",
+    "vesselness",
+    "dice",
+    "read_case",
+]
+
+#: Where the shipped weights live, relative to this package (FevarPlanner/FevarPlannerLib).
+MODEL_RELATIVE_PATH = Path("..", "..", "Resources", "Models", "aorta_unet.pt")
+
+#: Default preprocessing of CT slices for the network: in-plane spacing (mm) the slices are
+#: resampled to, and the HU window mapped linearly onto [0, 1].
+DEFAULT_PIXEL_MM = 1.0
+DEFAULT_NET_HU_WINDOW = (-200.0, 800.0)
+
+CT_SUFFIXES = (".nrrd", ".nii.gz", ".nii", ".mha", ".mhd")
+
+
+# ----------------------------------------------------------------------------------------
+# UNet
+# ----------------------------------------------------------------------------------------
+
+class _DoubleConv(nn.Sequential):
+    """Two 3x3 convolutions, each followed by batch normalisation and ReLU."""
+
+    def __init__(self, in_channels: int, out_channels: int):
+        super().__init__(
+            nn.Conv2d(in_channels, out_channels, 3, padding=1, bias=False),
+            nn.BatchNorm2d(out_channels),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(out_channels, out_channels, 3, padding=1, bias=False),
+            nn.BatchNorm2d(out_channels),
+            nn.ReLU(inplace=True),
+        )
+
+
+class UNet(nn.Module):
+    """A 2D UNet with ``depth`` resolution blocks (the paper's "6-block Unet").
+
+    Encoder blocks (two conv + BN + ReLU) are separated by 2x2 max-pooling; decoder blocks
+    upsample with a 2x2 transposed convolution, concatenate the skip connection and apply
+    two conv + BN + ReLU; a 1x1 convolution gives per-class logits. Inputs of any size are
+    padded (replicate) to a multiple of ``2 ** (depth - 1)`` and the output is cropped back.
+
+    Parameters
+    ----------
+    in_channels : int
+        Image channels (1 for CT).
+    n_classes : int
+        Output classes (2: background, lumen).
+    base : int
+        Channels of the first block; each deeper block doubles them up to ``max_channels``.
+    depth : int
+        Number of resolution blocks (6 in the paper).
+    max_channels : int
+        Cap on the channel count, to keep the weights small.
+    """
+
+    def __init__(self, in_channels: int = 1, n_classes: int = 2, base: int = 8, depth: int = 6,
+                 max_channels: int = 64):
+        super().__init__()
+        if depth < 2:
+            raise ValueError(f"UNet depth must be >= 2, got {depth}")
+        self.config = {"in_channels": in_channels, "n_classes": n_classes, "base": base, "depth": depth,
+                       "max_channels": max_channels}
+        widths = [min(base * 2 ** level, max_channels) for level in range(depth)]
+        self.encoders = nn.ModuleList()
+        previous = in_channels
+        for width in widths:
+            self.encoders.append(_DoubleConv(previous, width))
+            previous = width
+        self.pool = nn.MaxPool2d(2)
+        self.upsamplers = nn.ModuleList(
+            nn.ConvTranspose2d(widths[level + 1], widths[level], 2, stride=2) for level in range(depth - 1))
+        self.decoders = nn.ModuleList(_DoubleConv(2 * widths[level], widths[level]) for level in range(depth - 1))
+        self.head = nn.Conv2d(widths[0], n_classes, 1)
+
+    @property
+    def size_multiple(self) -> int:
+        """Spatial sizes the network sees internally are multiples of this."""
+        return 2 ** (len(self.encoders) - 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        height, width = x.shape[-2:]
+        m = self.size_multiple
+        pad_h, pad_w = (-height) % m, (-width) % m
+        if pad_h or pad_w:
+            x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
+        skips = []
+        for level, encoder in enumerate(self.encoders):
+            if level:
+                x = self.pool(x)
+            x = encoder(x)
+            skips.append(x)
+        x = skips.pop()
+        for level in reversed(range(len(self.decoders))):
+            x = self.upsamplers[level](x)
+            x = self.decoders[level](torch.cat([skips[level], x], dim=1))
+        return self.head(x)[..., :height, :width]
+
+
+# ----------------------------------------------------------------------------------------
+# CT preprocessing shared by training and inference
+# ----------------------------------------------------------------------------------------
+
+def _window(hu: torch.Tensor | np.ndarray, hu_window) -> torch.Tensor | np.ndarray:
+    """Linear map of ``hu_window`` onto [0, 1], clipped."""
+    lo, hi = hu_window
+    scaled = (hu - lo) / float(hi - lo)
+    return scaled.clamp(0.0, 1.0) if isinstance(scaled, torch.Tensor) else np.clip(scaled, 0.0, 1.0)
+
+
+def _model_grid_shape(ct: Volume, shape_ji: tuple[int, int], pixel_mm: float) -> tuple[int, int]:
+    """In-plane size of a ``shape_ji`` slice region resampled to ``pixel_mm`` pixels."""
+    return (max(1, int(round(shape_ji[0] * ct.spacing[1] / pixel_mm))),
+            max(1, int(round(shape_ji[1] * ct.spacing[0] / pixel_mm))))
+
+
+def _body_box(ct: Volume, threshold_hu: float = -400.0, margin_vox: int = 4) -> tuple[slice, slice]:
+    """In-plane (j, i) bounding box of everything denser than air, over all slices."""
+    body = (ct.array > threshold_hu).any(axis=0)
+    if not body.any():
+        return slice(0, ct.shape[1]), slice(0, ct.shape[2])
+    rows, cols = np.nonzero(body.any(axis=1))[0], np.nonzero(body.any(axis=0))[0]
+    return (slice(max(rows[0] - margin_vox, 0), min(rows[-1] + margin_vox + 1, ct.shape[1])),
+            slice(max(cols[0] - margin_vox, 0), min(cols[-1] + margin_vox + 1, ct.shape[2])))
+
+
+def _resample_slices(slices: np.ndarray, out_shape: tuple[int, int], mode: str = "bilinear") -> torch.Tensor:
+    """(n, H, W) array -> (n, 1, h, w) float tensor on the model grid."""
+    tensor = torch.as_tensor(np.ascontiguousarray(slices), dtype=torch.float32)[:, None]
+    if tuple(tensor.shape[-2:]) == tuple(out_shape):
+        return tensor
+    if mode == "nearest":
+        return F.interpolate(tensor, size=out_shape, mode="nearest")
+    return F.interpolate(tensor, size=out_shape, mode=mode, align_corners=False)
+
+
+# ----------------------------------------------------------------------------------------
+# Training
+# ----------------------------------------------------------------------------------------
+
+def read_case(case_dir) -> tuple[Volume, Volume]:
+    """Read ``(ct, aorta_mask)`` from a case folder (DESIGN.md section 4).
+
+    The CT is ``ct.nrrd`` / ``ct.nii.gz`` / ``ct.mha`` (or a DICOM series in ``ct/``), the label
+    ``aorta_mask.*`` on the same grid.
+    """
+    case_dir = Path(case_dir)
+    ct = _read_named_volume(case_dir, "ct", allow_dicom_dir=True)
+    mask = _read_named_volume(case_dir, "aorta_mask", allow_dicom_dir=False)
+    if mask.shape != ct.shape:
+        raise InputError(f"{case_dir}: aorta_mask shape {mask.shape} differs from ct shape {ct.shape}")
+    return ct, mask.with_array(mask.array > 0)
+
+
+def _read_named_volume(case_dir: Path, stem: str, allow_dicom_dir: bool) -> Volume:
+    for suffix in CT_SUFFIXES:
+        candidate = case_dir / f"{stem}{suffix}"
+        if candidate.exists():
+            return read_volume(candidate)
+    folder = case_dir / stem
+    if allow_dicom_dir and folder.is_dir():
+        reader = sitk.ImageSeriesReader()
+        files = reader.GetGDCMSeriesFileNames(str(folder))
+        if not files:
+            raise InputError(f"{folder}: no DICOM series found")
+        reader.SetFileNames(files)
+        return Volume.from_sitk(reader.Execute())
+    raise InputError(f"{case_dir}: no {stem} volume ({', '.join(stem + s for s in CT_SUFFIXES)})")
+
+
+class _SliceBank:
+    """Training slices of all cases, resampled once to the model grid (HU, float32)."""
+
+    def __init__(self, pairs, pixel_mm: float):
+        self.images, self.labels = [], []
+        for ct, mask in pairs:
+            if ct.shape != mask.shape:
+                raise ValueError(f"CT shape {ct.shape} and mask shape {mask.shape} differ")
+            rows, cols = _body_box(ct)
+            shape = _model_grid_shape(ct, (rows.stop - rows.start, cols.stop - cols.start), pixel_mm)
+            image = _resample_slices(ct.array[:, rows, cols].astype(np.float32), shape)[:, 0]
+            label = _resample_slices(mask.array[:, rows, cols].astype(np.float32), shape)[:, 0] > 0.5
+            self.images.append(image)
+            self.labels.append(label)
+        self.slices = [(c, k) for c, label in enumerate(self.labels) for k in range(label.shape[0])]
+        self.foreground = [(c, k) for c, k in self.slices if self.labels[c][k].any()]
+        if not self.slices:
+            raise ValueError("no training slices")
+
+    def sample(self, rng: np.random.Generator, crop: int, hu_window) -> tuple[torch.Tensor, torch.Tensor]:
+        """One augmented (image, label) pair: random slice, crop window and intensity map."""
+        pool = self.foreground if self.foreground and rng.random() < 0.9 else self.slices
+        case, k = pool[rng.integers(len(pool))]
+        image, label = self.images[case][k], self.labels[case][k]
+        top, left = self._crop_origin(rng, label, crop)
+        image = image[top:top + crop, left:left + crop]
+        label = label[top:top + crop, left:left + crop]
+        pad = (0, crop - image.shape[1], 0, crop - image.shape[0])
+        if any(pad):
+            image, label = F.pad(image, pad, value=-1000.0), F.pad(label, pad, value=False)
+        gain, offset = rng.uniform(0.85, 1.15), rng.uniform(-60.0, 60.0)   # linear intensity mapping
+        x = _window(image * gain + offset, hu_window)
+        return x[None, None].float(), label[None].long()
+
+    @staticmethod
+    def _crop_origin(rng, label: torch.Tensor, crop: int) -> tuple[int, int]:
+        """Window slicing: a crop that usually contains some lumen, at a random offset."""
+        height, width = label.shape
+        if height <= crop and width <= crop:
+            return 0, 0
+        if label.any() and rng.random() < 0.8:
+            fg = torch.nonzero(label)
+            centre = fg[rng.integers(len(fg))].numpy() + rng.integers(-crop // 3, crop // 3 + 1, size=2)
+        else:
+            centre = np.array([rng.integers(height), rng.integers(width)])
+        top = int(np.clip(centre[0] - crop // 2, 0, max(height - crop, 0)))
+        left = int(np.clip(centre[1] - crop // 2, 0, max(width - crop, 0)))
+        return top, left
+
+
+class TextProgress:
+    """A one-line progress bar on a text stream (a new line every ``line_every`` steps)."""
+
+    def __init__(self, stream=None, width: int = 30, line_every: int = 0):
+        self.stream = stream if stream is not None else sys.stderr
+        self.width, self.line_every = width, line_every
+        self.start = time.monotonic()
+
+    def __call__(self, done: int, total: int, message: str = "") -> None:
+        fraction = done / total if total else 1.0
+        elapsed = time.monotonic() - self.start
+        eta = elapsed / fraction - elapsed if fraction > 0 else float("nan")
+        bar = "#" * int(round(fraction * self.width))
+        line = f"[{bar:<{self.width}}] {done}/{total} {message} elapsed {elapsed:.0f}s eta {eta:.0f}s"
+        if self.line_every:
+            if done % self.line_every == 0 or done == total:
+                self.stream.write(line + "\n")
+        else:
+            self.stream.write("\r" + line + ("\n" if done == total else ""))
+        self.stream.flush()
+
+
+def _as_training_pairs(data) -> list[tuple[Volume, Volume]]:
+    pairs = []
+    for item in data:
+        if isinstance(item, (str, Path)):
+            pairs.append(read_case(item))
+        else:
+            ct, mask = item
+            pairs.append((ct, mask.with_array(np.asarray(mask.array) > 0)))
+    if not pairs:
+        raise ValueError("train_unet needs at least one (ct, mask) pair or case folder")
+    return pairs
+
+
+def _save_checkpoint(path: Path, model: UNet, optimizer, iteration: int, rng: np.random.Generator,
+                     settings: dict, losses: list[float]) -> None:
+    state = {
+        "format": "fevar-aorta-unet-1",
+        "model_config": model.config,
+        "model_state": model.state_dict(),
+        "optimizer_state": optimizer.state_dict(),
+        "iteration": iteration,
+        "rng_state": rng.bit_generator.state,
+        "torch_rng_state": torch.get_rng_state(),
+        "settings": settings,
+        "losses": losses,
+    }
+    with atomic_path(path, suffix=".pt") as tmp:
+        torch.save(state, tmp)
+
+
+def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, momentum: float = 0.9,
+               batch_size: int = 1, seed: int = 0, resume=None, progress=None, crop: int = 128,
+               base: int = 8, depth: int = 6, max_channels: int = 64, pixel_mm: float = DEFAULT_PIXEL_MM,
+               hu_window=DEFAULT_NET_HU_WINDOW, checkpoint_every: int = 200) -> Path:
+    """Train the lumen UNet with the paper's recipe and save a resumable checkpoint.
+
+    Cross-entropy loss, SGD (``lr``, ``momentum``), ``batch_size`` slices per step; each sample
+    is a random slice resampled to ``pixel_mm``, cut to a ``crop`` x ``crop`` window around the
+    lumen ("window slicing") and mapped by a random linear intensity transform ("linear
+    mapping") before the HU window.
+
+    Parameters
+    ----------
+    data : iterable
+        Case folders (with ``ct.*`` and ``aorta_mask.*``) or ``(ct, mask)`` Volume pairs.
+    out_path : path
+        Checkpoint file; rewritten atomically every ``checkpoint_every`` iterations and at the end.
+    iterations : int
+        Total number of optimiser steps (a resumed run continues up to this number).
+    resume : path, optional
+        Checkpoint to continue from (weights, optimiser, iteration count and random state).
+    progress : callable or bool, optional
+        ``progress(done, total, message)``; ``True`` draws a text bar on stderr.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out_path``.
+    """
+    if iterations < 0 or batch_size < 1:
+        raise ValueError(f"iterations must be >= 0 and batch_size >= 1, got {iterations}, {batch_size}")
+    if crop < 2 ** depth:
+        raise ValueError(f"crop {crop} too small for a depth-{depth} UNet (need >= {2 ** depth})")
+    out_path = Path(out_path)
+    settings = {"lr": lr, "momentum": momentum, "batch_size": batch_size, "seed": seed, "crop": crop,
+                "pixel_mm": pixel_mm, "hu_window": list(hu_window)}
+    torch.manual_seed(seed)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    rng = np.random.default_rng(seed)
+    model = UNet(1, 2, base=base, depth=depth, max_channels=max_channels)
+    optimizer = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum)
+    iteration, losses = 0, []
+    if resume is not None:
+        state = torch.load(resume, map_location="cpu", weights_only=False)
+        model = UNet(**state["model_config"])
+        model.load_state_dict(state["model_state"])
+        optimizer = torch.optim.SGD(model.parameters(), lr=state["settings"]["lr"],
+                                    momentum=state["settings"]["momentum"])
+        optimizer.load_state_dict(state["optimizer_state"])
+        iteration, losses, settings = state["iteration"], list(state["losses"]), state["settings"]
+        rng.bit_generator.state = state["rng_state"]
+        torch.set_rng_state(state["torch_rng_state"])
+    report = TextProgress() if progress is True else progress
+    bank = _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
+    window = tuple(settings["hu_window"])
+    model.train()
+    while iteration < iterations:
+        samples = [bank.sample(rng, settings["crop"], window) for _ in range(settings["batch_size"])]
+        loss = _training_step(model, optimizer, samples)
+        losses.append(loss)
+        iteration += 1
+        if iteration % checkpoint_every == 0 or iteration == iterations:
+            _save_checkpoint(out_path, model, optimizer, iteration, rng, settings, losses)
+        if report:
+            recent = float(np.mean(losses[-50:]))
+            report(iteration, iterations, f"loss {recent:.4f}")
+    if not out_path.exists():
+        _save_checkpoint(out_path, model, optimizer, iteration, rng, settings, losses)
+    return out_path
+
+
+def _training_step(model: UNet, optimizer, samples) -> float:
+    """One SGD step on a list of (image, label) samples; cross-entropy, mean over the batch."""
+    optimizer.zero_grad()
+    total = 0.0
+    for image, label in samples:
+        loss = F.cross_entropy(model(image), label) / len(samples)
+        loss.backward()
+        total += float(loss.detach())
+    optimizer.step()
+    return total
+
+
+def default_model_path() -> Path:
+    """The shipped weights: ``Resources/Models/aorta_unet.pt`` relative to this package."""
+    return (Path(__file__).resolve().parent / MODEL_RELATIVE_PATH).resolve()
+
+
+def load_unet(path=None) -> UNet:
+    """Load a trained UNet (eval mode) from a checkpoint of :func:`train_unet`.
+
+    ``path=None`` loads the shipped weights; the preprocessing settings the network was
+    trained with are attached as ``model.settings``.
+    """
+    path = Path(path) if path is not None else default_model_path()
+    if not path.is_file():
+        raise InputError(f"{path}: UNet weights not found (train them with "
+                         f"`python -m FevarPlannerLib.segmentation train`, see Resources/Models/README.md)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        model = UNet(**state["model_config"])
+        model.load_state_dict(state["model_state"])
+    except (RuntimeError, KeyError, TypeError, ValueError, EOFError) as exc:
+        raise InputError(f"{path}: not a FevarPlanner UNet checkpoint ({type(exc).__name__})") from None
+    model.settings = dict(state.get("settings", {}))
+    model.settings.setdefault("pixel_mm", DEFAULT_PIXEL_MM)
+    model.settings.setdefault("hu_window", list(DEFAULT_NET_HU_WINDOW))
+    model.eval()
+    return model
+
+
+# ----------------------------------------------------------------------------------------
+# CT inference
+# ----------------------------------------------------------------------------------------
+
+def segment_ct_unet(ct: Volume, model: UNet | None = None, *, progress=None, chunk: int = 8,
+                    postprocess: bool = True) -> Volume:
+    """Lumen mask of a CT by the UNet, slice by slice (paper Section II-A).
+
+    Each axial slice is cropped to the body, resampled to the network's pixel size, HU
+    windowed, segmented, and the logits are resampled back to the CT grid.
+
+    Parameters
+    ----------
+    ct : Volume
+        CT in HU.
+    model : UNet, optional
+        A loaded network; default the shipped weights (:func:`load_unet`).
+    progress : callable, optional
+        ``progress(done_slices, total_slices)``.
+    postprocess : bool
+        Apply :func:`postprocess_mask` (largest component, small objects, holes).
+
+    Returns
+    -------
+    Volume
+        Boolean lumen mask on the CT grid.
+    """
+    _check_ct(ct)
+    model = model if model is not None else load_unet()
+    settings = getattr(model, "settings", {"pixel_mm": DEFAULT_PIXEL_MM, "hu_window": DEFAULT_NET_HU_WINDOW})
+    model.eval()
+    rows, cols = _body_box(ct)
+    crop_shape = (rows.stop - rows.start, cols.stop - cols.start)
+    net_shape = _model_grid_shape(ct, crop_shape, settings["pixel_mm"])
+    mask = np.zeros(ct.shape, dtype=bool)
+    n_slices = ct.shape[0]
+    with torch.inference_mode():
+        for start in range(0, n_slices, chunk):
+            stop = min(start + chunk, n_slices)
+            x = _window(_resample_slices(ct.array[start:stop, rows, cols].astype(np.float32), net_shape),
+                        settings["hu_window"])
+            logits = model(x)
+            if tuple(logits.shape[-2:]) != crop_shape:
+                logits = F.interpolate(logits, size=crop_shape, mode="bilinear", align_corners=False)
+            mask[start:stop, rows, cols] = (logits[:, 1] > logits[:, 0]).numpy()
+            if progress:
+                progress(stop, n_slices)
+    result = ct.with_array(mask)
+    return postprocess_mask(result) if postprocess else result
+
+
+def _check_ct(ct: Volume) -> None:
+    if not isinstance(ct, Volume):
+        raise TypeError(f"expected an io.Volume, got {type(ct).__name__}")
+    if ct.array.ndim != 3 or min(ct.shape) < 1:
+        raise InputError(f"CT has an unusable shape {ct.shape}")
+    if np.issubdtype(ct.array.dtype, np.floating) and not np.isfinite(ct.array).all():
+        raise InputError("CT contains NaN or infinite values")
+
+
+def find_aorta_seed(ct: Volume, hu_window=(150, 600), *, top_fraction: float = 0.2,
+                    area_mm2=(50.0, 2500.0), n_slices: int = 8) -> np.ndarray:
+    """LPS position inside the upper aorta, found automatically.
+
+    In evenly spaced axial slices of the superior ``top_fraction`` of the CT, the connected
+    blobs inside ``hu_window`` of plausible area are scored by roundness (minor/major axis
+    ratio times solidity) times mean HU; the centroid of the best blob is returned.
+    """
+    lo, hi = hu_window
+    superior_last = ct.direction[2, 2] >= 0     # k axis pointing to +z (superior in LPS)
+    n = ct.shape[0]
+    span = max(1, int(math.ceil(n * top_fraction)))
+    ks = np.arange(n - span, n) if superior_last else np.arange(0, span)
+    ks = np.unique(np.linspace(ks[0], ks[-1], min(n_slices, len(ks))).round().astype(int))
+    pixel_area = ct.spacing[0] * ct.spacing[1]
+    best, best_score = None, -np.inf
+    for k in ks:
+        slice_hu = ct.array[k].astype(np.float32)
+        inside = ndi.binary_opening((slice_hu >= lo) & (slice_hu <= hi), iterations=1)
+        for region in measure.regionprops(measure.label(inside), intensity_image=slice_hu):
+            area = region.area * pixel_area
+            if not area_mm2[0] <= area <= area_mm2[1] or region.axis_major_length == 0:
+                continue
+            roundness = region.axis_minor_length / region.axis_major_length * region.solidity
+            score = roundness ** 2 * region.intensity_mean
+            if score > best_score:
+                best_score, best = score, (k, *region.centroid)
+    if best is None:
+        raise InputError(f"no aorta-like blob in HU window {tuple(hu_window)} near the top of the CT; "
+                         f"give a seed point")
+    return ct.index_to_lps(np.array(best, dtype=float))
+
+
+def segment_ct_threshold(ct: Volume, *, hu_window=(150, 600), seed_lps=None, separation_vox: int = 1,
+                         postprocess: bool = True) -> Volume:
+    """Lumen mask without learning: HU window plus seeded region growing.
+
+    The window mask is eroded ``separation_vox`` times (cutting thin bridges to bone), the
+    component holding the seed is kept and grown back inside the window by geodesic
+    dilation (``separation_vox + 2`` steps).
+
+    Parameters
+    ----------
+    ct : Volume
+        CT in HU.
+    hu_window : (float, float)
+        Contrast-enhanced lumen intensities.
+    seed_lps : array_like, optional
+        A point in the lumen (LPS mm); default :func:`find_aorta_seed`.
+
+    Returns
+    -------
+    Volume
+        Boolean lumen mask.
+    """
+    _check_ct(ct)
+    lo, hi = hu_window
+    window = (ct.array >= lo) & (ct.array <= hi)
+    seed_lps = find_aorta_seed(ct, hu_window) if seed_lps is None else np.asarray(seed_lps, dtype=float)
+    seed = np.round(ct.lps_to_index(seed_lps)).astype(int)
+    if np.any(seed < 0) or np.any(seed >= np.array(ct.shape)):
+        raise InputError(f"seed {np.round(seed_lps, 1).tolist()} lies outside the CT")
+    core = ndi.binary_erosion(window, iterations=separation_vox) if separation_vox else window
+    seed = _nearest_true(core, seed)
+    labels, _ = ndi.label(core)
+    region = labels == labels[tuple(seed)]
+    if separation_vox:
+        region = ndi.binary_dilation(region, iterations=separation_vox + 2, mask=window)
+    result = ct.with_array(region)
+    return postprocess_mask(result) if postprocess else result
+
+
+def _nearest_true(mask: np.ndarray, index: np.ndarray, radius: int = 6) -> np.ndarray:
+    """``index`` if ``mask`` is set there, else the nearest set voxel within ``radius``."""
+    if mask[tuple(index)]:
+        return index
+    lo = np.maximum(index - radius, 0)
+    hi = np.minimum(index + radius + 1, mask.shape)
+    local = np.argwhere(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]) + lo
+    if len(local) == 0:
+        raise InputError(f"seed voxel {index.tolist()} is not inside the HU window (nor near it)")
+    return local[np.argmin(((local - index) ** 2).sum(axis=1))]
+
+
+def segment_ct(ct: Volume, method: str = "unet", **kwargs) -> Volume:
+    """Lumen mask by ``method`` ``'unet'`` (:func:`segment_ct_unet`) or ``'threshold'``."""
+    if method == "unet":
+        return segment_ct_unet(ct, **kwargs)
+    if method == "threshold":
+        return segment_ct_threshold(ct, **kwargs)
+    raise ValueError(f"unknown segmenter {method!r}; use 'unet' or 'threshold'")
+
+
+def postprocess_mask(mask, *, min_size_mm3: float = 50.0, keep_largest: bool = True,
+                     fill_holes: bool = True):
+    """Clean a lumen mask (the paper's ``regionprops`` / ``bwareaopen`` step, plus hole filling).
+
+    Removes connected objects smaller than ``min_size_mm3``, keeps the largest component and
+    fills holes (enclosed in 3D, and in each axial slice).
+
+    Parameters
+    ----------
+    mask : Volume or numpy.ndarray
+        Binary mask; an array is taken to have 1 mm voxels.
+
+    Returns
+    -------
+    Volume or numpy.ndarray
+        Boolean mask, of the same kind as the input.
+    """
+    array = np.asarray(mask.array if isinstance(mask, Volume) else mask) > 0
+    voxel_mm3 = float(np.prod(mask.spacing)) if isinstance(mask, Volume) else 1.0
+    labels, count = ndi.label(array)
+    if count:
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        keep = sizes * voxel_mm3 >= min_size_mm3
+        if keep_largest:
+            keep = np.zeros_like(keep)
+            keep[np.argmax(sizes)] = True
+        array = keep[labels]
+    if fill_holes and array.any():
+        array = ndi.binary_fill_holes(array)
+        array = np.stack([ndi.binary_fill_holes(s) if s.any() else s for s in array]) if array.ndim == 3 else array
+    return mask.with_array(array) if isinstance(mask, Volume) else array
+
+
+# ----------------------------------------------------------------------------------------
+# Surface
+# ----------------------------------------------------------------------------------------
+
+def mask_surface(mask: Volume, *, smooth_sigma_vox: float = 0.0) -> vtk.vtkPolyData:
+    """Closed triangle surface of a binary mask by marching cubes, points in LPS mm.
+
+    The mask is cropped to its bounding box, padded by one voxel (so the surface closes) and
+    iso-surfaced at 0.5 (optionally after a Gaussian blur of ``smooth_sigma_vox`` voxels).
+    Normals point out of the lumen.
+    """
+    array = np.asarray(mask.array) > 0
+    if not array.any():
+        raise InputError("mask is empty: no surface to extract")
+    nonzero = np.nonzero(array)
+    lo = np.array([idx.min() for idx in nonzero])
+    hi = np.array([idx.max() for idx in nonzero]) + 1
+    field = np.pad(array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32), 1)
+    if smooth_sigma_vox > 0:
+        field = ndi.gaussian_filter(field, smooth_sigma_vox)
+    verts, faces, normals, _ = measure.marching_cubes(field, level=0.5, gradient_direction="descent")
+    points = mask.index_to_lps(verts + lo - 1)
+    linear = mask.direction @ np.diag(mask.spacing)
+    normals_lps = normals[:, ::-1] @ np.linalg.inv(linear)      # covector transform, (i, j, k) order
+    normals_lps /= np.linalg.norm(normals_lps, axis=1, keepdims=True) + 1e-12
+    faces = _wind_like_normals(points, faces, normals_lps)
+    return _polydata(points, faces, normals_lps)
+
+
+def _wind_like_normals(points: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Faces reordered, if needed, so that their right-hand normals agree with the vertex normals."""
+    a, b, c = (points[faces[:, n]] for n in range(3))
+    agreement = np.einsum("ij,ij->i", np.cross(b - a, c - a), normals[faces].sum(axis=1))
+    return faces[:, ::-1] if agreement.sum() < 0 else faces
+
+
+def _polydata(points: np.ndarray, faces: np.ndarray, normals: np.ndarray) -> vtk.vtkPolyData:
+    poly = vtk.vtkPolyData()
+    vtk_points = vtk.vtkPoints()
+    vtk_points.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(points, dtype=np.float64), deep=True))
+    poly.SetPoints(vtk_points)
+    offsets = np.arange(0, 3 * len(faces) + 1, 3, dtype=np.int64)
+    polys = vtk.vtkCellArray()
+    polys.SetData(numpy_support.numpy_to_vtkIdTypeArray(offsets, deep=True),
+                  numpy_support.numpy_to_vtkIdTypeArray(faces.astype(np.int64).ravel(), deep=True))
+    poly.SetPolys(polys)
+    vtk_normals = numpy_support.numpy_to_vtk(np.ascontiguousarray(normals, dtype=np.float32), deep=True)
+    vtk_normals.SetName("Normals")
+    poly.GetPointData().SetNormals(vtk_normals)
+    return poly
+
+
+def write_surface_vtp(path, polydata: vtk.vtkPolyData) -> None:
+    """Write a surface as VTK XML PolyData (``.vtp``), atomically."""
+    path = Path(path)
+    with atomic_path(path, suffix=".vtp") as tmp:
+        writer = vtk.vtkXMLPolyDataWriter()
+        writer.SetFileName(str(tmp))
+        writer.SetInputData(polydata)
+        writer.SetDataModeToBinary()
+        if writer.Write() != 1:
+            raise OSError(f"{path}: VTK could not write the surface")
+
+
+# ----------------------------------------------------------------------------------------
+# Fluoroscopy
+# ----------------------------------------------------------------------------------------
+
+def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """Block mean by an integer ``factor`` (edges padded by replication)."""
+    if factor == 1:
+        return image
+    pad = [(0, (-n) % factor) for n in image.shape]
+    padded = np.pad(image, pad, mode="edge")
+    h, w = padded.shape
+    return padded.reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
+
+
+def _upsample(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear upsampling of a block-mean image back onto the full grid (pixel centres aligned)."""
+    if factor == 1:
+        return image
+    rows = (np.arange(shape[0]) + 0.5) / factor - 0.5
+    cols = (np.arange(shape[1]) + 0.5) / factor - 0.5
+    r0 = np.clip(np.floor(rows).astype(int), 0, image.shape[0] - 1)
+    c0 = np.clip(np.floor(cols).astype(int), 0, image.shape[1] - 1)
+    r1 = np.minimum(r0 + 1, image.shape[0] - 1)
+    c1 = np.minimum(c0 + 1, image.shape[1] - 1)
+    fr = np.clip(rows - r0, 0, 1)[:, None].astype(np.float32)
+    fc = np.clip(cols - c0, 0, 1)[None, :].astype(np.float32)
+    top = image[r0][:, c0] * (1 - fc) + image[r0][:, c1] * fc
+    bottom = image[r1][:, c0] * (1 - fc) + image[r1][:, c1] * fc
+    return top * (1 - fr) + bottom * fr
+
+
+def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-normalised Hessian eigenvalues (|l1| <= |l2|) of a Gaussian-smoothed image."""
+    smooth = ndi.gaussian_filter(image, sigma, mode="nearest")
+    hrr = np.empty_like(smooth)
+    hcc = np.empty_like(smooth)
+    hrr[1:-1] = smooth[2:] - 2 * smooth[1:-1] + smooth[:-2]
+    hrr[0], hrr[-1] = hrr[1], hrr[-2]
+    hcc[:, 1:-1] = smooth[:, 2:] - 2 * smooth[:, 1:-1] + smooth[:, :-2]
+    hcc[:, 0], hcc[:, -1] = hcc[:, 1], hcc[:, -2]
+    grad_r = np.gradient(smooth, axis=0)
+    hrc = np.gradient(grad_r, axis=1)
+    scale = sigma ** 2
+    half_trace = 0.5 * (hrr + hcc) * scale
+    root = np.sqrt((0.5 * (hrr - hcc)) ** 2 + hrc ** 2) * scale
+    a, b = half_trace + root, half_trace - root
+    swap = np.abs(a) > np.abs(b)
+    return np.where(swap, b, a), np.where(swap, a, b)
+
+
+def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, bright: bool = True, beta: float = 0.5,
+               c_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Multi-scale Frangi vesselness of a 2D image.
+
+    For each scale the Hessian eigenvalues ``l1, l2`` (``|l1| <= |l2|``) give
+    ``V = exp(-Rb^2 / (2 beta^2)) (1 - exp(-S^2 / (2 c^2)))`` with ``Rb = l1 / l2``,
+    ``S = sqrt(l1^2 + l2^2)`` and ``c = c_fraction * max S``; ``V = 0`` where ``l2`` has the
+    wrong sign for the polarity (``l2 < 0`` for bright vessels). The maximum over scales is
+    returned with the index of the winning scale.
+    """
+    image = np.asarray(image, dtype=np.float32)
+    best = np.zeros_like(image)
+    best_scale = np.zeros(image.shape, dtype=np.int16)
+    for index, sigma in enumerate(sigmas):
+        l1, l2 = _hessian_eigenvalues(image, float(sigma))
+        structure = l1 ** 2 + l2 ** 2
+        c2 = (c_fraction ** 2) * float(structure.max()) + 1e-12
+        rb2 = (l1 / np.where(l2 == 0, 1e-12, l2)) ** 2
+        response = np.exp(-rb2 / (2 * beta ** 2)) * (1 - np.exp(-structure / (2 * c2)))
+        response[(l2 > 0) if bright else (l2 < 0)] = 0
+        better = response > best
+        best[better] = response[better]
+        best_scale[better] = index
+    return best, best_scale
+
+
+def _normalise(image: np.ndarray, photometric: str | None) -> np.ndarray:
+    """Float image scaled to [0, 1] by its 0.5 / 99.5 percentiles; MONOCHROME1 inverted."""
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim == 3 and image.shape[-1] in (3, 4):
+        image = image[..., :3].mean(axis=-1)
+    if image.ndim != 2:
+        raise InputError(f"fluoroscopy frame must be 2D (or RGB), got shape {image.shape}")
+    if not np.isfinite(image).all():
+        raise InputError("fluoroscopy frame contains NaN or infinite values")
+    if photometric is not None and photometric.upper() == "MONOCHROME1":
+        image = -image
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    if hi <= lo:
+        raise InputError("fluoroscopy frame is flat (no contrast)")
+    return np.clip((image - lo) / (hi - lo), 0.0, 1.0)
+
+
+def _local_contrast(image: np.ndarray, radius: int) -> np.ndarray:
+    """White top-hat: ``image`` minus its grey opening with a (2 radius + 1)^2 square."""
+    size = 2 * radius + 1
+    return image - ndi.grey_dilation(ndi.grey_erosion(image, size=(size, size)), size=(size, size))
+
+
+def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str | None = None,
+                   sigmas=(1.0, 2.0, 3.0, 4.5), work_size: int = 256, high: float = 0.25, low: float = 0.08,
+                   contrast_fraction: float = 0.35, min_area_fraction: float = 0.002) -> np.ndarray:
+    """Binary vessel mask of a fluoroscopy / DSA frame on the frame's pixel grid.
+
+    The frame is normalised (MONOCHROME1 inverted when ``photometric`` says so), reduced by a
+    block mean to about ``work_size`` pixels, and turned so that vessels are bright. Frangi
+    vesselness over ``sigmas`` (pixels of the reduced grid) is hysteresis-thresholded at
+    ``high`` / ``low`` times its 99.5th percentile to find the vessel tree; its extent is then
+    refined by local contrast (white top-hat above ``contrast_fraction`` of the tree's median
+    contrast), objects smaller than ``min_area_fraction`` of the frame are dropped, and the
+    result is upsampled bilinearly to the input grid.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2D frame (any numeric dtype; RGB is averaged).
+    vessels : {'dark', 'bright', 'auto'}
+        Vessel polarity after the photometric correction; ``'auto'`` picks the one with the
+        stronger tubular response.
+    photometric : str, optional
+        DICOM Photometric Interpretation; ``'MONOCHROME1'`` inverts the grey scale.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        Vessel mask, same shape as ``image``.
+    """
+    if vessels not in ("dark", "bright", "auto"):
+        raise ValueError(f"vessels must be 'dark', 'bright' or 'auto', got {vessels!r}")
+    frame = _normalise(image, photometric)
+    factor = max(1, int(round(max(frame.shape) / work_size)))
+    small = _downsample(frame, factor)
+    if vessels == "auto":
+        vessels = _guess_polarity(small, sigmas)
+    oriented = small if vessels == "bright" else 1.0 - small
+    response, scale_index = vesselness(oriented, sigmas, bright=True)
+    score = _vessel_score(oriented, response, scale_index, sigmas, high, low, contrast_fraction)
+    full = _upsample(score, factor, frame.shape) > 0.5
+    return postprocess_mask(full, min_size_mm3=min_area_fraction * full.size, keep_largest=False,
+                            fill_holes=False)
+
+
+def _guess_polarity(small: np.ndarray, sigmas) -> str:
+    """'bright' or 'dark': the polarity whose strongest tubular responses are larger."""
+    strength = {}
+    for polarity in ("bright", "dark"):
+        response, _ = vesselness(small if polarity == "bright" else 1.0 - small, sigmas, bright=True,
+                                 c_fraction=1.0)
+        strength[polarity] = float(np.percentile(response, 98))
+    return max(strength, key=strength.get)
+
+
+def _vessel_score(oriented: np.ndarray, response: np.ndarray, scale_index: np.ndarray, sigmas,
+                  high: float, low: float, contrast_fraction: float) -> np.ndarray:
+    """Soft vessel indicator on the reduced grid (> 0.5 means vessel)."""
+    reference = float(np.percentile(response, 99.5)) + 1e-12
+    tree = apply_hysteresis_threshold(response / reference, low, high)
+    if not tree.any():
+        return np.zeros_like(oriented)
+    radius = int(math.ceil(3 * max(sigmas)))
+    contrast = _local_contrast(oriented, radius)
+    tree_contrast = float(np.median(contrast[tree]))
+    if tree_contrast <= 0:
+        return tree.astype(np.float32)
+    near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max(sigmas))))
+    vessel = (contrast > contrast_fraction * tree_contrast) & near_tree
+    labels, _ = ndi.label(vessel)
+    touching = np.unique(labels[tree & vessel])
+    vessel = np.isin(labels, touching[touching > 0])
+    return ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
+
+
+def dice(a, b) -> float:
+    """Dice overlap ``2 |A & B| / (|A| + |B|)`` of two binary masks (1.0 when both are empty)."""
+    a = np.asarray(a.array if isinstance(a, Volume) else a) > 0
+    b = np.asarray(b.array if isinstance(b, Volume) else b) > 0
+    if a.shape != b.shape:
+        raise ValueError(f"mask shapes differ: {a.shape} vs {b.shape}")
+    total = a.sum() + b.sum()
+    return 1.0 if total == 0 else float(2.0 * np.logical_and(a, b).sum() / total)
+
+
+# ----------------------------------------------------------------------------------------
+# Command line: train the shipped weights, segment a CT
+# ----------------------------------------------------------------------------------------
+
+def main(argv=None) -> int:
+    """``python -m FevarPlannerLib.segmentation train|segment ...``."""
+    parser = argparse.ArgumentParser(prog="python -m FevarPlannerLib.segmentation")
+    sub = parser.add_subparsers(dest="command", required=True)
+    train = sub.add_parser("train", help="train the lumen UNet on case folders")
+    train.add_argument("cases", nargs="+", help="case folders with ct.* and aorta_mask.*")
+    train.add_argument("--out", required=True)
+    train.add_argument("--iterations", type=int, default=2000)
+    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--lr", type=float, default=1e-3)
+    train.add_argument("--crop", type=int, default=128)
+    train.add_argument("--base", type=int, default=8)
+    train.add_argument("--max-channels", type=int, default=64)
+    train.add_argument("--pixel-mm", type=float, default=DEFAULT_PIXEL_MM)
+    train.add_argument("--resume")
+    segment = sub.add_parser("segment", help="segment a CT volume")
+    segment.add_argument("ct")
+    segment.add_argument("--out", required=True, help="mask file (.nrrd / .nii.gz / .mha)")
+    segment.add_argument("--segmenter", choices=("unet", "threshold"), default="unet")
+    segment.add_argument("--model")
+    segment.add_argument("--surface", help="optional .vtp surface output")
+    args = parser.parse_args(argv)
+    if args.command == "train":
+        train_unet(args.cases, args.out, iterations=args.iterations, seed=args.seed, lr=args.lr, crop=args.crop,
+                   base=args.base, max_channels=args.max_channels, pixel_mm=args.pixel_mm, resume=args.resume,
+                   progress=TextProgress(line_every=50))
+        return 0
+    from .io import write_volume
+    ct = read_volume(args.ct)
+    kwargs = {"model": load_unet(args.model)} if args.segmenter == "unet" else {}
+    mask = segment_ct(ct, args.segmenter, **kwargs)
+    write_volume(args.out, mask.with_array(mask.array.astype(np.uint8)))
+    if args.surface:
+        write_surface_vtp(args.surface, mask_surface(mask))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

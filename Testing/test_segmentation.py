@@ -1,0 +1,275 @@
+"""Segmentation stage: UNet, training, CT threshold segmenter, post-processing, surface,
+fluoroscopy vesselness. All data are small synthetic volumes and frames made here."""
+
+import numpy as np
+import pytest
+import torch
+import vtk
+from vtk.util import numpy_support
+
+from FevarPlannerLib import segmentation as seg
+from FevarPlannerLib.io import InputError, Volume
+
+
+# ----------------------------------------------------------------------------------------
+# Synthetic data
+# ----------------------------------------------------------------------------------------
+
+def synthetic_ct(shape=(36, 72, 80), spacing=(1.5, 1.5, 2.0), radius_mm=9.0, seed=0):
+    """A body ellipse (40 HU) with a bright aortic tube (350 HU) wandering along z, anterior
+    to a spine (cortical ring 900 HU around a 250 HU body, in contact with nothing), plus noise.
+
+    Returns the CT Volume, the true lumen Volume and the tube centre (LPS) per slice.
+    """
+    rng = np.random.default_rng(seed)
+    nk, nj, ni = shape
+    si, sj, sk = spacing
+    origin = np.array([-ni * si / 2, -nj * sj / 2, -nk * sk])
+    k, j, i = np.meshgrid(np.arange(nk), np.arange(nj), np.arange(ni), indexing="ij")
+    x, y, z = origin[0] + i * si, origin[1] + j * sj, origin[2] + k * sk
+    hu = np.full(shape, -1000.0)
+    body = (x / 55.0) ** 2 + (y / 45.0) ** 2 <= 1.0
+    hu[body] = 40.0
+    spine_r = np.hypot(x - 0.0, y - 22.0)
+    hu[spine_r <= 12.0] = 250.0
+    hu[(spine_r > 9.0) & (spine_r <= 12.0)] = 900.0
+    zc = origin[2] + np.arange(nk) * sk
+    centre_x = 6.0 * np.sin(zc / 25.0)
+    centre_y = -8.0 + 2.0 * np.cos(zc / 30.0)
+    lumen = np.hypot(x - centre_x[:, None, None], y - centre_y[:, None, None]) <= radius_mm
+    hu[lumen] = 350.0
+    hu += rng.normal(0.0, 15.0, shape)
+    ct = Volume(hu.astype(np.float32), spacing, origin, np.eye(3))
+    centres = np.column_stack([centre_x, centre_y, zc])
+    return ct, ct.with_array(lumen), centres
+
+
+def _tube_path_length(u, v, p0, p1, radius):
+    """Path length through a cylinder of ``radius`` along the 2D segment p0 -> p1 (projection)."""
+    d = np.asarray(p1, float) - np.asarray(p0, float)
+    t = np.clip(((u - p0[0]) * d[0] + (v - p0[1]) * d[1]) / (d @ d), 0.0, 1.0)
+    dist = np.hypot(u - (p0[0] + t * d[0]), v - (p0[1] + t * d[1]))
+    return 2.0 * np.sqrt(np.clip(radius ** 2 - dist ** 2, 0.0, None))
+
+
+def synthetic_frame(size=512, vessels="dark", bone="bright", noise=0.02, seed=0):
+    """A DSA-like frame: an aorta with renal and iliac branches (projected cylinders), a large
+    bone blob and a spine band, Gaussian noise. Returns (frame in [0, 1], true vessel mask)."""
+    rng = np.random.default_rng(seed)
+    s = size / 512.0
+    v, u = np.mgrid[0:size, 0:size].astype(float)
+    segments = [((256, 40), (256, 330), 13), ((256, 150), (120, 130), 5), ((256, 160), (400, 175), 5),
+                ((256, 330), (170, 480), 8), ((256, 330), (350, 490), 8)]
+    length = np.zeros((size, size))
+    for p0, p1, r in segments:
+        length = np.maximum(length, _tube_path_length(u, v, np.multiply(p0, s), np.multiply(p1, s), r * s))
+    truth = length > 0
+    attenuation = 0.6 * length / (26.0 * s)
+    bone_blob = np.exp(-(((u - 330 * s) / (70 * s)) ** 2 + ((v - 260 * s) / (50 * s)) ** 2) ** 2)
+    spine = np.exp(-((u - 280 * s) / (40 * s)) ** 4)
+    background = 0.55 + 0.1 * (u / size) + (0.25 if bone == "bright" else -0.25) * bone_blob + 0.1 * spine
+    frame = background - attenuation if vessels == "dark" else background + attenuation
+    frame = frame + rng.normal(0.0, noise, frame.shape)
+    return frame, truth
+
+
+# ----------------------------------------------------------------------------------------
+# UNet and training
+# ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("height,width", [(37, 50), (64, 64), (1, 3)])
+def test_unet_output_keeps_odd_input_sizes(height, width):
+    model = seg.UNet(1, 2, base=4, depth=6, max_channels=16).eval()
+    with torch.no_grad():
+        out = model(torch.zeros(2, 1, height, width))
+    assert out.shape == (2, 2, height, width)
+
+
+def test_unet_has_six_resolution_blocks_and_small_weights():
+    model = seg.UNet()
+    assert len(model.encoders) == 6 and len(model.decoders) == 5
+    assert model.size_multiple == 32
+    n_params = sum(p.numel() for p in model.parameters())
+    assert 50_000 < n_params < 1_000_000     # a few MB of float32 at most
+
+
+def _tiny_training_pairs():
+    ct, lumen, _ = synthetic_ct(shape=(6, 48, 48), spacing=(2.0, 2.0, 4.0))
+    return [(ct, lumen)]
+
+
+def test_training_reduces_loss_and_resumes_exactly(tmp_path):
+    pairs = _tiny_training_pairs()
+    options = dict(lr=1e-2, seed=3, crop=64, base=4, max_channels=16, pixel_mm=2.0, checkpoint_every=10)
+    full = seg.train_unet(pairs, tmp_path / "full.pt", iterations=40, **options)
+    state = torch.load(full, weights_only=False)
+    losses = state["losses"]
+    assert len(losses) == 40 and state["iteration"] == 40
+    assert np.mean(losses[-10:]) < 0.7 * np.mean(losses[:10])
+
+    first = seg.train_unet(pairs, tmp_path / "part.pt", iterations=20, **options)
+    assert torch.load(first, weights_only=False)["iteration"] == 20
+    resumed = seg.train_unet(pairs, tmp_path / "resumed.pt", iterations=40, resume=first, **options)
+    resumed_state = torch.load(resumed, weights_only=False)
+    assert resumed_state["iteration"] == 40
+    np.testing.assert_allclose(resumed_state["losses"], losses, rtol=1e-5, atol=1e-7)
+    for name, tensor in state["model_state"].items():
+        torch.testing.assert_close(resumed_state["model_state"][name], tensor, rtol=1e-5, atol=1e-6)
+
+
+def test_progress_reports_every_iteration(tmp_path):
+    calls = []
+    seg.train_unet(_tiny_training_pairs(), tmp_path / "m.pt", iterations=3, crop=64, base=4, max_channels=8,
+                   pixel_mm=2.0, progress=lambda done, total, msg: calls.append((done, total, msg)))
+    assert [c[:2] for c in calls] == [(1, 3), (2, 3), (3, 3)]
+    assert calls[-1][2].startswith("loss ")
+
+
+def test_load_unet_roundtrip_and_segment_ct_runs(tmp_path):
+    path = seg.train_unet(_tiny_training_pairs(), tmp_path / "m.pt", iterations=2, crop=64, base=4,
+                          max_channels=8, pixel_mm=2.0)
+    model = seg.load_unet(path)
+    assert not model.training and model.settings["pixel_mm"] == 2.0
+    ct, _, _ = synthetic_ct(shape=(5, 40, 44), spacing=(1.5, 1.5, 2.0))
+    seen = []
+    mask = seg.segment_ct_unet(ct, model, progress=lambda done, total: seen.append((done, total)),
+                               postprocess=False, chunk=2)
+    assert mask.shape == ct.shape and mask.array.dtype == bool
+    assert seen[-1] == (5, 5)
+
+
+def test_load_unet_errors_name_the_file(tmp_path):
+    with pytest.raises(InputError, match="missing.pt"):
+        seg.load_unet(tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    torch.save({"something": 1}, bad)
+    with pytest.raises(InputError, match="bad.pt"):
+        seg.load_unet(bad)
+
+
+def test_default_model_path_points_into_resources():
+    path = seg.default_model_path()
+    assert path.parts[-3:] == ("Resources", "Models", "aorta_unet.pt")
+    assert (path.parent.parent.parent / "FevarPlanner" / "FevarPlannerLib").is_dir()
+
+
+# ----------------------------------------------------------------------------------------
+# Threshold segmenter, post-processing, surface
+# ----------------------------------------------------------------------------------------
+
+def test_threshold_segmentation_finds_the_aorta_not_the_spine():
+    ct, lumen, centres = synthetic_ct()
+    seed = seg.find_aorta_seed(ct)
+    distances = np.linalg.norm(centres[:, :2] - seed[:2], axis=1)
+    assert distances[np.argmin(np.abs(centres[:, 2] - seed[2]))] < 4.0
+    mask = seg.segment_ct_threshold(ct)
+    assert seg.dice(mask, lumen) >= 0.9
+
+
+def test_threshold_segmentation_with_seed_and_bad_seed():
+    ct, lumen, centres = synthetic_ct()
+    mask = seg.segment_ct(ct, "threshold", seed_lps=centres[10])
+    assert seg.dice(mask, lumen) >= 0.9
+    with pytest.raises(InputError, match="outside"):
+        seg.segment_ct_threshold(ct, seed_lps=[500.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="segmenter"):
+        seg.segment_ct(ct, "magic")
+
+
+def test_postprocess_removes_stray_blob_and_fills_hole():
+    truth = np.zeros((20, 30, 30), bool)
+    truth[2:18, 8:22, 8:22] = True
+    noisy = truth.copy()
+    noisy[8:11, 12:15, 12:15] = False          # an enclosed hole
+    noisy[5, 2:4, 2:4] = True                  # a stray blob
+    volume = Volume(noisy, (1.0, 1.0, 1.0), (0, 0, 0), np.eye(3))
+    cleaned = seg.postprocess_mask(volume)
+    assert isinstance(cleaned, Volume)
+    np.testing.assert_array_equal(cleaned.array, truth)
+    np.testing.assert_array_equal(seg.postprocess_mask(noisy), truth)
+
+
+def test_postprocess_keeps_several_objects_when_asked():
+    mask = np.zeros((10, 30, 30), bool)
+    mask[2:8, 2:10, 2:10] = True
+    mask[2:8, 15:25, 15:25] = True
+    mask[5, 28, 28] = True
+    cleaned = seg.postprocess_mask(mask, keep_largest=False, min_size_mm3=10)
+    assert seg.dice(cleaned, mask) > 0.99 and not cleaned[5, 28, 28]
+
+
+def test_surface_lies_on_the_tube_wall_in_lps(tmp_path):
+    ct, lumen, centres = synthetic_ct(spacing=(1.5, 1.5, 2.0))
+    direction = np.diag([-1.0, 1.0, 1.0])           # a mirrored grid must still land in LPS
+    flipped = Volume(lumen.array[:, :, ::-1].copy(), lumen.spacing, lumen.index_to_lps([0, 0, lumen.shape[2] - 1]),
+                     direction)
+    for mask in (lumen, flipped):
+        poly = seg.mask_surface(mask)
+        points = numpy_support.vtk_to_numpy(poly.GetPoints().GetData())
+        axis = np.column_stack([np.interp(points[:, 2], centres[:, 2], centres[:, n]) for n in range(2)])
+        inner = (points[:, 2] > centres[1, 2]) & (points[:, 2] < centres[-2, 2])   # skip the end caps
+        offset = points[inner, :2] - axis[inner]
+        assert np.abs(np.hypot(*offset.T) - 9.0).max() <= 1.5      # within one in-plane voxel of the wall
+        normals = numpy_support.vtk_to_numpy(poly.GetPointData().GetNormals())
+        outward = np.einsum("ij,ij->i", normals[inner, :2], offset)
+        assert np.mean(outward > 0) > 0.95
+        faces = numpy_support.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3)
+        a, b, c = (points[faces[:, n]] for n in range(3))
+        face_normals = np.cross(b - a, c - a)
+        assert np.einsum("ij,ij->i", face_normals, normals[faces].sum(axis=1)).mean() > 0
+    path = tmp_path / "lumen.vtp"
+    seg.write_surface_vtp(path, poly)
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    assert reader.GetOutput().GetNumberOfPoints() == poly.GetNumberOfPoints()
+    assert not list(tmp_path.glob(".lumen.vtp*"))
+
+
+def test_surface_of_empty_mask_is_an_error():
+    with pytest.raises(InputError, match="empty"):
+        seg.mask_surface(Volume(np.zeros((3, 3, 3), bool), (1, 1, 1), (0, 0, 0), np.eye(3)))
+
+
+# ----------------------------------------------------------------------------------------
+# Fluoroscopy
+# ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("vessels,bone", [("dark", "bright"), ("dark", "dark"), ("bright", "bright")])
+def test_fluoro_vesselness_dice_both_polarities(vessels, bone):
+    frame, truth = synthetic_frame(vessels=vessels, bone=bone)
+    for polarity in ("auto", vessels):
+        mask = seg.segment_fluoro(frame, vessels=polarity)
+        assert mask.shape == truth.shape and mask.dtype == bool
+        assert seg.dice(mask, truth) >= 0.85, polarity
+
+
+def test_fluoro_monochrome1_and_integer_frames():
+    frame, truth = synthetic_frame(vessels="dark")
+    stored = np.round((1.0 - frame) * 4000).astype(np.uint16)     # MONOCHROME1: high = dark
+    mask = seg.segment_fluoro(stored, vessels="dark", photometric="MONOCHROME1")
+    assert seg.dice(mask, truth) >= 0.85
+
+
+def test_fluoro_odd_size_and_errors():
+    frame, truth = synthetic_frame(size=300, seed=2)
+    mask = seg.segment_fluoro(frame[:297, :283], vessels="dark")
+    assert mask.shape == (297, 283)
+    assert seg.dice(mask, truth[:297, :283]) >= 0.85
+    with pytest.raises(InputError, match="flat"):
+        seg.segment_fluoro(np.ones((64, 64)))
+    with pytest.raises(InputError, match="NaN"):
+        seg.segment_fluoro(np.full((64, 64), np.nan))
+    with pytest.raises(ValueError, match="vessels"):
+        seg.segment_fluoro(frame, vessels="sideways")
+
+
+def test_dice_values():
+    a = np.zeros((4, 4), bool)
+    b = a.copy()
+    assert seg.dice(a, b) == 1.0
+    a[:2] = True
+    b[1:3] = True
+    assert seg.dice(a, b) == pytest.approx(0.5)
+    with pytest.raises(ValueError):
+        seg.dice(a, np.zeros((3, 3)))
