@@ -7,7 +7,7 @@ from PIL import Image
 
 from FevarPlannerLib.centerline import ANATOMY_LABELS, Centerline
 from FevarPlannerLib.export import (
-    RESULT_VERSION, OverlayLayer, build_result_dict, centerline_layer, read_centerline_vtp, read_path_markups,
+    RESULT_VERSION, OverlayLayer, build_result_dict, centerline_layer, path_layer, read_centerline_vtp, read_path_markups,
     read_result_json, render_centerlines_3d, render_overlay, validate_result, write_centerline_vtp,
     write_path_markups, write_result_json)
 from FevarPlannerLib.io import InputError
@@ -261,6 +261,8 @@ def test_overlay_of_projected_centrelines_and_skeleton(tmp_path, tree):
     assert yellow[v - 1:v + 2, u - 1:u + 2].any()
     with pytest.raises(ValueError, match="NaN"):
         render_overlay(target, np.full((4, 4), np.nan))
+    render_overlay(target, np.zeros((517, 613)), layers=[path_layer("path", P, tree.points[[11, 10, 5]], "red")])
+    assert _png(target).shape[:2] == (517 + 28, 613)
 
 
 def test_3d_render_is_an_anterior_head_up_picture(tmp_path, tree):

@@ -114,7 +114,7 @@ def build_result_dict(method: str, preop: Centerline, deformed: Centerline, path
         "preop_centerline": preop.to_dict(),
         "deformed_centerline": deformed.to_dict(),
         "path": path_dict,
-        "timings_s": {key: float(value) for key, value in timings.items()},
+        "timings_s": dict(timings),
         **extra,
     })
     validate_result(data)
@@ -545,12 +545,18 @@ class OverlayLayer:
                 raise ValueError(f"overlay layer {self.name!r}: edge index out of range")
 
     def segments(self) -> np.ndarray:
-        """Line segments (s, 2, 2) to draw; empty for a layer of dots."""
+        """Finite line segments (s, 2, 2) to draw; empty for a layer of dots."""
         if self.edges is not None:
-            return self.points_uv[self.edges]
-        if self.polyline and len(self.points_uv) > 1:
-            return np.stack([self.points_uv[:-1], self.points_uv[1:]], axis=1)
-        return np.zeros((0, 2, 2))
+            segments = self.points_uv[self.edges]
+        elif self.polyline and len(self.points_uv) > 1:
+            segments = np.stack([self.points_uv[:-1], self.points_uv[1:]], axis=1)
+        else:
+            return np.zeros((0, 2, 2))
+        return segments[np.isfinite(segments).all(axis=(1, 2))]
+
+    def dots(self) -> np.ndarray:
+        """Finite points (k, 2) to draw as dots."""
+        return self.points_uv[np.isfinite(self.points_uv).all(axis=1)]
 
 
 def centerline_layer(name: str, P: np.ndarray, centerline: Centerline, color) -> OverlayLayer:
@@ -574,6 +580,15 @@ def _squares(points_uv: np.ndarray, side: float) -> np.ndarray:
     """Corners (k, 4, 2) of squares of ``side`` pixels centred on each point (data = pixels)."""
     corners = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * (side / 2.0)
     return points_uv[:, None, :] + corners[None, :, :]
+
+
+def _layer_artist(layer: OverlayLayer, line_width_pt: float, dot_px: float):
+    """Matplotlib collection of a layer: unsnapped lines, or squares of ``dot_px`` pixels."""
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    if layer.edges is not None or layer.polyline:
+        return LineCollection(layer.segments(), colors=[_rgb(layer.color)], linewidths=line_width_pt, snap=False)
+    return PolyCollection(_squares(layer.dots(), dot_px), facecolors=[_rgb(layer.color)], edgecolors="none")
 
 
 def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = None,
@@ -600,7 +615,6 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
         so a line or dot is centred exactly on its ``(u, v)``).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import LineCollection, PolyCollection
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
@@ -626,13 +640,7 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
                 extent=(-0.5, cols - 0.5, rows - 0.5, -0.5))
     handles = []
     for layer in layers:
-        segments = layer.segments()
-        if len(segments):
-            axes.add_collection(LineCollection(segments, colors=[_rgb(layer.color)], linewidths=line_px * points_per_px,
-                                               snap=False))
-        else:
-            axes.add_collection(PolyCollection(_squares(layer.points_uv, dot_px), facecolors=[_rgb(layer.color)],
-                                               edgecolors="none"))
+        axes.add_collection(_layer_artist(layer, line_px * points_per_px, dot_px))
         handles.append(Line2D([], [], color=_rgb(layer.color), linewidth=3, label=layer.name))
     axes.set_xlim(-0.5, cols - 0.5)
     axes.set_ylim(rows - 0.5, -0.5)
