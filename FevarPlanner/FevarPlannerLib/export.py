@@ -31,7 +31,7 @@ from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 
 from .centerline import ANATOMY_LABELS, Centerline
-from .io import InputError, _check_readable, atomic_path, write_text_atomic
+from .io import InputError, check_readable, atomic_path, write_text_atomic
 from .projection import project, validate_projection_matrix
 
 __all__ = [
@@ -282,7 +282,7 @@ def write_result_json(path, data: dict) -> None:
 def read_result_json(path) -> dict:
     """Read and validate a result.json; :class:`io.InputError` names the file and problem."""
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -434,7 +434,7 @@ def write_centerline_vtp(path, centerline: Centerline, *, arrays: dict | None = 
 def read_centerline_vtp(path) -> Centerline:
     """Read a centreline .vtp (as :func:`write_centerline_vtp` writes) into LPS mm."""
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     with _vtk_errors_captured() as errors:
         reader = vtkXMLPolyDataReader()
         reader.SetFileName(str(path))
@@ -490,7 +490,7 @@ def write_path_markups(path, points, *, name: str = "CatheterPath", coordinate_s
 def read_path_markups(path) -> np.ndarray:
     """Control points (LPS mm, shape (k, 3)) of the first markup in a ``.mrk.json`` file."""
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     try:
         markup = json.loads(path.read_text(encoding="utf-8"))["markups"][0]
         positions = [point["position"] for point in markup["controlPoints"]]

@@ -32,6 +32,7 @@ from .projection import CArmGeometry, projection_matrix_from_carm, read_geometry
 
 __all__ = [
     "InputError",
+    "check_readable",
     "Volume",
     "read_volume",
     "write_volume",
@@ -141,7 +142,7 @@ class Volume:
         return cls(sitk.GetArrayFromImage(image), image.GetSpacing(), image.GetOrigin(), image.GetDirection())
 
 
-def _check_readable(path: Path) -> None:
+def check_readable(path: Path) -> None:
     if not path.exists():
         raise InputError(f"{path}: no such file")
     if path.is_file() and path.stat().st_size == 0:
@@ -151,7 +152,7 @@ def _check_readable(path: Path) -> None:
 def read_volume(path) -> Volume:
     """Read a 3D NRRD / NIfTI / MHA file into a :class:`Volume` (LPS, as SimpleITK reports)."""
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     try:
         image = sitk.ReadImage(str(path))
     except RuntimeError as exc:
@@ -459,7 +460,7 @@ def read_ct(path) -> Volume:
     (gantry-tilted) stacks or mixed slice sizes raise :class:`InputError` naming the folder.
     """
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     if path.is_dir():
         return _read_dicom_series(path)
     if _is_dicom_file(path):
@@ -631,7 +632,7 @@ def read_fluoro(path, frame: int = 0) -> Fluoro:
     file, NaN pixels or a frame over :data:`MAX_FRAME_PIXELS` raise :class:`InputError`.
     """
     path = Path(path)
-    _check_readable(path)
+    check_readable(path)
     if path.is_dir():
         raise InputError(f"{path}: is a folder; expected a fluoroscopy image file")
     if _is_dicom_file(path):

@@ -284,11 +284,9 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
     export.write_centerline_vtp(paths["deformed_centerline.vtp"], result.deformed)
     export.write_path_markups(paths["path.mrk.json"], result.path.points)
     layers = [
-        export.OverlayLayer("pre-operative (projected)", project(result.P, result.preop.points),
-                            result.preop.edges, "tab:orange"),
-        export.OverlayLayer("deformed (projected)", project(result.P, result.deformed.points),
-                            result.deformed.edges, "tab:cyan"),
-        export.OverlayLayer("catheter path", project(result.P, result.path.points), None, "lime"),
+        export.centerline_layer("pre-operative (projected)", result.P, result.preop, "tab:orange"),
+        export.centerline_layer("deformed (projected)", result.P, result.deformed, "tab:cyan"),
+        export.path_layer("catheter path", result.P, result.path.points, "lime"),
     ]
     export.render_overlay(paths["overlay.png"], result.fluoro_image, skeleton2d=result.skeleton2d_points,
                           layers=layers)
