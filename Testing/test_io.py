@@ -367,6 +367,7 @@ def test_load_case_flags_override_the_folder(case_dir, tmp_path):
 
 def test_load_case_reports_what_is_missing(case_dir, tmp_path):
     (case_dir / "fluoro.dcm").unlink()
+    (case_dir / "fluoro_mask.png").unlink(missing_ok=True)
     with pytest.raises(InputError) as excinfo:
         io.load_case(case_dir)
     assert_one_line_naming(excinfo, case_dir, "no fluoroscopy frame", "aorta_mask.nrrd", "skeleton3d.nrrd")
@@ -410,3 +411,16 @@ def test_load_case_with_dicom_ct_folder(tmp_path):
     np.testing.assert_array_equal(loaded.ct.array, volume.array)
     np.testing.assert_allclose(loaded.P, projection_matrix_from_carm(CARM, volume.center_lps()), atol=1e-8)
     assert json.loads(json.dumps({k: str(v) for k, v in loaded.paths.items()}))["ct"] == str(case / "ct")
+
+
+def test_mask_only_case_gets_a_stand_in_frame(case_dir):
+    mask = io.read_mask_2d(case_dir / "fluoro_mask.png")
+    (case_dir / "fluoro.dcm").unlink()
+    with pytest.raises(InputError, match="geometry.json is missing"):
+        io.load_case(case_dir)
+    from FevarPlannerLib.projection import write_geometry_json
+    write_geometry_json(case_dir / "geometry.json", np.hstack([np.eye(3), np.ones((3, 1))]))
+    case = io.load_case(case_dir)
+    assert case.fluoro.shape == mask.shape
+    assert np.array_equal(case.fluoro_mask, mask)
+    assert case.fluoro.image[mask].max() < case.fluoro.image[~mask].min()

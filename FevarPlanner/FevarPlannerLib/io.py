@@ -892,8 +892,9 @@ def _require_inputs(case_dir: Path | None, available: dict[str, Path]) -> None:
     if not any(name in available for name in PRECEDENCE_3D):
         raise InputError(f"{where}: no 3D input (skeleton3d.*, aorta_mask.* or ct/ / ct.nrrd|.nii.gz|.mha); "
                          f"{_folder_listing(case_dir)}")
-    if "fluoro" not in available:
-        raise InputError(f"{where}: no fluoroscopy frame (fluoro.dcm or fluoro.png|.jpg|.tif); "
+    if "fluoro" not in available and "fluoro_mask" not in available:
+        raise InputError(f"{where}: no fluoroscopy frame (fluoro.dcm or fluoro.png|.jpg|.tif) and no "
+                         f"fluoro_mask.png; "
                          f"{_folder_listing(case_dir)}")
 
 
@@ -915,6 +916,17 @@ def _projection_for_case(case_dir: Path | None, available: dict[str, Path], fluo
         raise InputError(f"{fluoro.path}: {exc}") from None
 
 
+def frame_from_mask(mask: np.ndarray, path=None) -> Fluoro:
+    """A stand-in frame for a case that holds only a vessel mask: dark vessels on grey.
+
+    It carries no C-arm tags, so such a case needs ``geometry.json``; it exists so that the
+    overlay and the viewers always have a picture to draw on.
+    """
+    image = np.where(mask, 0.25, 0.75).astype(np.float32)
+    return Fluoro(image=image, pixel_spacing=None, carm=None, path=Path(path) if path is not None else None,
+                  missing_tags=CARM_TAGS)
+
+
 def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluoro=None, fluoro_mask=None,
               geometry=None, frame: int = 0) -> Case:
     """Read a case folder (DESIGN.md section 4); keyword paths override the folder's files.
@@ -924,7 +936,8 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
     :meth:`Case.load_input` for another one). Any 3D flag replaces all the folder's 3D
     inputs. On the 2D side the frame ``fluoro`` (frame number ``frame``) is always read and
     ``fluoro_mask``, if present, must match its pixel grid; a ``fluoro`` flag hides the
-    folder's ``fluoro_mask``.
+    folder's ``fluoro_mask``. A case with a mask and no frame (the mask-only phantoms) gets
+    a stand-in frame drawn from the mask (:func:`frame_from_mask`).
 
     ``P`` comes from ``geometry.json`` when present. Otherwise it is built from the DICOM
     frame's C-arm tags with :func:`projection.projection_matrix_from_carm`, placing the
@@ -948,12 +961,16 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
     stage = next(name for name in PRECEDENCE_3D if name in available)
     volumes = {name: None for name in PRECEDENCE_3D}
     volumes[stage] = _READERS_3D[stage](available[stage])
-    frame_2d = read_fluoro(available["fluoro"], frame=frame)
-    paths = {stage: available[stage], "fluoro": available["fluoro"]}
+    paths = {stage: available[stage]}
     mask_2d = None
+    if "fluoro" in available:
+        frame_2d = read_fluoro(available["fluoro"], frame=frame)
+        paths["fluoro"] = available["fluoro"]
     if "fluoro_mask" in available:
-        mask_2d = read_mask_2d(available["fluoro_mask"], shape=frame_2d.shape)
+        mask_2d = read_mask_2d(available["fluoro_mask"], shape=frame_2d.shape if "fluoro" in available else None)
         paths["fluoro_mask"] = available["fluoro_mask"]
+        if "fluoro" not in available:
+            frame_2d = frame_from_mask(mask_2d, available["fluoro_mask"])
     P, paths["geometry"] = _projection_for_case(case_dir, available, frame_2d, volumes[stage])
     return Case(case_dir=case_dir, ct=volumes["ct"], aorta_mask=volumes["aorta_mask"],
                 skeleton3d=volumes["skeleton3d"], fluoro=frame_2d, fluoro_mask=mask_2d, P=P,
