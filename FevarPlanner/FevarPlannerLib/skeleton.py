@@ -1,0 +1,363 @@
+"""Skeletons of the 3D lumen mask and of the 2D vessel mask by parallel thinning (paper II-A).
+
+The paper thins both masks with a parallel thinning algorithm for the medial axis. Here the
+3D mask goes through Lee's 3D thinning and the 2D mask through Zhang-Suen thinning, both as
+scikit-image implements them, after the light clean-up that real masks need:
+
+* :func:`clean_mask` keeps the largest connected component (the paper uses MATLAB's
+  ``regionprops``/``bwareaopen`` for this) and fills enclosed holes;
+* :func:`skeletonize_2d` smooths the mask with a Gaussian and re-thresholds it at 0.5 before
+  thinning, as the authors do in 2D; this removes the one-pixel bumps of a hand-drawn or
+  vesselness mask that would otherwise each grow a spur;
+* all work happens on the bounding box of the mask (plus a margin), never on the full grid.
+
+Large 2D masks are thinned at half resolution by default (``downsample``): Zhang-Suen
+thinning costs one pass over the box per pixel of vessel half-width, and on a 1024x1024
+frame that alone takes about 85 ms; at half resolution it takes about 20 ms. The skeleton
+is mapped back onto the full-resolution grid as an 8-connected one-pixel-thin curve with the
+same topology (see :func:`skeletonize_2d`).
+
+:func:`grid_edges` is the neighbourhood of Definition 1 (Chebyshev distance 1) on a grid,
+built with array shifts; the graph module builds its adjacency from it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.morphology import skeletonize as _skimage_skeletonize
+
+from .io import Volume
+
+__all__ = [
+    "clean_mask",
+    "skeletonize_2d",
+    "skeletonize_3d",
+    "grid_edges",
+    "DEFAULT_MIN_SIZE",
+    "DOWNSAMPLE_ABOVE_PIXELS",
+]
+
+#: Components smaller than this many pixels/voxels are noise (used when not keeping only the largest).
+DEFAULT_MIN_SIZE = 64
+
+#: 2D masks whose bounding box holds more pixels than this are thinned at half resolution.
+DOWNSAMPLE_ABOVE_PIXELS = 400_000
+
+
+def _as_binary(mask: np.ndarray, what: str = "mask") -> np.ndarray:
+    mask = np.asarray(mask)
+    if mask.ndim not in (2, 3):
+        raise ValueError(f"{what}: expected a 2D or 3D array, got {mask.ndim}D with shape {mask.shape}")
+    if mask.dtype.kind == "f" and not np.all(np.isfinite(mask)):
+        raise ValueError(f"{what}: contains NaN or infinite values")
+    if mask.dtype == bool:
+        return mask
+    return mask != 0
+
+
+def _bounding_box(mask: np.ndarray, pad: int = 0) -> tuple[slice, ...]:
+    """Slices of the smallest box holding every non-zero element, grown by ``pad`` (clipped)."""
+    box = []
+    for axis in range(mask.ndim):
+        others = tuple(a for a in range(mask.ndim) if a != axis)
+        hits = np.flatnonzero(np.any(mask, axis=others))
+        box.append(slice(max(hits[0] - pad, 0), min(hits[-1] + 1 + pad, mask.shape[axis])))
+    return tuple(box)
+
+
+def _full_connectivity(ndim: int) -> np.ndarray:
+    return ndi.generate_binary_structure(ndim, ndim)
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    labels, count = ndi.label(mask, structure=_full_connectivity(mask.ndim))
+    if count <= 1:
+        return labels > 0
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return labels == int(np.argmax(sizes))
+
+
+def _fill_enclosed_holes(mask: np.ndarray) -> np.ndarray:
+    """Fill background regions that do not reach the border (face-connected background).
+
+    Labelling the background once is much faster than ``ndi.binary_fill_holes``, which
+    propagates a dilation from the border one step at a time.
+    """
+    padded = np.pad(mask, 1)
+    labels, _ = ndi.label(~padded)
+    outside = labels.flat[0]
+    filled = padded | ((labels != outside) & (labels > 0))
+    return filled[(slice(1, -1),) * mask.ndim]
+
+
+def clean_mask(mask: np.ndarray, *, fill_holes: bool = True, largest_component: bool = True,
+               min_size: int = DEFAULT_MIN_SIZE) -> np.ndarray:
+    """Light clean-up of a binary 2D or 3D mask before thinning.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray
+        2D or 3D array; non-zero is foreground.
+    fill_holes : bool
+        Fill background regions enclosed by the foreground (cavities in 3D, holes in 2D).
+    largest_component : bool
+        Keep only the largest 8/26-connected component. Otherwise drop components smaller
+        than ``min_size``.
+    min_size : int
+        Smallest component (pixels/voxels) worth keeping; also the smallest acceptable result.
+
+    Returns
+    -------
+    numpy.ndarray of bool, same shape as ``mask``.
+    """
+    binary = _as_binary(mask)
+    if not binary.any():
+        raise ValueError(f"mask of shape {binary.shape} is empty (no foreground)")
+    box = _bounding_box(binary)
+    crop = binary[box]
+    if largest_component:
+        kept = _largest_component(crop)
+    else:
+        labels, _ = ndi.label(crop, structure=_full_connectivity(crop.ndim))
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        kept = (sizes >= min_size)[labels]
+    size = int(kept.sum())
+    if size < min_size:
+        raise ValueError(f"mask of shape {binary.shape}: largest kept component has {size} elements, "
+                         f"fewer than min_size={min_size}")
+    if fill_holes:
+        kept = _fill_enclosed_holes(kept)
+    out = np.zeros(binary.shape, dtype=bool)
+    out[box] = kept
+    return out
+
+
+def _smooth_and_sample(crop: np.ndarray, sigma: float | np.ndarray, step: int) -> np.ndarray:
+    """Gaussian-smooth ``crop``, sample every ``step``-th element per axis, threshold at 0.5.
+
+    The separable filter is applied one axis at a time and each axis is subsampled right
+    after its pass, so later passes run on fewer elements.
+    """
+    sigmas = np.broadcast_to(np.asarray(sigma, dtype=float), (crop.ndim,))
+    work = crop.astype(np.float32)
+    for axis in range(crop.ndim):
+        if sigmas[axis] > 0:
+            work = ndi.gaussian_filter1d(work, sigmas[axis], axis=axis, truncate=3.0)
+        if step > 1:
+            work = work[(slice(None),) * axis + (slice(None, None, step),)]
+    return work > 0.5
+
+
+def _half_offsets(ndim: int) -> np.ndarray:
+    """The 3^d-1 neighbour offsets up to sign: the lexicographically positive ones."""
+    offsets = [o for o in itertools.product((-1, 0, 1), repeat=ndim) if any(o)]
+    return np.array([o for o in offsets if o[np.flatnonzero(o)[0]] > 0], dtype=np.int64)
+
+
+def _shortcut_offsets(offset: np.ndarray) -> np.ndarray:
+    """Offsets ``a`` such that both ``a`` and ``offset - a`` are strictly shorter grid steps."""
+    ndim = len(offset)
+    length2 = int(offset @ offset)
+    found = []
+    for a in itertools.product((-1, 0, 1), repeat=ndim):
+        a = np.array(a)
+        rest = offset - a
+        if any(a) and np.all(np.abs(rest) <= 1) and a @ a < length2 and rest @ rest < length2:
+            found.append(a)
+    return np.array(found, dtype=np.int64).reshape(-1, ndim)
+
+
+def grid_edges(indices: np.ndarray, shape, *, prune_triangles: bool = True) -> np.ndarray:
+    """Pairs of grid points at Chebyshev distance 1 (paper Definition 1), vectorised.
+
+    Parameters
+    ----------
+    indices : numpy.ndarray of int, shape (n, d)
+        Distinct grid indices of the skeleton points (any order).
+    shape : tuple of int
+        Grid shape (used only to linearise indices).
+    prune_triangles : bool
+        Drop an edge when a third skeleton point joins its two ends by two strictly shorter
+        grid steps (a diagonal beside an L-corner, say). Such edges only close 3-cycles and
+        make degree-3 "junctions" in the middle of a curve; dropping them keeps
+        connectivity and changes a geodesic by at most 2 - sqrt(2) steps per corner.
+
+    Returns
+    -------
+    numpy.ndarray of int, shape (m, 2)
+        Row numbers into ``indices``, each unordered pair once.
+    """
+    indices = np.asarray(indices, dtype=np.int64)
+    n, ndim = indices.shape
+    padded_shape = np.asarray(shape, dtype=np.int64) + 2
+    strides = np.r_[np.cumprod(padded_shape[::-1])[:-1][::-1], 1]
+    linear = (indices + 1) @ strides
+    order = np.argsort(linear, kind="stable")
+    sorted_linear = linear[order]
+
+    def lookup(targets: np.ndarray) -> np.ndarray:
+        pos = np.searchsorted(sorted_linear, targets)
+        pos = np.minimum(pos, n - 1)
+        return np.where(sorted_linear[pos] == targets, order[pos], -1)
+
+    pairs = []
+    for offset in _half_offsets(ndim):
+        partner = lookup(linear + offset @ strides)
+        has = partner >= 0
+        first, second = np.flatnonzero(has), partner[has]
+        if prune_triangles and offset @ offset > 1 and len(first):
+            bypassed = np.zeros(len(first), dtype=bool)
+            for shortcut in _shortcut_offsets(offset):
+                bypassed |= lookup(linear[first] + shortcut @ strides) >= 0
+            first, second = first[~bypassed], second[~bypassed]
+        pairs.append(np.stack([first, second], axis=1))
+    return np.concatenate(pairs, axis=0) if pairs else np.empty((0, 2), dtype=np.int64)
+
+
+def _upsample_skeleton(coarse: np.ndarray, step: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Place a coarse skeleton onto a ``step`` times finer grid, keeping it 8-connected.
+
+    Coarse point ``p`` lands on ``step * p``; each coarse edge ``p-q`` (after triangle
+    pruning) is filled with the ``step - 1`` points ``step * p + t * (q - p)``, which are
+    integers because ``q - p`` is a unit grid step. The topology is unchanged.
+    """
+    points = np.argwhere(coarse)
+    edges = grid_edges(points, coarse.shape)
+    t = np.arange(1, step)
+    delta = points[edges[:, 1]] - points[edges[:, 0]]
+    between = step * points[edges[:, 0]][:, None, :] + t[None, :, None] * delta[:, None, :]
+    fine = np.concatenate([step * points, between.reshape(-1, points.shape[1])], axis=0)
+    inside = np.all(fine < np.asarray(shape), axis=1)
+    out = np.zeros(shape, dtype=bool)
+    out[tuple(fine[inside].T)] = True
+    return out
+
+
+def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: int | None = None) -> np.ndarray:
+    """One-pixel-thin skeleton of a 2D vessel mask.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray, shape (rows, cols)
+        Non-zero is vessel.
+    smooth_sigma : float
+        Gaussian sigma in pixels applied before re-thresholding at 0.5 (0 disables it).
+    downsample : int or None
+        Thin on every ``downsample``-th pixel of the smoothed mask and map the skeleton back
+        (see :func:`_upsample_skeleton`). ``None`` picks 2 when the mask's bounding box holds
+        more than :data:`DOWNSAMPLE_ABOVE_PIXELS` pixels, else 1. Use 1 for masks whose
+        thinnest vessel is narrower than about 6 pixels.
+
+    Returns
+    -------
+    numpy.ndarray of bool, same shape as ``mask``.
+    """
+    binary = _as_binary(mask)
+    if binary.ndim != 2:
+        raise ValueError(f"skeletonize_2d: expected a 2D mask, got shape {binary.shape}")
+    cleaned = clean_mask(binary)
+    box = _bounding_box(cleaned, pad=int(math.ceil(3 * smooth_sigma)) + 2)
+    crop = cleaned[box]
+    step = downsample if downsample is not None else (2 if crop.size > DOWNSAMPLE_ABOVE_PIXELS else 1)
+    if step < 1:
+        raise ValueError(f"downsample must be >= 1, got {step}")
+    work = _smooth_and_sample(crop, smooth_sigma, step) if (smooth_sigma > 0 or step > 1) else crop
+    if not work.any():
+        raise ValueError(f"mask of shape {binary.shape} vanished after smoothing (sigma={smooth_sigma}, "
+                         f"downsample={step}): vessels too thin")
+    thin = _skimage_skeletonize(_largest_component(work))
+    if step > 1:
+        thin = _upsample_skeleton(thin, step, crop.shape)
+    out = np.zeros(binary.shape, dtype=bool)
+    out[box] = thin
+    return out
+
+
+def _unrepresented_ridge(mask: np.ndarray, thin: np.ndarray, spacing_kji: np.ndarray) -> int:
+    """Medial-ridge voxels of ``mask`` farther from the skeleton than their own depth.
+
+    A ridge voxel (local maximum of the distance to the background, at least two voxels
+    deep) at depth ``r`` must have a skeleton voxel within ``r`` plus two voxels; the
+    skeleton of a tube retracts from a flat cut by about its radius, never more.
+    """
+    depth = ndi.distance_transform_edt(mask, sampling=spacing_kji)
+    ridge = mask & (depth >= ndi.maximum_filter(depth, size=3)) & (depth >= 2 * spacing_kji.min())
+    if not thin.any():
+        return int(ridge.sum())
+    to_skeleton = ndi.distance_transform_edt(~thin, sampling=spacing_kji)
+    return int(np.sum(to_skeleton[ridge] > depth[ridge] + 2 * spacing_kji.max()))
+
+
+def _one_sided_variants(mask: np.ndarray):
+    """The mask grown and shrunk by one voxel on one side of each axis."""
+    for axis in range(mask.ndim):
+        moved = np.zeros_like(mask)
+        moved[(slice(None),) * axis + (slice(1, None),)] = mask[(slice(None),) * axis + (slice(None, -1),)]
+        yield mask | moved
+        yield mask & moved
+
+
+def _thin_3d(mask: np.ndarray, spacing_kji: np.ndarray) -> np.ndarray:
+    """Lee's 3D thinning, guarded against its known loss of two-voxel-thick parts.
+
+    scikit-image's Lee thinning (like the ITK and Fiji ports) re-checks only simplicity in
+    its sequential pass, so a part that becomes two voxels thick can vanish whole
+    (scikit-image issue #3757: a 4x4 column gives an empty skeleton; an AAA whose iliacs
+    straddle two voxel rows loses both iliacs). When ridge voxels of the mask are left
+    without skeleton, the mask is thinned again grown or shrunk by one voxel on one side of
+    each axis in turn (which changes the parity of its thickness along that axis), and the
+    skeleton that misses the fewest ridge voxels is kept; it may sit half a voxel off.
+    """
+    thin = _skimage_skeletonize(mask)
+    missing = _unrepresented_ridge(mask, thin, spacing_kji)
+    for variant in _one_sided_variants(mask):
+        if missing == 0:
+            break
+        candidate = _skimage_skeletonize(variant) & mask
+        candidate_missing = _unrepresented_ridge(mask, candidate, spacing_kji)
+        if candidate_missing < missing and candidate.any():
+            thin, missing = candidate, candidate_missing
+    if missing:
+        warnings.warn(f"3D thinning left {missing} medial voxels of the mask without skeleton", stacklevel=3)
+    return thin
+
+
+def skeletonize_3d(mask: Volume, *, smooth_sigma: float = 0.0) -> Volume:
+    """Curve skeleton of a 3D lumen mask by Lee's parallel thinning.
+
+    Parameters
+    ----------
+    mask : io.Volume
+        Non-zero is lumen.
+    smooth_sigma : float
+        Gaussian sigma in mm (converted per axis with the voxel spacing) applied before
+        re-thresholding at 0.5; 0 (default) thins the cleaned mask as it is.
+
+    Returns
+    -------
+    io.Volume
+        uint8 0/1 skeleton on the same grid.
+    """
+    binary = _as_binary(mask.array, "3D mask")
+    if binary.ndim != 3:
+        raise ValueError(f"skeletonize_3d: expected a 3D mask, got shape {binary.shape}")
+    cleaned = clean_mask(binary)
+    sigma_kji = smooth_sigma / np.asarray(mask.spacing, dtype=float)[::-1]
+    box = _bounding_box(cleaned, pad=int(math.ceil(3 * sigma_kji.max())) + 2)
+    crop = cleaned[box]
+    if smooth_sigma > 0:
+        crop = _smooth_and_sample(crop, sigma_kji, 1)
+        if not crop.any():
+            raise ValueError(f"3D mask vanished after smoothing with sigma={smooth_sigma} mm")
+        crop = _largest_component(crop)
+    thin = _thin_3d(crop, np.asarray(mask.spacing, dtype=float)[::-1])
+    out = np.zeros(binary.shape, dtype=np.uint8)
+    out[box] = thin.astype(np.uint8)
+    return mask.with_array(out)
