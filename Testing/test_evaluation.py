@@ -1,0 +1,167 @@
+"""Tests of the evaluation metrics: point-to-curve distances (MATLAB distance2curve) and the
+2D / 3D errors of the paper."""
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib.centerline import Centerline
+from FevarPlannerLib.evaluation import (common_labels, distance_statistics, error_2d, error_3d, evaluate,
+                                        point_to_graph, point_to_segments, restrict_to_labels)
+from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm
+
+AP = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.4, 0.4), primary_angle=0.0,
+                  secondary_angle=0.0, rows=512, cols=512)
+
+
+def brute_force(points, seg_a, seg_b):
+    """Reference: loop over every point and segment, clamped projection."""
+    out = np.empty(len(points))
+    for i, p in enumerate(points):
+        best = np.inf
+        for a, b in zip(seg_a, seg_b):
+            ab = b - a
+            t = 0.0 if ab @ ab == 0 else min(1.0, max(0.0, (p - a) @ ab / (ab @ ab)))
+            best = min(best, np.linalg.norm(p - (a + t * ab)))
+        out[i] = best
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("n_segments", [5, 300])
+def test_point_to_segments_matches_brute_force(dim, n_segments):
+    rng = np.random.default_rng(dim * 100 + n_segments)
+    seg_a = rng.uniform(-50, 50, size=(n_segments, dim))
+    seg_b = seg_a + rng.normal(scale=4.0, size=(n_segments, dim))
+    seg_b[::17] = seg_a[::17]                       # some single-point segments
+    seg_b[3] = seg_a[3] + 60.0                      # one long segment widens the search bound
+    points = rng.uniform(-60, 60, size=(120, dim))
+    expected = brute_force(points, seg_a, seg_b)
+    np.testing.assert_allclose(point_to_segments(points, seg_a, seg_b), expected, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(point_to_segments(points, seg_a, seg_b, chunk_elements=7), expected,
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_point_to_segments_hand_cases():
+    a, b = np.array([[0.0, 0.0]]), np.array([[10.0, 0.0]])
+    points = np.array([[5.0, 3.0],      # above the middle: the perpendicular height
+                       [13.0, 4.0],     # beyond the end: distance to the end point (3-4-5)
+                       [-6.0, -8.0],    # before the start
+                       [2.5, 0.0]])     # on the segment
+    np.testing.assert_allclose(point_to_segments(points, a, b), [3.0, 5.0, 10.0, 0.0])
+    a3, b3 = np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 8.0]])
+    np.testing.assert_allclose(point_to_segments([[3.0, 4.0, 2.0], [0.0, 0.0, 11.0]], a3, b3), [5.0, 3.0])
+
+
+def test_point_to_graph_uses_edges_and_isolated_nodes_not_just_vertices():
+    graph = np.array([[0.0, 0.0], [10.0, 0.0], [50.0, 50.0]])   # node 2 has no edge
+    d = point_to_graph([[5.0, 2.0], [50.0, 47.0]], graph, [[0, 1]])
+    np.testing.assert_allclose(d, [2.0, 3.0])          # the nearest vertex of point 0 is 5.4 away
+
+
+def test_point_to_segments_rejects_bad_input():
+    with pytest.raises(ValueError, match="no segments"):
+        point_to_segments([[0.0, 0.0]], np.empty((0, 2)), np.empty((0, 2)))
+    with pytest.raises(ValueError, match="NaN"):
+        point_to_segments([[np.nan, 0.0]], [[0.0, 0.0]], [[1.0, 0.0]])
+    with pytest.raises(ValueError, match="shape"):
+        point_to_segments([[0.0, 0.0]], [[0.0, 0.0, 0.0]], [[1.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="out of range"):
+        point_to_graph([[0.0, 0.0]], [[0.0, 0.0], [1.0, 1.0]], [[0, 2]])
+
+
+def test_distance_statistics_uses_sample_std():
+    stats = distance_statistics([1.0, 2.0, 3.0, 10.0])
+    assert stats == pytest.approx({"mean": 4.0, "std": np.std([1, 2, 3, 10], ddof=1), "median": 2.5, "max": 10.0})
+    assert distance_statistics([2.0])["std"] == 0.0
+
+
+def planar_tree() -> Centerline:
+    """A Y in the plane z = 0 (the trunk along y, the limbs spreading in x), LPS mm."""
+    trunk = np.column_stack([np.zeros(11), np.linspace(-50, 0, 11), np.zeros(11)])
+    left = np.column_stack([np.linspace(3, 30, 10), np.linspace(3, 30, 10), np.zeros(10)])
+    right = np.column_stack([np.linspace(-3, -30, 10), np.linspace(3, 30, 10), np.zeros(10)])
+    points = np.vstack([trunk, left, right])
+    edges = [[i, i + 1] for i in range(10)] + [[10, 11]] + [[i, i + 1] for i in range(11, 20)]
+    edges += [[10, 21]] + [[i, i + 1] for i in range(21, 30)]
+    labels = ["aorta"] * 11 + ["iliac_left"] * 10 + ["iliac_right"] * 10
+    return Centerline(points, edges, labels)
+
+
+def test_evaluate_identical_curves_gives_zero():
+    tree = planar_tree()
+    P = projection_matrix_from_carm(AP)
+    skeleton = project(P, tree.points)
+    metrics = evaluate(tree, tree, P, skeleton, tree.edges)
+    for key in ("2d_px", "2d_reverse_px", "3d_mm", "3d_reverse_mm", "3d_symmetric_mm"):
+        assert metrics[key]["max"] == pytest.approx(0.0, abs=1e-9)
+    assert metrics["labels"] == ["aorta", "iliac_left", "iliac_right"]
+
+
+def test_evaluate_translated_copy_gives_the_offset():
+    tree = planar_tree()
+    moved = tree.with_points(tree.points + [0.0, 0.0, 2.5])     # off the tree's plane: every distance is 2.5
+    P = projection_matrix_from_carm(AP)
+    metrics = evaluate(moved, tree, P, project(P, moved.points), moved.edges)
+    for key in ("3d_mm", "3d_reverse_mm", "3d_symmetric_mm"):
+        assert metrics[key]["mean"] == pytest.approx(2.5)
+        assert metrics[key]["max"] == pytest.approx(2.5)
+        assert metrics[key]["std"] == pytest.approx(0.0, abs=1e-9)
+    assert metrics["2d_px"]["max"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_error_2d_known_offset_of_a_straight_vessel():
+    P = projection_matrix_from_carm(AP)
+    vessel = np.column_stack([np.zeros(20), np.zeros(20), np.linspace(-40, 40, 20)])   # projects to a column
+    skeleton = project(P, vessel) + [3.0, 0.0]
+    edges = [[i, i + 1] for i in range(19)]
+    stats = error_2d(vessel, P, skeleton, edges)
+    assert stats["mean"] == pytest.approx(3.0) and stats["max"] == pytest.approx(3.0)
+
+
+def test_error_3d_reverse_exposes_a_collapsed_result():
+    tree = planar_tree()
+    collapsed = (np.repeat(tree.points[:1], len(tree), axis=0), tree.edges)   # every node on one gt node
+    errors = error_3d(collapsed, tree)
+    assert errors["forward"]["max"] == pytest.approx(0.0)
+    assert errors["reverse"]["max"] > 40.0
+    assert errors["symmetric"]["max"] == errors["reverse"]["max"]
+
+
+def test_restrict_to_labels_keeps_the_subgraph():
+    tree = planar_tree()
+    left = restrict_to_labels(tree, ["aorta", "iliac_left"])
+    assert len(left) == 21
+    assert left.labels.count("iliac_right") == 0
+    assert len(left.edges) == 20 and left.edges.max() == 20
+    np.testing.assert_array_equal(left.points, tree.points[:21])
+    with pytest.raises(ValueError, match="unknown"):
+        restrict_to_labels(tree, ["liver"])
+    with pytest.raises(ValueError, match="no centreline node"):
+        restrict_to_labels(tree, ["renal_left"])
+
+
+def test_evaluate_compares_only_vessels_present_in_both():
+    tree = planar_tree()
+    result = restrict_to_labels(tree, ["aorta", "iliac_left"])
+    lifted = np.where(np.array(tree.labels)[:, None] == "iliac_right", [0.0, 0.0, 20.0], 0.0)
+    gt = tree.with_points(tree.points + lifted)                   # the right limb leaves the plane by 20 mm
+    P = projection_matrix_from_carm(AP)
+    metrics = evaluate(result, gt, P, project(P, tree.points), tree.edges)
+    assert common_labels(result, gt) == ["aorta", "iliac_left"]
+    assert metrics["labels"] == ["aorta", "iliac_left"]
+    assert metrics["3d_reverse_mm"]["max"] == pytest.approx(0.0, abs=1e-9)   # the moved gt limb is left out
+    explicit = evaluate(tree, gt, P, project(P, tree.points), tree.edges, labels=["iliac_right"])
+    assert explicit["3d_mm"]["mean"] == pytest.approx(20.0)
+
+
+def test_evaluate_without_ground_truth_and_bad_labels():
+    tree = planar_tree()
+    P = projection_matrix_from_carm(AP)
+    metrics = evaluate(tree, None, P, project(P, tree.points) + [0.0, 1.0], tree.edges)
+    assert metrics["3d_mm"] is None and metrics["3d_reverse_mm"] is None
+    assert metrics["2d_px"]["mean"] == pytest.approx(1.0, abs=0.05)
+    with pytest.raises(ValueError, match="unknown"):
+        evaluate(tree, None, P, project(P, tree.points), tree.edges, labels=["heart"])
+    other = Centerline(tree.points, tree.edges, ["renal_left"] * len(tree))
+    with pytest.raises(ValueError, match="share no anatomy label"):
+        evaluate(tree, other, P, project(P, tree.points), tree.edges)
