@@ -163,7 +163,7 @@ def match_trunks(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: C
 def _nearest_matched_junction(graph: SkeletonGraph, junction: int, matched) -> int:
     """The matched junction closest (geodesically) to ``junction``."""
     matched = np.asarray(sorted(matched))
-    distances = graph.geodesic_from([junction])[matched]
+    distances = graph.geodesic_from(int(junction))[matched]
     return int(matched[np.argmin(distances)])
 
 

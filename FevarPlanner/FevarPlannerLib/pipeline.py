@@ -129,8 +129,8 @@ def prepare_preop(case: Case, progress=None) -> Preoperative:
     with _timed(timings, "preop_skeleton3d"):
         skeleton_volume = _skeleton3d_volume(case, progress)
     with _timed(timings, "preop_graph3d"):
-        g3 = graph.SkeletonGraph.from_volume(skeleton_volume)
-        c3 = graph.classify(g3, iota=IOTA_MM)
+        c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM)
+        g3 = c3.graph  # repaired: gaps bridged, small loops broken, spurs isolated
         c3 = graph.label_anatomy(g3, c3, left=np.array([1.0, 0, 0]), superior=np.array([0, 0, 1.0]))
     kept = np.asarray(c3.kept_nodes())
     labels = [c3.node_labels[i] for i in kept]
@@ -150,7 +150,7 @@ def _skeleton2d_graph(mask: np.ndarray) -> graph.SkeletonGraph:
 def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
     c2 = graph.classify(g2, iota=IOTA_MM * _pixels_per_mm(P, at))
     left, superior = image_directions(P, at)
-    return graph.label_anatomy(g2, c2, left=left, superior=superior)
+    return graph.label_anatomy(c2.graph, c2, left=left, superior=superior)
 
 
 def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
@@ -205,9 +205,9 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
         with _timed(timings, "graph2d"):
             c2 = _classify_2d(g2, P, preop.centre)
         with _timed(timings, "matching"):
-            candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
+            candidates = matching.candidate_correspondences(preop.graph, preop.classification, c2.graph, c2, P)
         with _timed(timings, "deformation"):
-            trials = [(_deform_with(preop, g2, c2, P, c, alpha, beta), c) for c in candidates]
+            trials = [(_deform_with(preop, c2.graph, c2, P, c, alpha, beta), c) for c in candidates]
             (deformed, energy), best = min(trials, key=lambda t: t[0][1])
         source = f"{best.source} ({len(candidates)} candidate(s))"
     timings["intraop"] = sum(timings.values())
