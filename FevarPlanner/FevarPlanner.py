@@ -1,0 +1,464 @@
+"""FevarPlanner: the 3D Slicer scripted module.
+
+The only file of the project that imports ``slicer`` (and, inside the Slicer application,
+``qt``). It is a thin adapter around the pure core:
+
+* module-level functions turn a :class:`FevarPlannerLib.pipeline.PlanResult` into MRML
+  nodes (centrelines as model nodes, the catheter path as a markups curve, the frame as a
+  scalar volume). They need nothing but the MRML classes, so they run under the
+  ``slicer-core`` wheel (pip) as well as in Slicer, and the pytest suite checks them there;
+* :class:`FevarPlannerLogic` runs :func:`FevarPlannerLib.pipeline.plan_case` (the same entry
+  point as the CLI and the workstation) and adds the result to a scene;
+* inside the Slicer application only: the module description, the widget (the shared
+  ``Resources/UI/FevarPlanner.ui`` panel) and the self-test.
+
+Coordinates: the core works in DICOM LPS millimetres; Slicer's scene is RAS. The conversion
+``RAS = (-x, -y, z)`` happens here and nowhere else.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import slicer
+import vtk
+from vtk.util import numpy_support
+
+from FevarPlannerApp.summary import summary_rows
+from FevarPlannerLib import export
+from FevarPlannerLib.centerline import Centerline
+
+try:
+    from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,
+                                               ScriptedLoadableModuleTest, ScriptedLoadableModuleWidget)
+    import qt
+
+    SLICER_APPLICATION = True
+except ImportError:
+    # slicer-core (pip) outside the Slicer application: MRML classes only. The logic then
+    # works on a scene it is given; the module, widget and self-test classes need the
+    # application and are not defined.
+    ScriptedLoadableModuleLogic = object
+    SLICER_APPLICATION = False
+
+__all__ = [
+    "ROLE_ATTRIBUTE",
+    "STYLE",
+    "lps_to_ras",
+    "ras_to_lps",
+    "module_resource_path",
+    "centerline_polydata_ras",
+    "centerline_to_model_node",
+    "path_to_curve_node",
+    "fluoro_to_volume_node",
+    "result_nodes",
+    "remove_result_nodes",
+    "FevarPlannerLogic",
+    "run_phantom_check",
+]
+
+#: Node attribute naming what a node shows; nodes carrying it belong to this module.
+ROLE_ATTRIBUTE = "FevarPlanner.role"
+
+#: Display colour (RGB 0..1) and line width per role; the same colours as the overlay PNG.
+STYLE = {
+    "preop": ((1.0, 0.50, 0.05), 2.0),
+    "deformed": ((0.09, 0.75, 0.81), 3.0),
+    "path": ((0.20, 0.95, 0.20), 4.0),
+}
+
+LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
+
+
+def lps_to_ras(points) -> np.ndarray:
+    """DICOM LPS points (n, 3) or (3,) as Slicer RAS points: ``(-x, -y, z)``."""
+    return np.asarray(points, dtype=float) * LPS_TO_RAS
+
+
+def ras_to_lps(points) -> np.ndarray:
+    """Slicer RAS points as DICOM LPS points (the same sign flip, its own inverse)."""
+    return np.asarray(points, dtype=float) * LPS_TO_RAS
+
+
+def module_resource_path(relative) -> Path:
+    """A file under the module's ``Resources`` folder.
+
+    A built extension has ``Resources/`` next to this file (the CMake build copies it
+    there); the source tree has it one level up, at the repository root.
+    """
+    here = Path(__file__).resolve().parent
+    candidates = [here / "Resources" / relative, here.parent / "Resources" / relative]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError(f"FevarPlanner resource {relative} not found in {candidates[0].parent} "
+                            f"or {candidates[1].parent}")
+
+
+def _vtk_points(points: np.ndarray) -> vtk.vtkPoints:
+    result = vtk.vtkPoints()
+    result.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(points, dtype=float), deep=True))
+    return result
+
+
+def centerline_polydata_ras(centerline: Centerline) -> vtk.vtkPolyData:
+    """The centreline as export's vtkPolyData (line per edge, label arrays) with RAS points.
+
+    The field data ``coordinateSystem`` says ``RAS``, so
+    :func:`FevarPlannerLib.export.polydata_to_centerline` reads it back to LPS.
+    """
+    polydata = export.centerline_to_polydata(centerline)
+    polydata.SetPoints(_vtk_points(lps_to_ras(centerline.points)))
+    system = polydata.GetFieldData().GetAbstractArray("coordinateSystem")
+    system.SetValue(0, "RAS")
+    return polydata
+
+
+def _tag(node, role: str, name: str) -> None:
+    node.SetName(name)
+    node.SetAttribute(ROLE_ATTRIBUTE, role)
+
+
+def centerline_to_model_node(scene, centerline: Centerline, name: str, role: str = "deformed"):
+    """Add a centreline to ``scene`` as a vtkMRMLModelNode of lines (RAS), with a display node.
+
+    Parameters
+    ----------
+    scene : vtkMRMLScene
+    centerline : Centerline
+        Points in LPS mm.
+    name : str
+        Node name shown in Slicer.
+    role : {"preop", "deformed"}
+        Sets the colour and line width (:data:`STYLE`) and the :data:`ROLE_ATTRIBUTE`.
+    """
+    if role not in STYLE:
+        raise ValueError(f"unknown display role {role!r}; expected one of {sorted(STYLE)}")
+    node = scene.AddNewNodeByClass("vtkMRMLModelNode")
+    _tag(node, role, name)
+    node.SetAndObservePolyData(centerline_polydata_ras(centerline))
+    node.CreateDefaultDisplayNodes()
+    color, width = STYLE[role]
+    display = node.GetDisplayNode()
+    display.SetColor(*color)
+    display.SetLineWidth(width)
+    display.SetScalarVisibility(False)
+    display.SetVisibility2D(True)
+    return node
+
+
+def path_to_curve_node(scene, path, name: str | None = None):
+    """Add a planned path to ``scene`` as a locked, linear vtkMRMLMarkupsCurveNode (RAS).
+
+    Parameters
+    ----------
+    scene : vtkMRMLScene
+    path : FevarPlannerLib.planning.CatheterPath
+        Points in LPS mm, from the access point to the target.
+    name : str, optional
+        Default ``"<start> to <target>"``.
+    """
+    points = np.asarray(path.points, dtype=float).reshape(-1, 3)
+    if len(points) < 2:
+        raise ValueError(f"a catheter path needs at least 2 points, got {len(points)}")
+    node = scene.AddNewNodeByClass("vtkMRMLMarkupsCurveNode")
+    _tag(node, "path", name or f"{path.start_label} to {path.target_label}")
+    node.SetCurveTypeToLinear()  # the planner already resampled and smoothed the path
+    node.SetControlPointPositionsWorld(_vtk_points(lps_to_ras(points)))
+    node.SetLocked(True)
+    node.CreateDefaultDisplayNodes()
+    color, _ = STYLE["path"]
+    display = node.GetDisplayNode()
+    display.SetSelectedColor(*color)
+    display.SetColor(*color)
+    display.SetPointLabelsVisibility(False)
+    display.SetPropertiesLabelVisibility(False)
+    display.SetGlyphScale(1.0)
+    return node
+
+
+def fluoro_to_volume_node(scene, image: np.ndarray, name: str = "FevarPlanner fluoroscopy"):
+    """Add the fluoroscopic frame (rows, cols) to ``scene`` as a single-slice scalar volume.
+
+    The frame keeps its pixel grid (1 mm per pixel, origin at the first pixel) and lies in
+    the axial plane oriented so that Slicer's axial view shows it as the C-arm monitor
+    does: columns (``u``) to the screen's right, rows (``v``) down.
+    """
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 2 or min(image.shape) < 1:
+        raise ValueError(f"fluoroscopic frame must be a 2D array, got shape {image.shape}")
+    data = vtk.vtkImageData()
+    data.SetDimensions(image.shape[1], image.shape[0], 1)  # i = column (u), j = row (v)
+    data.GetPointData().SetScalars(numpy_support.numpy_to_vtk(np.ascontiguousarray(image).ravel(), deep=True))
+    node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
+    _tag(node, "fluoro", name)
+    node.SetIJKToRASDirections(-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0)
+    node.SetAndObserveImageData(data)
+    node.CreateDefaultDisplayNodes()
+    return node
+
+
+def result_nodes(scene) -> dict:
+    """This module's nodes in ``scene`` by role (``preop``, ``deformed``, ``path``, ``fluoro``)."""
+    nodes = {}
+    for index in range(scene.GetNumberOfNodes()):
+        node = scene.GetNthNode(index)
+        role = node.GetAttribute(ROLE_ATTRIBUTE)
+        if role:
+            nodes[role] = node
+    return nodes
+
+
+def remove_result_nodes(scene) -> int:
+    """Remove the nodes of an earlier run from ``scene``; returns how many were removed."""
+    nodes = list(result_nodes(scene).values())
+    for node in nodes:
+        scene.RemoveNode(node)
+    return len(nodes)
+
+
+class FevarPlannerLogic(ScriptedLoadableModuleLogic):
+    """Run a case through the core and show the result as MRML nodes.
+
+    Usable without the widget, inside Slicer (``FevarPlannerLogic().run(case_dir)``) and
+    outside it on any vtkMRMLScene (``FevarPlannerLogic(scene).run(case_dir)``).
+    """
+
+    def __init__(self, scene=None):
+        if ScriptedLoadableModuleLogic is not object:
+            ScriptedLoadableModuleLogic.__init__(self)
+        self._scene = scene
+
+    @property
+    def scene(self):
+        """The scene given to the constructor, else Slicer's ``slicer.mrmlScene``."""
+        return self._scene if self._scene is not None else slicer.mrmlScene
+
+    def run(self, case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
+            out_dir=None, overrides: dict | None = None, progress=None, show_fluoro: bool = True):
+        """Plan one case folder (DESIGN.md section 4) and add the result to the scene.
+
+        Parameters
+        ----------
+        case_dir : path
+        method : {"proposed", "icp-tps", "rigid"}
+        start, target : str
+            Access vessel and target vessel labels.
+        out_dir : path, optional
+            Also write result.json, the .vtp, the .mrk.json and the overlay PNG there.
+        overrides : dict, optional
+            Input files replacing the folder's (``ct``, ``aorta_mask``, ``skeleton3d``,
+            ``fluoro``, ``fluoro_mask``, ``geometry``).
+        progress : callable, optional
+            ``progress(fraction, message)``.
+        show_fluoro : bool
+            Also add the frame as a scalar volume.
+
+        Returns
+        -------
+        (PlanResult, dict)
+            The core's result and the nodes added, by role.
+        """
+        from FevarPlannerLib.pipeline import plan_case
+
+        result = plan_case(case_dir, out_dir, method=method, progress=progress, start=start, target=target,
+                           **{key: value for key, value in (overrides or {}).items() if value})
+        return result, self.add_result(result, show_fluoro=show_fluoro)
+
+    def add_result(self, result, *, show_fluoro: bool = True) -> dict:
+        """Replace the nodes of an earlier run by this result's; returns the nodes by role."""
+        scene = self.scene
+        remove_result_nodes(scene)
+        nodes = {
+            "preop": centerline_to_model_node(scene, result.preop, "FevarPlanner pre-operative centreline", "preop"),
+            "deformed": centerline_to_model_node(scene, result.deformed,
+                                                 f"FevarPlanner deformed centreline ({result.method})", "deformed"),
+            "path": path_to_curve_node(scene, result.path),
+        }
+        if show_fluoro:
+            nodes["fluoro"] = fluoro_to_volume_node(scene, result.fluoro_image)
+        return nodes
+
+
+def _distance_to_label(centerline: Centerline, point_lps: np.ndarray, label: str) -> float:
+    """Distance (mm) from a point to the nearest node of ``centerline`` carrying ``label``."""
+    nodes = centerline.points[np.asarray(centerline.labels) == label]
+    return float(np.linalg.norm(nodes - point_lps, axis=1).min()) if len(nodes) else float("inf")
+
+
+def run_phantom_check(scene, work_dir, *, seed: int = 0) -> dict:
+    """Generate one phantom case, run it through :class:`FevarPlannerLogic` on ``scene``, measure.
+
+    Used by the Slicer self-test and the pytest suite alike. The path goes from the right
+    iliac to the left renal artery. Returns numbers to assert on: node counts by MRML
+    class, the path's control points read back from the curve node (RAS), and the
+    distances (mm) from the path's ends to the ground-truth intra-operative vessels:
+    ``start_mm`` (start to right iliac), ``end_mm`` (end to left renal) and
+    ``end_wrong_side_mm`` (end to right renal).
+    """
+    import json
+
+    from FevarPlannerLib import phantom
+
+    folder = phantom.write_phantom_set(Path(work_dir) / "phantom", n=1, seed=seed, preset="random")[0]
+    logic = FevarPlannerLogic(scene)
+    result, nodes = logic.run(folder, start="iliac_right", target="renal_left")
+    curve = nodes["path"]
+    ras = np.array([curve.GetNthControlPointPositionWorld(i) for i in range(curve.GetNumberOfControlPoints())])
+    truth = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["intraop_centerline"])
+    start, end = ras_to_lps(ras[0]), ras_to_lps(ras[-1])
+    return {
+        "result": result,
+        "models": scene.GetNumberOfNodesByClass("vtkMRMLModelNode"),
+        "curves": scene.GetNumberOfNodesByClass("vtkMRMLMarkupsCurveNode"),
+        "volumes": scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode"),
+        "path_ras": ras,
+        "start_mm": _distance_to_label(truth, start, "iliac_right"),
+        "end_mm": _distance_to_label(truth, end, "renal_left"),
+        "end_wrong_side_mm": _distance_to_label(truth, end, "renal_right"),
+    }
+
+
+if SLICER_APPLICATION:
+
+    class FevarPlanner(ScriptedLoadableModule):
+        """Module description shown in Slicer's module list and help panel."""
+
+        def __init__(self, parent):
+            ScriptedLoadableModule.__init__(self, parent)
+            self.parent.title = "FEVAR Planner"
+            self.parent.categories = ["Vascular"]
+            self.parent.dependencies = ["Markups"]
+            self.parent.contributors = ["FevarPlanner developers"]
+            self.parent.helpText = (
+                "Recovers the intra-operative 3D shape of an abdominal aortic aneurysm from the "
+                "pre-operative CT and one fluoroscopic frame, and plans a catheter path from the "
+                "femoral access to a renal ostium for fenestrated endovascular aortic repair "
+                "(Zheng, Zhou, Riga and Yang, ICRA 2019). Choose a case folder (ct/ or ct.nrrd, "
+                "fluoro.dcm or fluoro.png, optional masks and geometry.json) and press Plan path.")
+            self.parent.acknowledgementText = (
+                "Implements J.-Q. Zheng, X.-Y. Zhou, C. Riga and G.-Z. Yang, 'Towards 3D Path "
+                "Planning from a Single 2D Fluoroscopic Image for Robot Assisted Fenestrated "
+                "Endovascular Aortic Repair', ICRA 2019. Built on the Slicer scripted module "
+                "template by Jean-Christophe Fillion-Robin (Kitware) and Steve Pieper (Isomics).")
+
+    class FevarPlannerWidget(ScriptedLoadableModuleWidget):
+        """The shared .ui panel; every computation goes through :class:`FevarPlannerLogic`."""
+
+        OVERRIDES = ("ct", "aortaMask", "skeleton3d", "fluoro", "fluoroMask", "geometry")
+        DISPLAY = {"showPreopCheckBox": "preop", "showDeformedCheckBox": "deformed", "showPathCheckBox": "path"}
+
+        def setup(self):
+            ScriptedLoadableModuleWidget.setup(self)
+            panel = slicer.util.loadUI(str(module_resource_path("UI/FevarPlanner.ui")))
+            self.layout.addWidget(panel)
+            self.ui = slicer.util.childWidgetVariables(panel)
+            self.logic = FevarPlannerLogic()
+            self.nodes = {}
+            self.ui.showSurfaceCheckBox.visible = False  # Slicer users load the segmentation themselves
+            self.ui.caseDirBrowseButton.connect("clicked()", lambda: self._browse_folder(self.ui.caseDirLineEdit))
+            self.ui.outputDirBrowseButton.connect("clicked()", lambda: self._browse_folder(self.ui.outputDirLineEdit))
+            for key in self.OVERRIDES:
+                line_edit = getattr(self.ui, f"{key}LineEdit")
+                getattr(self.ui, f"{key}BrowseButton").connect(
+                    "clicked()", lambda edit=line_edit: self._browse_file(edit))
+            self.ui.caseDirLineEdit.connect("textChanged(QString)", self._update_run_button)
+            self.ui.runButton.connect("clicked()", self.onRunButton)
+            for box in self.DISPLAY:
+                getattr(self.ui, box).connect("toggled(bool)", self._update_visibility)
+            self.layout.addStretch(1)
+            self._update_run_button()
+
+        def _browse_folder(self, line_edit):
+            folder = qt.QFileDialog.getExistingDirectory(self.parent, "Choose a folder", line_edit.text)
+            if folder:
+                line_edit.text = folder
+
+        def _browse_file(self, line_edit):
+            path = qt.QFileDialog.getOpenFileName(self.parent, "Choose an input file", line_edit.text)
+            if path:
+                line_edit.text = path
+
+        def _update_run_button(self, *_):
+            self.ui.runButton.enabled = os.path.isdir(self.ui.caseDirLineEdit.text.strip())
+
+        def _overrides(self) -> dict:
+            if not self.ui.overridesGroupBox.checked:
+                return {}
+            names = {"aortaMask": "aorta_mask", "fluoroMask": "fluoro_mask"}
+            return {names.get(key, key): getattr(self.ui, f"{key}LineEdit").text.strip() for key in self.OVERRIDES}
+
+        def _progress(self, fraction: float, message: str) -> None:
+            self.ui.progressBar.value = int(round(100 * fraction))
+            self.ui.statusLabel.text = message
+            slicer.app.processEvents()
+
+        def _update_visibility(self, *_):
+            for box, role in self.DISPLAY.items():
+                node = self.nodes.get(role)
+                if node is not None and node.GetDisplayNode() is not None:
+                    node.GetDisplayNode().SetVisibility(getattr(self.ui, box).checked)
+
+        def _fill_table(self, result) -> None:
+            rows = summary_rows(result)
+            table = self.ui.resultsTableWidget
+            table.setRowCount(len(rows))
+            for row, (quantity, value) in enumerate(rows):
+                table.setItem(row, 0, qt.QTableWidgetItem(quantity))
+                table.setItem(row, 1, qt.QTableWidgetItem(value))
+            table.resizeColumnToContents(0)
+
+        def onRunButton(self):
+            self.ui.runButton.enabled = False
+            try:
+                with slicer.util.tryWithErrorDisplay("FevarPlanner could not plan this case.", waitCursor=True):
+                    result, self.nodes = self.logic.run(
+                        self.ui.caseDirLineEdit.text.strip(), method=self.ui.methodComboBox.currentText,
+                        start=self.ui.startComboBox.currentText, target=self.ui.targetComboBox.currentText,
+                        out_dir=self.ui.outputDirLineEdit.text.strip() or None, overrides=self._overrides(),
+                        progress=self._progress)
+                    self._fill_table(result)
+                    self._update_visibility()
+                    slicer.util.setSliceViewerLayers(background=self.nodes.get("fluoro"), fit=True)
+                    slicer.util.resetThreeDViews()
+                    self.ui.statusLabel.text = (f"{result.path.start_label} → {result.path.target_label}: "
+                                                f"{result.path.length_mm:.1f} mm in {result.timings['total']:.2f} s")
+            finally:
+                self._update_run_button()
+
+    class FevarPlannerTest(ScriptedLoadableModuleTest):
+        """Self-test: a phantom case through the logic, with numbers checked."""
+
+        def setUp(self):
+            slicer.mrmlScene.Clear(0)
+
+        def runTest(self):
+            self.setUp()
+            self.test_lps_to_ras()
+            self.setUp()
+            self.test_phantom_case()
+
+        def test_lps_to_ras(self):
+            self.assertEqual(lps_to_ras([10.0, 20.0, 30.0]).tolist(), [-10.0, -20.0, 30.0])
+            self.assertEqual(ras_to_lps(lps_to_ras([1.5, -2.0, 3.0])).tolist(), [1.5, -2.0, 3.0])
+
+        def test_phantom_case(self):
+            self.delayDisplay("Planning a phantom case")
+            with tempfile.TemporaryDirectory() as work_dir:
+                check = run_phantom_check(slicer.mrmlScene, work_dir)
+            self.assertEqual(check["models"], 2)
+            self.assertEqual(check["curves"], 1)
+            self.assertEqual(check["volumes"], 1)
+            self.assertGreaterEqual(len(check["path_ras"]), 10)
+            self.assertLess(check["start_mm"], 10.0)
+            self.assertLess(check["end_mm"], 10.0)
+            self.assertGreater(check["end_wrong_side_mm"], check["end_mm"])
+            self.assertLess(check["path_ras"][0][2], check["path_ras"][-1][2])  # from the groin up
+            expected = lps_to_ras(check["result"].path.points)
+            self.assertLess(float(np.abs(check["path_ras"] - expected).max()), 1e-6)
+            logging.info("FevarPlanner self-test: path %.1f mm", check["result"].path.length_mm)
+            self.delayDisplay("Test passed")

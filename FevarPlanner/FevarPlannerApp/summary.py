@@ -1,0 +1,59 @@
+"""The rows of the results table, shared by the workstation and the Slicer module.
+
+Pure Python on purpose (no Qt, no Slicer): the Slicer extension ships this file next to
+``FevarPlanner.py`` so that both front ends describe a result in the same words.
+"""
+
+from __future__ import annotations
+
+from numbers import Real
+
+__all__ = ["METRIC_NAMES", "format_metric", "summary_rows"]
+
+#: Readable names of the metrics that :func:`FevarPlannerLib.evaluation.evaluate` returns.
+METRIC_NAMES = {
+    "2d_px": "2D error, result to skeleton (px)",
+    "2d_reverse_px": "2D error, skeleton to result (px)",
+    "3d_mm": "3D error, result to truth (mm)",
+    "3d_reverse_mm": "3D error, truth to result (mm)",
+    "3d_symmetric_mm": "3D error, symmetric (mm)",
+}
+
+
+def format_metric(value) -> str:
+    """One metric as text: ``mean ± std (max m)`` for distance statistics, else ``str``."""
+    if value is None:
+        return "n/a (no ground truth)"
+    if isinstance(value, dict) and {"mean", "std"} <= set(value):
+        text = f"{value['mean']:.2f} ± {value['std']:.2f}"
+        return text + (f" (max {value['max']:.2f})" if "max" in value else "")
+    if isinstance(value, Real) and not isinstance(value, bool):
+        return f"{value:.3g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(str(item) for item in value)
+    return str(value)
+
+
+def summary_rows(result) -> list[tuple[str, str]]:
+    """``(quantity, value)`` rows describing a :class:`FevarPlannerLib.pipeline.PlanResult`.
+
+    The order is the one a reader wants: what was run, the path, the errors against the
+    ground truth (when the case has one), then the timings, slowest first.
+    """
+    path = result.path
+    rows = [("Method", result.method)]
+    correspondence = getattr(result, "inputs", {}).get("correspondence")
+    if correspondence:
+        rows.append(("Correspondence", str(correspondence)))
+    rows += [
+        ("Path", f"{path.start_label} → {path.target_label}"),
+        ("Path length (mm)", f"{path.length_mm:.1f}"),
+        ("Path points", str(len(path.points))),
+        ("Centreline nodes (pre-op / deformed)", f"{len(result.preop)} / {len(result.deformed)}"),
+        ("2D skeleton nodes", str(len(result.skeleton2d_points))),
+    ]
+    for key, value in (result.errors or {}).items():
+        rows.append((METRIC_NAMES.get(key, key.replace("_", " ")), format_metric(value)))
+    timings = sorted(result.timings.items(), key=lambda item: (item[0] != "total", -item[1]))
+    rows += [(f"Time: {name} (s)", f"{seconds:.3f}") for name, seconds in timings]
+    return rows

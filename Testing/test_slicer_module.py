@@ -1,0 +1,226 @@
+"""The Slicer module outside Slicer: MRML conversion under slicer-core, and the CMake build.
+
+``FevarPlanner/FevarPlanner.py`` is imported with the MRML classes of the slicer-core
+wheel; the application-only classes (module, widget, self-test) must then be absent.
+"""
+
+import importlib.util
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import vtk
+
+slicer = pytest.importorskip("slicer")
+
+from FevarPlannerLib import export, phantom, planning  # noqa: E402
+from FevarPlannerLib.centerline import ANATOMY_LABELS  # noqa: E402
+from FevarPlannerLib.pipeline import PlanResult  # noqa: E402
+from FevarPlannerLib.projection import project  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+MODULE_DIR = REPO / "FevarPlanner"
+
+
+def _load_module():
+    spec = importlib.util.spec_from_file_location("FevarPlanner", MODULE_DIR / "FevarPlanner.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("FevarPlanner", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+fp = _load_module()
+
+
+@pytest.fixture(scope="module")
+def anatomy():
+    """A real phantom case's pre- and intra-operative centrelines and projection (no raster)."""
+    case = phantom.generate_case(phantom.PhantomParams())
+    return case.preop.to_centerline(2.0), case.intraop.to_centerline(2.0), case.P_true, case.carm
+
+
+@pytest.fixture()
+def scene():
+    mrml = slicer.vtkMRMLScene()
+    mrml.AddNode(slicer.vtkMRMLSelectionNode())  # markups look up their length unit here
+    return mrml
+
+
+def _plan_result(anatomy) -> PlanResult:
+    preop, intraop, P, carm = anatomy
+    uv = project(P, intraop.points)
+    image = np.zeros((carm.rows, carm.cols), dtype=np.float32)
+    return PlanResult("proposed", preop, intraop, planning.plan_path(intraop), P, uv, intraop.edges, image,
+                      {"total": 1.0, "registration": 0.5})
+
+
+def test_import_under_slicer_core_defines_only_the_mrml_side():
+    assert fp.SLICER_APPLICATION is False
+    for name in ("FevarPlanner", "FevarPlannerWidget", "FevarPlannerTest"):
+        assert not hasattr(fp, name)
+    assert fp.FevarPlannerLogic.__mro__[1] is object
+    assert fp.module_resource_path("UI/FevarPlanner.ui") == REPO / "Resources" / "UI" / "FevarPlanner.ui"
+    with pytest.raises(FileNotFoundError, match="missing.ui"):
+        fp.module_resource_path("UI/missing.ui")
+
+
+def test_lps_to_ras_flips_x_and_y_only():
+    points = np.array([[10.0, -20.0, 30.0], [0.5, 0.25, -7.0]])
+    assert fp.lps_to_ras(points).tolist() == [[-10.0, 20.0, 30.0], [-0.5, -0.25, -7.0]]
+    np.testing.assert_array_equal(fp.ras_to_lps(fp.lps_to_ras(points)), points)
+
+
+def test_centerline_model_node_holds_ras_lines_and_reads_back_as_lps(scene, anatomy):
+    preop = anatomy[0]
+    node = fp.centerline_to_model_node(scene, preop, "pre-op", role="preop")
+    polydata = node.GetPolyData()
+    assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == 1
+    assert polydata.GetNumberOfPoints() == len(preop)
+    assert polydata.GetNumberOfLines() == len(preop.edges)
+    first = np.array(polydata.GetPoint(0))
+    np.testing.assert_allclose(first, preop.points[0] * [-1.0, -1.0, 1.0])
+    back = export.polydata_to_centerline(polydata)
+    np.testing.assert_allclose(back.points, preop.points, atol=1e-9)
+    assert back.labels == preop.labels
+    assert node.GetAttribute(fp.ROLE_ATTRIBUTE) == "preop"
+    np.testing.assert_allclose(node.GetDisplayNode().GetColor(), fp.STYLE["preop"][0])
+    with pytest.raises(ValueError, match="display role"):
+        fp.centerline_to_model_node(scene, preop, "bad", role="surface")
+
+
+def test_path_curve_node_survives_a_markups_json_round_trip(scene, anatomy, tmp_path):
+    path = planning.plan_path(anatomy[1], start="iliac_left", target="renal_right")
+    node = fp.path_to_curve_node(scene, path)
+    assert node.GetName() == "iliac_left to renal_right"
+    assert node.GetNumberOfControlPoints() == len(path.points)
+    ras = np.array([node.GetNthControlPointPositionWorld(i) for i in range(node.GetNumberOfControlPoints())])
+    np.testing.assert_allclose(ras, path.points * [-1.0, -1.0, 1.0], atol=1e-9)
+    assert node.GetCurveLengthWorld() == pytest.approx(path.length_mm, rel=1e-6)
+
+    file = tmp_path / "path.mrk.json"
+    writer = slicer.vtkMRMLMarkupsJsonStorageNode()
+    scene.AddNode(writer)
+    writer.SetFileName(str(file))
+    assert writer.WriteData(node) == 1
+    other = slicer.vtkMRMLScene()
+    reader = slicer.vtkMRMLMarkupsJsonStorageNode()
+    other.AddNode(reader)
+    loaded = reader.AddNewMarkupsNodeFromFile(str(file))
+    assert loaded.GetClassName() == "vtkMRMLMarkupsCurveNode"
+    loaded_ras = np.array([loaded.GetNthControlPointPositionWorld(i)
+                           for i in range(loaded.GetNumberOfControlPoints())])
+    np.testing.assert_allclose(loaded_ras, ras, atol=1e-6)
+    # the core's own reader agrees: the file Slicer wrote holds the path in LPS
+    np.testing.assert_allclose(export.read_path_markups(file), path.points, atol=1e-6)
+
+
+def test_curve_node_rejects_a_one_point_path(scene, anatomy):
+    path = planning.plan_path(anatomy[1])
+    path.points = path.points[:1]
+    with pytest.raises(ValueError, match="at least 2 points"):
+        fp.path_to_curve_node(scene, path)
+
+
+def test_fluoro_volume_node_keeps_the_pixel_grid(scene):
+    image = np.arange(15, dtype=np.float32).reshape(3, 5)  # 3 rows, 5 columns
+    node = fp.fluoro_to_volume_node(scene, image)
+    data = node.GetImageData()
+    assert data.GetDimensions() == (5, 3, 1)
+    assert data.GetScalarComponentAsDouble(4, 2, 0, 0) == image[2, 4]
+    vtk_matrix = vtk.vtkMatrix4x4()
+    node.GetIJKToRASMatrix(vtk_matrix)
+    ijk_to_ras = np.array([[vtk_matrix.GetElement(r, c) for c in range(4)] for r in range(4)])
+    np.testing.assert_allclose(ijk_to_ras @ [4, 2, 0, 1], [-4.0, -2.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="2D array"):
+        fp.fluoro_to_volume_node(scene, np.zeros((2, 2, 2)))
+
+
+def test_logic_replaces_the_nodes_of_an_earlier_run(scene, anatomy):
+    result = _plan_result(anatomy)
+    logic = fp.FevarPlannerLogic(scene)
+    first = logic.add_result(result)
+    second = logic.add_result(result, show_fluoro=False)
+    assert set(first) == {"preop", "deformed", "path", "fluoro"}
+    assert set(second) == {"preop", "deformed", "path"}
+    assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == 2
+    assert scene.GetNumberOfNodesByClass("vtkMRMLMarkupsCurveNode") == 1
+    assert scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode") == 0
+    assert {role: node.GetID() for role, node in fp.result_nodes(scene).items()} == \
+        {role: node.GetID() for role, node in second.items()}
+    assert second["deformed"].GetName() == "FevarPlanner deformed centreline (proposed)"
+    assert fp.remove_result_nodes(scene) == 3
+    assert fp.result_nodes(scene) == {}
+
+
+def test_summary_rows_describe_the_result(anatomy):
+    from FevarPlannerApp.summary import format_metric, summary_rows
+
+    result = _plan_result(anatomy)
+    result.errors = {"3d_mm": {"mean": 1.234, "std": 0.5, "median": 1.0, "max": 3.0}, "2d_px": None,
+                     "labels": list(ANATOMY_LABELS[:2])}
+    rows = dict(summary_rows(result))
+    assert rows["Path"] == "iliac_right → renal_left"
+    assert rows["Path length (mm)"] == f"{result.path.length_mm:.1f}"
+    assert rows["3D error, result to truth (mm)"] == "1.23 ± 0.50 (max 3.00)"
+    assert rows["2D error, result to skeleton (px)"] == "n/a (no ground truth)"
+    assert rows["labels"] == "aorta, renal_left"
+    assert list(rows).index("Time: total (s)") < list(rows).index("Time: registration (s)")
+    assert format_metric(0.000123456) == "0.000123"
+
+
+def _cmake_listing(tmp_path) -> tuple[list[str], set[str]]:
+    """Configure FevarPlanner/CMakeLists.txt with a stand-in for Slicer's build macro."""
+    source = tmp_path / "src"
+    source.mkdir()
+    (source / "CMakeLists.txt").write_text(
+        "cmake_minimum_required(VERSION 3.16)\nproject(probe NONE)\n"
+        "macro(slicerMacroBuildScriptedModule)\n"
+        "  cmake_parse_arguments(MY \"WITH_GENERIC_TESTS\" \"NAME\" \"SCRIPTS;RESOURCES\" ${ARGN})\n"
+        "  foreach(s ${MY_SCRIPTS})\n    message(\"SCRIPT=${s}\")\n  endforeach()\nendmacro()\n"
+        "set(Slicer_QTSCRIPTEDMODULES_LIB_DIR lib/qt-scripted-modules)\n"
+        f"add_subdirectory(\"{MODULE_DIR.as_posix()}\" module)\n")
+    build = tmp_path / "build"
+    run = subprocess.run(["cmake", "-S", str(source), "-B", str(build), "-DBUILD_TESTING=OFF"],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    scripts = re.findall(r"^SCRIPT=(.+)$", run.stdout + run.stderr, flags=re.MULTILINE)
+    copied = {p.relative_to(build / "lib" / "qt-scripted-modules").as_posix()
+              for p in (build / "lib" / "qt-scripted-modules").rglob("*") if p.is_file()}
+    return scripts, copied
+
+
+@pytest.mark.skipif(shutil.which("cmake") is None, reason="cmake is not installed")
+def test_cmake_build_ships_every_core_module_and_the_resources(tmp_path):
+    scripts, copied = _cmake_listing(tmp_path)
+    core = sorted(f"FevarPlannerLib/{p.name}" for p in (MODULE_DIR / "FevarPlannerLib").glob("*.py"))
+    assert [s for s in scripts if s.startswith("FevarPlannerLib/")] == core
+    assert "FevarPlannerLib/pipeline.py" in core
+    assert {"FevarPlanner.py", "FevarPlannerApp/__init__.py", "FevarPlannerApp/summary.py"} <= set(scripts)
+    assert all((MODULE_DIR / s).is_file() for s in scripts)
+    # the module imports nothing from the workstation but the pure summary file
+    imports = set(re.findall(r"^from (FevarPlannerApp\S*) import", (MODULE_DIR / "FevarPlanner.py").read_text(),
+                             flags=re.MULTILINE))
+    assert imports == {"FevarPlannerApp.summary"}
+    assert {"Resources/UI/FevarPlanner.ui", "Resources/Icons/FevarPlanner.png"} <= copied
+
+
+def test_top_level_cmake_is_a_slicer_extension():
+    text = (REPO / "CMakeLists.txt").read_text()
+    for needle in ("project(FevarPlanner)", "find_package(Slicer REQUIRED)", "include(${Slicer_USE_FILE})",
+                   "add_subdirectory(FevarPlanner)", "include(${Slicer_EXTENSION_GENERATE_CONFIG})",
+                   "include(${Slicer_EXTENSION_CPACK})", 'set(EXTENSION_DEPENDS "NA")'):
+        assert needle in text
+    for key in ("HOMEPAGE", "CATEGORY", "CONTRIBUTORS", "DESCRIPTION", "ICONURL", "SCREENSHOTURLS"):
+        assert re.search(rf'set\(EXTENSION_{key} "[^"]+"\)', text), key
+
+
+def test_only_the_module_file_imports_slicer_or_qt():
+    pattern = re.compile(r"^\s*(import|from)\s+(slicer|qt|ctk)\b", flags=re.MULTILINE)
+    offenders = [p.relative_to(REPO).as_posix() for p in (REPO / "FevarPlanner").rglob("*.py")
+                 if pattern.search(p.read_text(encoding="utf-8"))]
+    assert offenders == ["FevarPlanner/FevarPlanner.py"]
