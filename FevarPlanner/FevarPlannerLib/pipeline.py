@@ -28,7 +28,7 @@ from .centerline import Centerline
 from .io import Case, InputError, load_case
 from .projection import image_directions, project
 
-__all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "prepare_preop", "register_frame",
+__all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "prepare_preop", "register_frame",
            "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
@@ -123,11 +123,9 @@ def _skeleton3d_volume(case: Case, progress=None):
     return skeleton.skeletonize_3d(mask)
 
 
-def prepare_preop(case: Case, progress=None) -> Preoperative:
-    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1) and labelled."""
-    timings = {}
-    with _timed(timings, "preop_skeleton3d"):
-        skeleton_volume = _skeleton3d_volume(case, progress)
+def preop_from_skeleton(skeleton_volume, timings: dict | None = None) -> Preoperative:
+    """Classify (Alg. 1) and label a binary 3D skeleton volume: Algorithm 2 rows 1-2."""
+    timings = {} if timings is None else timings
     with _timed(timings, "preop_graph3d"):
         c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM)
         g3 = c3.graph  # repaired: gaps bridged, small loops broken, spurs isolated
@@ -136,6 +134,14 @@ def prepare_preop(case: Case, progress=None) -> Preoperative:
     labels = [c3.node_labels[i] for i in kept]
     centerline = Centerline(g3.positions[kept], _induced_edges(g3, kept), labels)
     return Preoperative(g3, c3, kept, centerline, timings)
+
+
+def prepare_preop(case: Case, progress=None) -> Preoperative:
+    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1) and labelled."""
+    timings = {}
+    with _timed(timings, "preop_skeleton3d"):
+        skeleton_volume = _skeleton3d_volume(case, progress)
+    return preop_from_skeleton(skeleton_volume, timings)
 
 
 def _pixels_per_mm(P: np.ndarray, at: np.ndarray) -> float:

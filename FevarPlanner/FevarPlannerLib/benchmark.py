@@ -1,0 +1,279 @@
+"""The paper's experiments on our phantoms: SV (rigid) / ICP-TPS / proposed.
+
+``fevar-planner benchmark --out DIR [--quick]`` runs
+
+1. the simulation protocol (paper Sec. III-A, Fig. 4): one phantom in five deformed
+   states cross-paired into 20 pre-op / intra-op cases; the 2D skeleton is the projection
+   of the intra-operative 3D skeleton (drawn into the frame and thinned);
+2. robustness (Fig. 5): in-plane translations and rotations added to the 2D side of one
+   simulation case, the methods given the unmoved ``P``;
+3. phantom-like cases (Fig. 6): masks as real data gives them (3D skeleton thinned from the
+   pre-op lumen, 2D skeleton thinned from the projected intra-op lumen), and hard variants
+   (strong deformation, extra branches, C-arm angulation);
+
+and writes ``benchmark.json``, ``table.md`` (shaped like Table II) and figures
+``fig4_simulation.png``, ``fig5_robustness.png``, ``fig6_phantom.png``.
+Errors are the paper's: mean 2D point-to-curve distance of the projected result to the 2D
+skeleton (px), mean 3D point-to-curve distance to the ground-truth centreline (mm), plus the
+reverse 3D distance (ground truth to result). Time is the intra-operative part (2D skeleton
+and graph, matching, assignment, deformation, TPS; for ICP-TPS its whole loop).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+from skimage.draw import line as draw_line
+
+from . import evaluation, phantom, skeleton
+from .io import write_text_atomic
+from .pipeline import preop_from_skeleton, register_frame
+from .projection import in_plane_transform, project
+
+__all__ = ["METHODS", "run_benchmark", "simulation_cases", "phantom_cases"]
+
+#: Method name in tables -> (pipeline method, pose refinement).
+METHODS = {"SV": ("rigid", False), "ICP-TPS": ("icp-tps", False), "Proposed": ("proposed", True)}
+TRANSLATIONS_PX = (0, 10, 20, 30, 40, 60)
+ROTATIONS_DEG = (0, 5, 10, 15, 20, 30)
+
+
+def draw_skeleton_mask(points_uv: np.ndarray, edges: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Rasterise a projected skeleton graph as a one-pixel line mask (simulation protocol)."""
+    mask = np.zeros(shape, dtype=bool)
+    rc = np.round(points_uv[:, ::-1]).astype(int)
+    for a, b in edges:
+        rr, cc = draw_line(rc[a, 0], rc[a, 1], rc[b, 0], rc[b, 1])
+        keep = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
+        mask[rr[keep], cc[keep]] = True
+    return mask
+
+
+def _thinned(anatomy, grid):
+    """The classified 3D skeleton graph of an anatomy's lumen, thinned on the CT grid."""
+    return preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(anatomy, grid)))
+
+
+def simulation_cases(seed: int = 0, n: int = 20):
+    """Yield ``(name, preop, mask2d, P, gt, intra_skeleton)`` for the paper's simulation protocol.
+
+    ``intra_skeleton`` is the thinned intra-operative 3D skeleton whose projection drew
+    ``mask2d``; ``gt`` the dense intra-operative centreline.
+    """
+    pairs = phantom.paper_protocol(seed)[:n]
+    preops, intraops = {}, {}
+    for index, (pre, intra) in enumerate(pairs):
+        case = phantom.generate_case(pre, intra, name=f"sim{index:02d}")
+        key_pre, key_intra = id(pre), id(intra)
+        if key_pre not in preops:
+            preops[key_pre] = _thinned(case.preop, case.grid)
+        if key_intra not in intraops:
+            intraops[key_intra] = _thinned(case.intraop, case.grid)
+        intra_skeleton = intraops[key_intra].centerline
+        shape = (case.carm.rows, case.carm.cols)
+        mask = draw_skeleton_mask(project(case.P_true, intra_skeleton.points), intra_skeleton.edges, shape)
+        yield case.name, preops[key_pre], mask, case.P_true, case.intraop.to_centerline(), intra_skeleton
+
+
+HARD_VARIANTS = (("strong_deformation", {"deformation_scale": 1.6}),
+                 ("extra_branches", {"sma": True, "coeliac": True, "internal_iliacs": True}),
+                 ("angulated_lao30_cra15", {"primary_angle_deg": 30.0, "secondary_angle_deg": 15.0}),
+                 ("angulated_rao25_cau10", {"primary_angle_deg": -25.0, "secondary_angle_deg": -10.0}))
+
+
+def phantom_cases(seed: int = 0, n: int = 6, n_hard: int = len(HARD_VARIANTS)):
+    """Yield ``(name, preop, mask2d, P_given, gt)`` for mask-level phantom cases.
+
+    ``n`` random cases, then the first ``n_hard`` of :data:`HARD_VARIANTS`.
+    """
+    rng = np.random.default_rng(seed)
+    plans = [(f"phantom{i:02d}", {}) for i in range(n)] + list(HARD_VARIANTS[:n_hard])
+    for name, overrides in plans:
+        params = phantom.random_params(rng, **overrides)
+        case = phantom.generate_case(params, name=name)
+        preop = preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.preop, case.grid)))
+        _, mask = phantom.render_fluoro(case.intraop, case.P_true, case.carm, case.params,
+                                        np.random.default_rng(params.seed))
+        yield name, preop, mask, case.P_given, case.intraop.to_centerline()
+
+
+def _run_methods(preop, mask, P, gt, methods=METHODS) -> dict:
+    results = {}
+    for label, (method, refine) in methods.items():
+        t0 = time.perf_counter()
+        try:
+            frame = register_frame(preop, mask, P, method=method, refine_pose=refine)
+        except ValueError as exc:
+            results[label] = {"failed": str(exc)}
+            continue
+        wall = time.perf_counter() - t0
+        errors = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions,
+                                     frame.skeleton2d.edges())
+        results[label] = {"2d_px": errors["2d_px"], "3d_mm": errors["3d_mm"],
+                          "3d_reverse_mm": errors["3d_reverse_mm"], "time_s": frame.timings["intraop"],
+                          "wall_s": wall, "nodes3d": len(preop.centerline), "nodes2d": len(frame.skeleton2d.positions),
+                          "correspondence": frame.correspondence}
+    return results
+
+
+def _summarise(cases: list[dict]) -> dict:
+    summary = {}
+    for label in METHODS:
+        rows = [c["results"][label] for c in cases if "failed" not in c["results"].get(label, {"failed": 1})]
+        if not rows:
+            continue
+        summary[label] = {
+            "cases": len(rows), "failed": len(cases) - len(rows),
+            "2d_px_mean": float(np.mean([r["2d_px"]["mean"] for r in rows])),
+            "2d_px_std": float(np.mean([r["2d_px"]["std"] for r in rows])),
+            "3d_mm_mean": float(np.mean([r["3d_mm"]["mean"] for r in rows])),
+            "3d_mm_std": float(np.mean([r["3d_mm"]["std"] for r in rows])),
+            "3d_reverse_mm_mean": float(np.mean([r["3d_reverse_mm"]["mean"] for r in rows])),
+            "time_s_median": float(np.median([r["time_s"] for r in rows])),
+        }
+    return summary
+
+
+def _robustness(name, preop, intra_skeleton, P, gt, shape, translations, rotations, progress_step):
+    """Errors against in-plane translation (px) and rotation (deg) of the 2D side."""
+    curves = {"translation_px": [], "rotation_deg": []}
+    centre = np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
+    methods = dict(METHODS, **{"Proposed (no pose refinement)": ("proposed", False)})
+    for kind, values in (("translation_px", translations), ("rotation_deg", rotations)):
+        for value in values:
+            moved_P = in_plane_transform(P, translation=(value, 0.0) if kind == "translation_px" else (0.0, 0.0),
+                                         rotation_deg=value if kind == "rotation_deg" else 0.0, center=centre)
+            mask = draw_skeleton_mask(project(moved_P, intra_skeleton.points), intra_skeleton.edges, shape)
+            curves[kind].append({"offset": value, "results": _run_methods(preop, mask, P, gt, methods)})
+            progress_step(f"robustness {kind} {value}")
+    return {"case": name, **curves}
+
+
+def _table_markdown(summaries: dict, speed: dict) -> str:
+    lines = ["| Dataset | Method | 2D dist. (px) | 3D dist. (mm) | 3D reverse (mm) | time (s, median) |",
+             "|---|---|---|---|---|---|"]
+    for dataset, summary in summaries.items():
+        for label, s in summary.items():
+            lines.append(f"| {dataset} | {label} | {s['2d_px_mean']:.3f} ± {s['2d_px_std']:.3f} | "
+                         f"{s['3d_mm_mean']:.3f} ± {s['3d_mm_std']:.3f} | {s['3d_reverse_mm_mean']:.3f} | "
+                         f"{s['time_s_median']:.3f} |")
+    lines += ["", f"Proposed vs ICP-TPS on the simulation set: 3D error ratio (ICP-TPS / proposed) "
+                  f"{speed['error_ratio']:.2f}, speed-up (median ICP-TPS time / median proposed time) "
+                  f"{speed['speedup']:.1f}x."]
+    return "\n".join(lines) + "\n"
+
+
+def _bar_figure(path: Path, cases: list[dict], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    x = np.arange(len(cases))
+    width = 0.8 / len(METHODS)
+    for k, label in enumerate(METHODS):
+        for ax, key in zip(axes, ("2d_px", "3d_mm")):
+            rows = [c["results"].get(label, {}) for c in cases]
+            means = [r[key]["mean"] if key in r else np.nan for r in rows]
+            stds = [r[key]["std"] if key in r else 0.0 for r in rows]
+            ax.bar(x + (k - 1) * width, means, width, yerr=stds, label=label, capsize=2)
+    for ax, ylabel in zip(axes, ("2D distance (px)", "3D distance (mm)")):
+        ax.set_xticks(x, [c["name"] for c in cases], rotation=60, ha="right", fontsize=7)
+        ax.set_ylabel(ylabel)
+        ax.legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _robustness_figure(path: Path, robustness: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    for row, kind in enumerate(("translation_px", "rotation_deg")):
+        points = robustness[kind]
+        offsets = [p["offset"] for p in points]
+        for label in points[0]["results"]:
+            for col, key in enumerate(("2d_px", "3d_mm")):
+                values = [p["results"][label].get(key, {}).get("mean", np.nan) for p in points]
+                stds = [p["results"][label].get(key, {}).get("std", 0.0) for p in points]
+                axes[row, col].errorbar(offsets, values, yerr=stds, marker="o", capsize=3, label=label)
+                axes[row, col].set_xlabel("in-plane translation (px)" if row == 0 else "in-plane rotation (deg)")
+                axes[row, col].set_ylabel("2D distance (px)" if col == 0 else "3D distance (mm)")
+                axes[row, col].set_yscale("log")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"Robustness to in-plane misalignment ({robustness['case']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_benchmark(out_dir, *, quick: bool = False, seed: int = 0, progress=None) -> dict:
+    """Run the experiments and write benchmark.json, table.md and the figures into ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir : path
+    quick : bool
+        A small subset (4 simulation cases, 3 offsets per robustness curve, 1 + 2 phantom
+        cases) that runs in about two minutes.
+    seed : int
+    progress : callable, optional
+        ``progress(fraction, message)``.
+
+    Returns
+    -------
+    dict
+        The summary (also in benchmark.json).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    n_sim = 4 if quick else 20
+    translations = TRANSLATIONS_PX[::2] if quick else TRANSLATIONS_PX
+    rotations = ROTATIONS_DEG[::2] if quick else ROTATIONS_DEG
+    n_phantom, n_hard = (1, 2) if quick else (6, len(HARD_VARIANTS))
+    total_steps = n_sim + len(translations) + len(rotations) + n_phantom + n_hard
+    done = [0]
+
+    def step(message):
+        done[0] += 1
+        if progress is not None:
+            progress(done[0] / total_steps, message)
+
+    started = time.perf_counter()
+    simulation, robustness = [], None
+    for name, preop, mask, P, gt, intra_skeleton in simulation_cases(seed, n_sim):
+        simulation.append({"name": name, "results": _run_methods(preop, mask, P, gt)})
+        step(f"simulation {name}")
+        if robustness is None:
+            robustness = _robustness(name, preop, intra_skeleton, P, gt, mask.shape, translations, rotations, step)
+    phantoms = []
+    for name, preop, mask, P, gt in phantom_cases(seed, n_phantom, n_hard):
+        phantoms.append({"name": name, "results": _run_methods(preop, mask, P, gt)})
+        step(f"phantom {name}")
+    summaries = {"Simulation": _summarise(simulation), "Phantom": _summarise(phantoms)}
+    sim = summaries["Simulation"]
+    speed = {"error_ratio": sim["ICP-TPS"]["3d_mm_mean"] / sim["Proposed"]["3d_mm_mean"],
+             "speedup": sim["ICP-TPS"]["time_s_median"] / sim["Proposed"]["time_s_median"]}
+    report = {
+        "version": 1, "quick": quick, "seed": seed, "wall_s": time.perf_counter() - started,
+        "machine": {"platform": platform.platform(), "python": platform.python_version()},
+        "summary": summaries, "acceptance": speed,
+        "simulation": simulation, "robustness": robustness, "phantom": phantoms,
+    }
+    write_text_atomic(out_dir / "benchmark.json", json.dumps(report, indent=1))
+    write_text_atomic(out_dir / "table.md", _table_markdown(summaries, speed))
+    _bar_figure(out_dir / "fig4_simulation.png", simulation, "Simulation protocol (20 cases): mean ± std")
+    _robustness_figure(out_dir / "fig5_robustness.png", robustness)
+    _bar_figure(out_dir / "fig6_phantom.png", phantoms, "Phantom-like and hard cases: mean ± std")
+    return {"summary": summaries, "acceptance": speed, "wall_s": report["wall_s"]}
+
