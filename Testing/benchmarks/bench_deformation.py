@@ -1,0 +1,191 @@
+"""Benchmark the deformation stage: deform_assigned (eq. 6, L-BFGS) + fill_unassigned (TPS).
+
+Builds a synthetic AAA-like skeleton (aorta, two renal and two iliac branches) with a given
+number of assigned nodes, deforms it with a smooth 3D field, projects the deformed assigned
+nodes through an AP C-arm (plus 0.3 px noise) as the 2D targets, and times the two calls.
+
+    .venv/bin/python Testing/benchmarks/bench_deformation.py --out Testing/benchmarks/results
+
+Writes ``bench_deformation.json`` and ``bench_deformation.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "2")
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+
+from FevarPlannerLib.deformation import deform_assigned, fill_unassigned
+from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm
+
+GEOMETRY = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.5, 0.5), primary_angle=0.0,
+                        secondary_angle=0.0, rows=1024, cols=1024)
+
+# (parent segment index or None, attach at fraction of parent, end-point offsets in mm,
+#  fraction of the segment, from its far end, left unassigned)
+SEGMENTS = (
+    ("aorta", None, 0.0, lambda s: np.column_stack([4 * np.sin(2 * s), 6 * s - 3, 120 - 170 * s]), 0.08),
+    ("renal_left", 0, 0.3, lambda s: np.column_stack([50 * s, 8 * s ** 2, -6 * s]), 0.35),
+    ("renal_right", 0, 0.32, lambda s: np.column_stack([-48 * s, 10 * s ** 2, -4 * s]), 0.35),
+    ("iliac_left", 0, 1.0, lambda s: np.column_stack([40 * s, 12 * s, -95 * s + 5 * np.sin(3 * s)]), 0.0),
+    ("iliac_right", 0, 1.0, lambda s: np.column_stack([-38 * s, 10 * s, -100 * s]), 0.05),
+)
+
+
+def make_skeleton(n_assigned: int):
+    """Points, edges, assigned mask and per-segment node groups of a synthetic AAA skeleton."""
+    unassigned_share = 0.12
+    n_total = int(round(n_assigned / (1 - unassigned_share)))
+    lengths = []
+    for _, _, _, curve, _ in SEGMENTS:
+        pts = curve(np.linspace(0, 1, 200))
+        lengths.append(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+    counts = np.maximum(3, np.round(np.array(lengths) / sum(lengths) * n_total).astype(int))
+    points, edges, groups, unassigned = [], [], [], []
+    start = 0
+    for (name, parent, at, curve, tail), count in zip(SEGMENTS, counts):
+        if parent is None:
+            base, first_edge_from = np.zeros(3), None
+            s = np.linspace(0, 1, count)
+        else:
+            parent_nodes = groups[parent]
+            anchor = parent_nodes[min(int(round(at * (len(parent_nodes) - 1))), len(parent_nodes) - 1)]
+            base, first_edge_from = points[anchor], anchor
+            s = np.linspace(0, 1, count + 1)[1:]
+        seg = base + curve(s) - (curve(np.zeros(1))[0] if parent is not None else 0)
+        idx = np.arange(start, start + count)
+        points.extend(seg)
+        chain = np.column_stack([idx[:-1], idx[1:]])
+        edges.extend(chain.tolist())
+        if first_edge_from is not None:
+            edges.append([int(first_edge_from), int(idx[0])])
+        n_tail = int(round(tail * count))
+        if n_tail:
+            unassigned.extend(idx[-n_tail:] if name != "aorta" else idx[:n_tail])
+        groups.append(idx)
+        start += count
+    points = np.asarray(points)
+    assigned = np.ones(len(points), dtype=bool)
+    assigned[np.asarray(unassigned, dtype=int)] = False
+    gap = groups[3][len(groups[3]) // 2: len(groups[3]) // 2 + max(2, len(groups[3]) // 15)]
+    assigned[gap] = False
+    return points, np.asarray(edges), assigned, groups
+
+
+def smooth_deformation(points: np.ndarray) -> np.ndarray:
+    """A smooth, non-rigid 3D displacement field (mm) of amplitude ~8 mm."""
+    x, y, z = points.T
+    field = np.column_stack([6 * np.sin(z / 60 + 0.3) + 0.05 * z, 4 * np.cos(z / 80) - 2, 3 * np.sin(x / 40)])
+    return points + field
+
+
+def make_case(n_assigned: int, seed: int = 0):
+    """Everything deform_assigned + fill_unassigned need, plus the ground truth."""
+    rng = np.random.default_rng(seed)
+    points, edges, assigned, groups = make_skeleton(n_assigned)
+    truth = smooth_deformation(points)
+    P = projection_matrix_from_carm(GEOMETRY, points.mean(axis=0))
+    index = np.full(len(points), -1)
+    index[assigned] = np.arange(np.count_nonzero(assigned))
+    keep = assigned[edges[:, 0]] & assigned[edges[:, 1]]
+    assigned_edges = index[edges[keep]]
+    targets = project(P, truth[assigned]) + rng.normal(0, 0.3, (np.count_nonzero(assigned), 2))
+    adjacency = scipy.sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
+                                        shape=(len(points), len(points)))
+    return dict(points=points, truth=truth, assigned=assigned, assigned_edges=assigned_edges,
+                targets=targets, P=P, adjacency=adjacency, groups=groups)
+
+
+def run_once(case):
+    """Time one deform + fill; returns (timings dict, result, filled points)."""
+    assigned = case["assigned"]
+    t0 = time.perf_counter()
+    result = deform_assigned(case["points"][assigned], case["targets"], case["assigned_edges"], case["P"])
+    t1 = time.perf_counter()
+    moved = case["points"].copy()
+    moved[assigned] = result.points
+    filled = fill_unassigned(case["points"], moved, assigned, case["adjacency"])
+    t2 = time.perf_counter()
+    return {"deform_s": t1 - t0, "fill_s": t2 - t1, "total_s": t2 - t0}, result, filled
+
+
+def measure(n_assigned: int, repeats: int) -> dict:
+    case = make_case(n_assigned)
+    runs = [run_once(case) for _ in range(repeats)]
+    timings = {key: float(np.median([r[0][key] for r in runs])) for key in runs[0][0]}
+    _, result, filled = runs[0]
+    assigned = case["assigned"]
+    residual = np.linalg.norm(project(case["P"], result.points) - case["targets"], axis=1)
+    initial_residual = np.linalg.norm(project(case["P"], case["points"][assigned]) - case["targets"], axis=1)
+    error3d = np.linalg.norm(filled - case["truth"], axis=1)
+    initial3d = np.linalg.norm(case["points"] - case["truth"], axis=1)
+    return {
+        "n_assigned": int(np.count_nonzero(assigned)),
+        "n_nodes": int(len(assigned)),
+        "repeats": repeats,
+        "median_s": timings,
+        "n_iter": result.n_iter,
+        "n_evaluations": result.n_evaluations,
+        "converged": result.converged,
+        "energy_initial": result.energy_initial,
+        "energy_final": result.energy_final,
+        "terms": result.terms,
+        "residual_2d_px_mean": {"initial": float(initial_residual.mean()), "final": float(residual.mean())},
+        "error_3d_mm_mean": {"initial": float(initial3d.mean()), "final": float(error3d.mean()),
+                             "unassigned_final": float(error3d[~assigned].mean())},
+    }
+
+
+def plot(rows, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["n_assigned"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key, label in (("deform_s", "deform_assigned (L-BFGS)"), ("fill_s", "fill_unassigned (TPS)"),
+                       ("total_s", "total")):
+        ax.plot(n, [1e3 * r["median_s"][key] for r in rows], "o-", label=label)
+    ax.axhline(25, color="grey", ls="--", label="stage goal 25 ms")
+    ax.set_xlabel("assigned nodes")
+    ax.set_ylabel("median time (ms)")
+    ax.set_title("Deformation stage")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True, help="folder for the JSON and PNG")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[300, 700, 1000, 2000])
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for size in args.sizes:
+        row = measure(size, args.repeats)
+        rows.append(row)
+        print(f"n_a={row['n_assigned']:5d}  deform {1e3 * row['median_s']['deform_s']:7.2f} ms  "
+              f"fill {1e3 * row['median_s']['fill_s']:6.2f} ms  iters {row['n_iter']:4d}  "
+              f"2D {row['residual_2d_px_mean']['initial']:.2f}->{row['residual_2d_px_mean']['final']:.2f} px  "
+              f"3D {row['error_3d_mm_mean']['initial']:.2f}->{row['error_3d_mm_mean']['final']:.2f} mm")
+    payload = {"benchmark": "deformation", "threads": os.environ.get("OMP_NUM_THREADS"), "results": rows}
+    (args.out / "bench_deformation.json").write_text(json.dumps(payload, indent=2))
+    plot(rows, args.out / "bench_deformation.png")
+
+
+if __name__ == "__main__":
+    main()
