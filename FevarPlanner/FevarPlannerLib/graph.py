@@ -75,6 +75,8 @@ DEFAULT_MAX_LOOP_MM = 100.0
 BRANCH_LABELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
 
 _MIN_WEIGHT = 1e-9
+# Every adjacency here is symmetric by construction, so csgraph calls pass directed=True:
+# the result is the same and scipy skips building the transpose.
 
 
 class SkeletonGraph:
@@ -203,7 +205,7 @@ class SkeletonGraph:
 
     def components(self) -> tuple[int, np.ndarray]:
         """Number of connected components and the component label of each node."""
-        return csgraph.connected_components(self.adjacency, directed=False)
+        return csgraph.connected_components(self.adjacency, directed=True)
 
     def geodesic_from(self, sources, *, nearest: bool = False) -> np.ndarray:
         """Geodesic distances along the skeleton (Dijkstra on the edge lengths).
@@ -212,12 +214,12 @@ class SkeletonGraph:
         source), else (len(sources), n). Unreachable nodes get ``inf``.
         """
         single = np.ndim(sources) == 0
-        return csgraph.dijkstra(self.adjacency, directed=False, indices=sources,
+        return csgraph.dijkstra(self.adjacency, directed=True, indices=sources,
                                 min_only=nearest and not single)
 
     def shortest_path(self, a: int, b: int) -> np.ndarray:
         """Node indices on a shortest path from ``a`` to ``b``, both included."""
-        dist, pred = csgraph.dijkstra(self.adjacency, directed=False, indices=int(a), return_predecessors=True)
+        dist, pred = csgraph.dijkstra(self.adjacency, directed=True, indices=int(a), return_predecessors=True)
         if not np.isfinite(dist[b]):
             raise ValueError(f"nodes {a} and {b} are not connected in the skeleton graph")
         return _walk_back(pred, int(b))[::-1]
@@ -352,7 +354,7 @@ class _Repair:
 
 def _bridge_gaps(repair: _Repair, max_gap: float) -> None:
     """Join skeleton pieces to the largest one across gaps up to ``max_gap`` (nearest nodes)."""
-    count, labels = csgraph.connected_components(repair.adjacency, directed=False)
+    count, labels = csgraph.connected_components(repair.adjacency, directed=True)
     if count == 1:
         return
     sizes = np.bincount(labels)
@@ -389,9 +391,9 @@ def _bridge_gaps(repair: _Repair, max_gap: float) -> None:
 def _chords(adjacency: sp.csr_matrix) -> np.ndarray:
     """Edges outside a shortest-path spanning forest: each closes one independent cycle."""
     n = adjacency.shape[0]
-    _, labels = csgraph.connected_components(adjacency, directed=False)
+    _, labels = csgraph.connected_components(adjacency, directed=True)
     roots = np.unique(labels, return_index=True)[1]
-    _, pred = csgraph.dijkstra(adjacency, directed=False, indices=roots, min_only=True,
+    _, pred = csgraph.dijkstra(adjacency, directed=True, indices=roots, min_only=True,
                                return_predecessors=True)[:2]
     child = np.flatnonzero(pred >= 0)
     tree_keys = np.minimum(child, pred[child]) * n + np.maximum(child, pred[child])
@@ -409,7 +411,7 @@ def _shortest_cycle_through(adjacency: sp.csr_matrix, a: int, b: int, limit: flo
     without[b, a] = 0
     without = without.tocsr()
     without.eliminate_zeros()
-    dist, pred = csgraph.dijkstra(without, directed=False, indices=a, limit=limit,
+    dist, pred = csgraph.dijkstra(without, directed=True, indices=a, limit=limit,
                                   return_predecessors=True)
     if not np.isfinite(dist[b]) or dist[b] + weight > limit:
         return None
@@ -472,7 +474,7 @@ def _junction_clusters(graph: SkeletonGraph):
     cluster_of = np.full(n, -1, dtype=np.int64)
     if len(quasi) == 0:
         return cluster_of, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
-    count, labels = csgraph.connected_components(graph.adjacency[quasi][:, quasi], directed=False)
+    count, labels = csgraph.connected_components(graph.adjacency[quasi][:, quasi], directed=True)
     cluster_of[quasi] = labels
     order = np.lexsort((quasi, -graph.degrees[quasi], labels))
     first = np.r_[True, labels[order][1:] != labels[order][:-1]]
@@ -503,7 +505,7 @@ class _BranchSearch:
         if len(sources) == 0:
             n = len(self.graph)
             return np.full(n, np.inf), np.full(n, -9999), np.full(n, -1)
-        return csgraph.dijkstra(self.graph.adjacency, directed=False, indices=sources, min_only=True,
+        return csgraph.dijkstra(self.graph.adjacency, directed=True, indices=sources, min_only=True,
                                 return_predecessors=True)
 
     def _delete_spur(self, path_from_junction: np.ndarray) -> None:
@@ -550,7 +552,7 @@ def _trunks(graph: SkeletonGraph, junctions: np.ndarray) -> list[Trunk]:
     if len(junctions) < 2:
         return []
     adjacency = graph.adjacency
-    dist, pred, source = csgraph.dijkstra(adjacency, directed=False, indices=junctions, min_only=True,
+    dist, pred, source = csgraph.dijkstra(adjacency, directed=True, indices=junctions, min_only=True,
                                           return_predecessors=True)
     upper = sp.triu(adjacency, k=1).tocoo()
     a, b, w = upper.row, upper.col, upper.data

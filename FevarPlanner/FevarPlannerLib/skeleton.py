@@ -4,8 +4,11 @@ The paper thins both masks with a parallel thinning algorithm for the medial axi
 3D mask goes through Lee's 3D thinning and the 2D mask through Zhang-Suen thinning, both as
 scikit-image implements them, after the light clean-up that real masks need:
 
-* :func:`clean_mask` keeps the largest connected component (the paper uses MATLAB's
-  ``regionprops``/``bwareaopen`` for this) and fills enclosed holes;
+* :func:`clean_mask` drops small components (the paper uses MATLAB's ``regionprops`` /
+  ``bwareaopen`` for this) and fills enclosed holes. The thinning functions keep every
+  component of at least :data:`DEFAULT_MIN_SIZE` elements rather than only the largest, so
+  that a vessel cut by a segmentation gap survives as a second skeleton piece, which the
+  graph stage bridges (or drops, with a warning, when it lies too far away);
 * :func:`skeletonize_2d` smooths the mask with a Gaussian and re-thresholds it at 0.5 before
   thinning, as the authors do in 2D; this removes the one-pixel bumps of a hand-drawn or
   vesselness mask that would otherwise each grow a spur;
@@ -83,6 +86,13 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
     return labels == int(np.argmax(sizes))
 
 
+def _drop_small_components(mask: np.ndarray, min_size: int = DEFAULT_MIN_SIZE) -> np.ndarray:
+    labels, _ = ndi.label(mask, structure=_full_connectivity(mask.ndim))
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return (sizes >= min_size)[labels]
+
+
 def _fill_enclosed_holes(mask: np.ndarray) -> np.ndarray:
     """Fill background regions that do not reach the border (face-connected background).
 
@@ -121,13 +131,7 @@ def clean_mask(mask: np.ndarray, *, fill_holes: bool = True, largest_component: 
         raise ValueError(f"mask of shape {binary.shape} is empty (no foreground)")
     box = _bounding_box(binary)
     crop = binary[box]
-    if largest_component:
-        kept = _largest_component(crop)
-    else:
-        labels, _ = ndi.label(crop, structure=_full_connectivity(crop.ndim))
-        sizes = np.bincount(labels.ravel())
-        sizes[0] = 0
-        kept = (sizes >= min_size)[labels]
+    kept = _largest_component(crop) if largest_component else _drop_small_components(crop, min_size)
     size = int(kept.sum())
     if size < min_size:
         raise ValueError(f"mask of shape {binary.shape}: largest kept component has {size} elements, "
@@ -262,7 +266,7 @@ def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: i
     binary = _as_binary(mask)
     if binary.ndim != 2:
         raise ValueError(f"skeletonize_2d: expected a 2D mask, got shape {binary.shape}")
-    cleaned = clean_mask(binary)
+    cleaned = clean_mask(binary, largest_component=False)
     box = _bounding_box(cleaned, pad=int(math.ceil(3 * smooth_sigma)) + 2)
     crop = cleaned[box]
     step = downsample if downsample is not None else (2 if crop.size > DOWNSAMPLE_ABOVE_PIXELS else 1)
@@ -272,7 +276,7 @@ def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: i
     if not work.any():
         raise ValueError(f"mask of shape {binary.shape} vanished after smoothing (sigma={smooth_sigma}, "
                          f"downsample={step}): vessels too thin")
-    thin = _skimage_skeletonize(_largest_component(work))
+    thin = _skimage_skeletonize(_drop_small_components(work))
     if step > 1:
         thin = _upsample_skeleton(thin, step, crop.shape)
     out = np.zeros(binary.shape, dtype=bool)
@@ -348,7 +352,7 @@ def skeletonize_3d(mask: Volume, *, smooth_sigma: float = 0.0) -> Volume:
     binary = _as_binary(mask.array, "3D mask")
     if binary.ndim != 3:
         raise ValueError(f"skeletonize_3d: expected a 3D mask, got shape {binary.shape}")
-    cleaned = clean_mask(binary)
+    cleaned = clean_mask(binary, largest_component=False)
     sigma_kji = smooth_sigma / np.asarray(mask.spacing, dtype=float)[::-1]
     box = _bounding_box(cleaned, pad=int(math.ceil(3 * sigma_kji.max())) + 2)
     crop = cleaned[box]
@@ -356,7 +360,7 @@ def skeletonize_3d(mask: Volume, *, smooth_sigma: float = 0.0) -> Volume:
         crop = _smooth_and_sample(crop, sigma_kji, 1)
         if not crop.any():
             raise ValueError(f"3D mask vanished after smoothing with sigma={smooth_sigma} mm")
-        crop = _largest_component(crop)
+        crop = _drop_small_components(crop)
     thin = _thin_3d(crop, np.asarray(mask.spacing, dtype=float)[::-1])
     out = np.zeros(binary.shape, dtype=np.uint8)
     out[box] = thin.astype(np.uint8)
