@@ -55,12 +55,13 @@ def classified(lines, erase=(), **kwargs):
     return graph, result
 
 
-def assert_branches_match(graph, result, tips, lengths, tolerance):
+def assert_branches_match(graph, result, tips, lengths, tolerance, junction_slack=0.0):
+    """End nodes within ``tolerance`` of the tips, lengths within it plus ``junction_slack``."""
     assert sorted(b.label for b in result.branches) == sorted(tips)
     for branch in result.branches:
         allowed = tolerance[branch.label] if isinstance(tolerance, dict) else tolerance
         assert np.linalg.norm(graph.positions[branch.end] - tips[branch.label]) <= allowed, branch.label
-        assert branch.length == pytest.approx(lengths[branch.label], abs=allowed), branch.label
+        assert branch.length == pytest.approx(lengths[branch.label], abs=allowed + junction_slack), branch.label
         assert branch.nodes[0] == branch.junction and branch.nodes[-1] == branch.end
 
 
@@ -306,5 +307,5 @@ def test_2d_projection_labels_follow_the_view(mirrored):
     # between pixel centres, so allow 2.5 px at least
     radii = {"aorta": 10.0, "renal_left": 3.5, "renal_right": 3.5, "iliac_left": 5.0, "iliac_right": 5.0}
     allowed = {name: max(2.5, 0.4 * radius * pixel) for name, radius in radii.items()}
-    assert_branches_match(graph, result, tips_2d, lengths_2d, tolerance=allowed)
+    assert_branches_match(graph, result, tips_2d, lengths_2d, tolerance=allowed, junction_slack=1.5)
     assert len(result.trunks) == 2
