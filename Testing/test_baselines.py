@@ -13,8 +13,8 @@ from FevarPlannerLib.projection import project
 
 @pytest.fixture(scope="module")
 def case():
-    """A 150-node AAA-like tree deformed by up to 9 mm in the image plane, 800 skeleton points."""
-    return synthetic_case(150, seed=0, skeleton_points=800)
+    """A 300-node AAA-like tree deformed by up to 9 mm in the image plane, 800 skeleton points."""
+    return synthetic_case(300, seed=0, skeleton_points=800)
 
 
 @pytest.fixture(scope="module")
