@@ -85,7 +85,8 @@ from scipy.spatial.distance import cdist
 
 from .projection import project, validate_projection_matrix
 
-__all__ = ["BaselineResult", "rigid", "icp_tps", "select_controls", "tps_control_basis", "soft_assign"]
+__all__ = ["BaselineResult", "rigid", "icp_tps", "annealing_temperatures", "default_control_count", "select_controls",
+           "tps_control_basis", "soft_assign", "lbfgs"]
 
 #: Outlier bins: a partner more than this many standard deviations away counts as missing.
 OUTLIER_SIGMAS = 3.0
