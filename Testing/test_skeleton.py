@@ -260,3 +260,11 @@ def test_skeletonize_3d_survives_two_voxel_thick_parts():
     assert skeleton.sum() >= 18
     assert ndi.label(skeleton, structure=np.ones((3, 3, 3)))[1] == 1
     assert np.sum(neighbour_count(skeleton) == 1) == 2
+
+
+def test_nonzero_linear_matches_flatnonzero():
+    from FevarPlannerLib.skeleton import nonzero_linear
+    rng = np.random.default_rng(3)
+    for shape, dtype in [((7, 5, 3), np.uint8), ((13, 11), bool), ((4, 6), np.float32)]:
+        array = (rng.random(shape) > 0.9).astype(dtype)
+        np.testing.assert_array_equal(nonzero_linear(array), np.flatnonzero(array))

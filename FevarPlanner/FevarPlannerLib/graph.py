@@ -149,7 +149,7 @@ class SkeletonGraph:
         array = np.asarray(skeleton.array)
         if array.ndim != 3:
             raise ValueError(f"skeleton volume must be 3D, got shape {array.shape}")
-        flat = np.flatnonzero(array.reshape(-1))
+        flat = _skeleton.nonzero_linear(array)
         if len(flat) == 0:
             raise ValueError(f"skeleton volume of shape {array.shape} is empty (no non-zero voxel)")
         indices = np.stack(np.unravel_index(flat, array.shape), axis=1)
@@ -167,7 +167,7 @@ class SkeletonGraph:
             raise ValueError(f"2D skeleton must be a 2D array, got shape {array.shape}")
         if not pixel_size > 0:
             raise ValueError(f"pixel_size must be positive, got {pixel_size}")
-        indices = np.argwhere(array)
+        indices = np.stack(np.unravel_index(_skeleton.nonzero_linear(array), array.shape), axis=1)
         if len(indices) == 0:
             raise ValueError(f"2D skeleton of shape {array.shape} is empty (no non-zero pixel)")
         positions = indices[:, ::-1].astype(float)

@@ -41,6 +41,7 @@ __all__ = [
     "skeletonize_2d",
     "skeletonize_3d",
     "grid_edges",
+    "nonzero_linear",
     "DEFAULT_MIN_SIZE",
     "DOWNSAMPLE_ABOVE_PIXELS",
 ]
@@ -89,8 +90,29 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
 def _drop_small_components(mask: np.ndarray, min_size: int = DEFAULT_MIN_SIZE) -> np.ndarray:
     labels, _ = ndi.label(mask, structure=_full_connectivity(mask.ndim))
     sizes = np.bincount(labels.ravel())
+    if sizes[1:].min(initial=min_size) >= min_size:
+        return mask
     sizes[0] = 0
     return (sizes >= min_size)[labels]
+
+
+def nonzero_linear(array: np.ndarray) -> np.ndarray:
+    """C-order linear indices of the non-zero elements, scanning 8 bytes at a time.
+
+    A skeleton fills a tiny fraction of its grid; for one-byte arrays the scan reads the
+    grid as 64-bit words and looks only inside the non-zero words, several times faster than
+    ``np.flatnonzero`` on a 512x512x300 volume.
+    """
+    flat = np.ascontiguousarray(array).reshape(-1)
+    if flat.dtype.itemsize != 1:
+        return np.flatnonzero(flat)
+    flat = flat.view(np.uint8)
+    head = flat.size - flat.size % 8
+    words = np.flatnonzero(flat[:head].view(np.uint64))
+    candidates = (words[:, None] * 8 + np.arange(8)).reshape(-1)
+    found = candidates[flat[candidates] != 0]
+    tail = head + np.flatnonzero(flat[head:])
+    return np.concatenate([found, tail]).astype(np.int64)
 
 
 def _fill_enclosed_holes(mask: np.ndarray) -> np.ndarray:
@@ -153,7 +175,7 @@ def _smooth_and_sample(crop: np.ndarray, sigma: float | np.ndarray, step: int) -
     work = crop.astype(np.float32)
     for axis in range(crop.ndim):
         if sigmas[axis] > 0:
-            work = ndi.gaussian_filter1d(work, sigmas[axis], axis=axis, truncate=3.0)
+            work = ndi.gaussian_filter1d(work, sigmas[axis], axis=axis, truncate=2.5)
         if step > 1:
             work = work[(slice(None),) * axis + (slice(None, None, step),)]
     return work > 0.5
