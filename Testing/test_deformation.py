@@ -187,6 +187,8 @@ def test_bad_input_is_refused_with_a_message():
         deform_assigned(np.vstack([points, behind]), np.vstack([targets, targets]), edges, P)
     with pytest.raises(ValueError, match="weights"):
         deform_assigned(points, targets, edges, P, weights=-np.ones(len(points)))
+    with pytest.raises(ValueError, match="phi"):
+        energy_and_gradient(np.zeros(points.size - 3), points, targets, edges, P)
 
 
 # ---------------------------------------------------------------------------- TPS

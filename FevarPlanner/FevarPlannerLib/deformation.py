@@ -33,6 +33,8 @@ import scipy.sparse
 from scipy.sparse import csgraph
 from scipy.spatial.distance import cdist
 
+from .projection import validate_projection_matrix
+
 __all__ = [
     "DeformationResult",
     "energy_and_gradient",
@@ -89,7 +91,11 @@ class DeformationResult:
 
 @dataclass
 class _EnergyModel:
-    """Everything of eq. 6 that does not change while ``phi`` does, precomputed once."""
+    """Everything of eq. 6 that does not change while ``phi`` does, precomputed once.
+
+    The evaluation works component-major: ``phi`` is (3, n_a), so every operation runs on
+    contiguous rows of length n_a or m (L-BFGS does not care how the variables are ordered).
+    """
 
     points: np.ndarray          # (n_a, 3) y
     targets: np.ndarray         # (n_a, 2) t
@@ -99,42 +105,45 @@ class _EnergyModel:
     data_weights: np.ndarray    # (n_a,) w_j / n_a
     edges: np.ndarray           # (m, 2)
     rest_lengths: np.ndarray    # (m,) L0
-    incidence: scipy.sparse.csr_matrix = field(init=False)   # (m, n_a): +1 at i, -1 at j
-    incidence_t: scipy.sparse.csr_matrix = field(init=False)
-    rest_vectors: np.ndarray = field(init=False)               # (m, 3) y_i - y_j
     depth_sign: float = field(init=False)
 
     def __post_init__(self):
         n, m = len(self.points), len(self.edges)
-        rows = np.repeat(np.arange(m), 2)
-        vals = np.tile([1.0, -1.0], m)
-        self.incidence = scipy.sparse.csr_matrix((vals, (rows, self.edges.ravel())), shape=(m, n))
-        self.incidence_t = self.incidence.T.tocsr()
-        self.rest_vectors = self.incidence @ self.points
         w = self.points @ self.P[2, :3] + self.P[2, 3]
         self.depth_sign = 1.0 if np.all(w > 0) else -1.0
         if not (np.all(w * self.depth_sign > 0)):
             raise ValueError("assigned points lie on both sides of (or on) the X-ray source plane of P")
+        self._points_cm = np.ascontiguousarray(self.points.T)
+        self._targets_cm = np.ascontiguousarray(self.targets.T)
+        component = np.arange(3)[:, None] * n
+        self._gather_i = (component + self.edges[:, 0]).ravel()          # flat (3, n) index of y_i
+        self._gather_j = (component + self.edges[:, 1]).ravel()
+        self._scatter = np.concatenate([self._gather_i, self._gather_j])
+        flat = self._points_cm.ravel()
+        self._rest_vectors = (flat[self._gather_i] - flat[self._gather_j]).reshape(3, m)
+        self._inverse_rest = 1.0 / self.rest_lengths
 
     def evaluate(self, phi: np.ndarray, with_gradient: bool = True):
-        """Return ``(eps, grad (n_a,3) or None, {"S_D", "S_L", "S_S"})`` at ``phi`` (n_a, 3)."""
-        y = self.points + phi
+        """Return ``(eps, grad or None, {"S_D", "S_L", "S_S"})``; ``phi`` and grad are (3, n_a)."""
+        n, m = phi.shape[1], len(self.edges)
+        y = self._points_cm + phi
         P3 = self.P[:, :3]
-        h = y @ P3.T + self.P[:, 3]                      # eq. 1: rows [w*u, w*v, w]
-        if np.any(h[:, 2] * self.depth_sign <= 0):
+        h = P3 @ y + self.P[:, 3:4]                      # eq. 1: rows [w*u, w*v, w]
+        if np.any(h[2] * self.depth_sign <= 0):
             return np.inf, (np.zeros_like(phi) if with_gradient else None), {}
-        f = h[:, :2] / h[:, 2:3]
-        r = self.targets - f                             # residuals t_j - f(y_j + phi_j)
-        s_d = float(self.data_weights @ np.einsum("ij,ij->i", r, r))
+        inverse_w = 1.0 / h[2]
+        fu, fv = h[0] * inverse_w, h[1] * inverse_w
+        ru, rv = self._targets_cm[0] - fu, self._targets_cm[1] - fv     # t_j - f(y_j + phi_j)
+        s_d = float(self.data_weights @ (ru * ru + rv * rv))
 
-        m = len(self.edges)
         if m:
-            e_vec = self.incidence @ y                   # y~_i - y~_j
-            e_phi = e_vec - self.rest_vectors            # phi_i - phi_j
-            length = np.sqrt(np.einsum("ij,ij->i", e_vec, e_vec))
-            stretch = (length - self.rest_lengths) / self.rest_lengths
+            flat = y.ravel()
+            e_vec = (flat[self._gather_i] - flat[self._gather_j]).reshape(3, m)   # y~_i - y~_j
+            e_phi = e_vec - self._rest_vectors                                   # phi_i - phi_j
+            length = np.sqrt((e_vec * e_vec).sum(axis=0))
+            stretch = (length - self.rest_lengths) * self._inverse_rest
             s_l = float(stretch @ stretch) / m
-            s_s = float(np.einsum("ij,ij->", e_phi, e_phi)) / m
+            s_s = float((e_phi * e_phi).sum()) / m
         else:
             s_l = s_s = 0.0
         energy = s_d + self.alpha * s_l + self.beta * s_s
@@ -143,16 +152,16 @@ class _EnergyModel:
             return energy, None, terms
 
         # eqs. 7-9: d f_u/dy = (p1 - u p3)/w, d f_v/dy = (p2 - v p3)/w (first three columns),
-        # so dS_D/dphi_j = -(2 w_j/n_a) [r_u, r_v, -(r_u u + r_v v)] P[:, :3] / w_j.
-        coeff = np.column_stack([r, -np.einsum("ij,ij->i", r, f)])
-        grad = (coeff @ P3) * (-2.0 * self.data_weights / h[:, 2])[:, None]
+        # so dS_D/dphi_j = -(2 w_j/n_a) / w_j * (r_u p1 + r_v p2 - (r_u u + r_v v) p3).
+        scale = -2.0 * self.data_weights * inverse_w
+        a, b = scale * ru, scale * rv
+        grad = P3.T @ np.vstack([a, b, -(a * fu + b * fv)])
         if m:
             # d/dy~_i ((l - L0)/L0)^2 = 2 (l - L0)/L0^2 * e/l and d/dphi_i |phi_i - phi_j|^2 = 2 (phi_i - phi_j);
-            # the opposite at j (the incidence transpose does both)
-            safe = np.maximum(length, 1e-12)
-            edge_grad = e_vec * (2.0 * self.alpha / m * stretch / (self.rest_lengths * safe))[:, None]
-            edge_grad += e_phi * (2.0 * self.beta / m)
-            grad += self.incidence_t @ edge_grad
+            # the opposite at j
+            along = (2.0 * self.alpha / m) * stretch * self._inverse_rest / np.maximum(length, 1e-12)
+            edge_grad = (e_vec * along + (2.0 * self.beta / m) * e_phi).ravel()
+            grad += np.bincount(self._scatter, np.concatenate([edge_grad, -edge_grad]), 3 * n).reshape(3, n)
         return energy, grad, terms
 
 
@@ -164,8 +173,8 @@ class _BandedPreconditioner:
     Hessian is close to the identity. Nodes are put in reverse Cuthill-McKee order so that
     ``R`` is banded (a skeleton is nearly a tree), which makes its Cholesky factor and the
     two triangular solves per evaluation cost O(n * band^2) and O(n * band).
-    ``ridge`` (relative to the median in-plane data stiffness) is added to the diagonal: it
-    keeps the directions along the rays scaled like the image-plane ones.
+    ``ridge`` (relative to the median in-plane data stiffness) is added to the diagonal; it
+    bounds how far one step may run along the nearly flat directions (motion along the rays).
     """
 
     MAX_BAND_NODES = 40
@@ -185,14 +194,16 @@ class _BandedPreconditioner:
         ab = np.zeros((self.band + 1, 3 * n))
         np.add.at(ab, (self.band + rows[upper] - cols[upper], cols[upper]), values[upper])
         self.factor = scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
-        self.to_permuted = (3 * order[:, None] + np.arange(3)).ravel()       # x index -> phi index
-        self.from_permuted = (3 * self.position[:, None] + np.arange(3)).ravel()
+        n_nodes = len(order)
+        self.to_permuted = (np.arange(3)[None, :] * n_nodes + order[:, None]).ravel()   # x index -> (3, n) index
+        self.from_permuted = (3 * self.position[None, :] + np.arange(3)[:, None]).ravel()
 
     @staticmethod
     def _node_order(model: _EnergyModel, n: int) -> np.ndarray:
         if not len(model.edges):
             return np.arange(n)
-        adjacency = scipy.sparse.csr_matrix(abs(model.incidence.T @ model.incidence))
+        i, j = model.edges[:, 0], model.edges[:, 1]
+        adjacency = scipy.sparse.csr_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n, n))
         return np.asarray(csgraph.reverse_cuthill_mckee(adjacency, symmetric_mode=True), dtype=np.int64)
 
     def _hessian_blocks(self, model: _EnergyModel, y: np.ndarray, ridge: float):
@@ -225,12 +236,12 @@ class _BandedPreconditioner:
         return np.concatenate(rows), np.concatenate(cols), np.concatenate(values)
 
     def displacement(self, x: np.ndarray) -> np.ndarray:
-        """``phi = R^-1 x`` as an (n, 3) array."""
+        """``phi = R^-1 x`` as a (3, n) array."""
         z, _ = scipy.linalg.lapack.dtbtrs(self.factor, x[:, None], uplo="U", trans="N")
-        return z[self.from_permuted, 0].reshape(-1, 3)
+        return z[self.from_permuted, 0].reshape(3, -1)
 
     def gradient(self, grad_phi: np.ndarray) -> np.ndarray:
-        """``R^-T grad_phi`` (flat) for a gradient (n, 3) with respect to ``phi``."""
+        """``R^-T grad_phi`` (flat) for a gradient (3, n) with respect to ``phi``."""
         g, _ = scipy.linalg.lapack.dtbtrs(self.factor, grad_phi.ravel()[self.to_permuted][:, None],
                                           uplo="U", trans="T")
         return g[:, 0]
@@ -246,8 +257,6 @@ def _as_points(array, name: str, columns: int) -> np.ndarray:
 
 
 def _build_model(points, targets, edges, P, alpha, beta, weights, rest_lengths) -> _EnergyModel:
-    from .projection import validate_projection_matrix
-
     points = _as_points(points, "points", 3)
     n = len(points)
     targets = _as_points(targets, "targets", 2)
@@ -275,6 +284,14 @@ def _build_model(points, targets, edges, P, alpha, beta, weights, rest_lengths) 
         raise ValueError(f"alpha and beta must be finite and >= 0 (got {alpha}, {beta})")
     return _EnergyModel(points, targets, P, float(alpha), float(beta),
                         weights / max(n, 1), edges, rest_lengths)
+
+
+def _displacements_cm(phi_flat, n: int) -> np.ndarray:
+    """Row-major displacements (n*3,) or (n, 3) as the component-major (3, n) array."""
+    phi = np.asarray(phi_flat, dtype=float)
+    if phi.size != 3 * n or not np.all(np.isfinite(phi)):
+        raise ValueError(f"phi: need {3 * n} finite displacements, got {phi.size} values")
+    return np.ascontiguousarray(phi.reshape(n, 3).T)
 
 
 def energy_and_gradient(phi_flat, points, targets, edges, P, alpha=DEFAULT_ALPHA, beta=DEFAULT_BETA,
@@ -306,20 +323,19 @@ def energy_and_gradient(phi_flat, points, targets, edges, P, alpha=DEFAULT_ALPHA
     gradient : numpy.ndarray, shape (3 * n_a,)
     """
     model = _build_model(points, targets, edges, P, alpha, beta, weights, rest_lengths)
-    phi = np.asarray(phi_flat, dtype=float).reshape(-1, 3)
-    energy, grad, _ = model.evaluate(phi)
-    return energy, grad.ravel()
+    energy, grad, _ = model.evaluate(_displacements_cm(phi_flat, len(model.points)))
+    return energy, grad.T.ravel()
 
 
 def energy_terms(phi_flat, points, targets, edges, P, weights=None, rest_lengths=None) -> dict:
     """The three terms ``{"S_D", "S_L", "S_S"}`` of eq. 6 at ``phi`` (no alpha/beta)."""
     model = _build_model(points, targets, edges, P, 0.0, 0.0, weights, rest_lengths)
-    _, _, terms = model.evaluate(np.asarray(phi_flat, dtype=float).reshape(-1, 3), with_gradient=False)
+    _, _, terms = model.evaluate(_displacements_cm(phi_flat, len(model.points)), with_gradient=False)
     return terms
 
 
 def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFAULT_BETA, weights=None,
-                    rest_lengths=None, max_iter=500, tol=1e-3, window=10, gtol=1e-6,
+                    rest_lengths=None, max_iter=500, tol=3e-3, window=10, gtol=1e-6,
                     memory=5, precondition=False, ridge=0.1) -> DeformationResult:
     """Deform the assigned 3D nodes onto their 2D targets (Algorithm 2 rows 13-15).
 
@@ -373,7 +389,7 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
         preconditioner = None
 
     def displacement(x):
-        return x.reshape(n, 3) if preconditioner is None else preconditioner.displacement(x)
+        return x.reshape(3, n) if preconditioner is None else preconditioner.displacement(x)
 
     def objective(x):
         evaluations[0] += 1
@@ -381,7 +397,7 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
         grad *= n
         return energy * n, (grad.ravel() if preconditioner is None else preconditioner.gradient(grad))
 
-    energy0, _, _ = model.evaluate(np.zeros((n, 3)), with_gradient=False)
+    energy0, _, _ = model.evaluate(np.zeros((3, n)), with_gradient=False)
     history = [energy0 * n]
     stalled = [False]
 
@@ -396,8 +412,9 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
     solution = scipy.optimize.minimize(
         objective, np.zeros(3 * n), jac=True, method="L-BFGS-B", callback=stop_when_stalled,
         options={"maxiter": int(max_iter), "gtol": float(gtol), "ftol": 1e-12, "maxcor": int(memory)})
-    phi = displacement(solution.x)
-    energy, _, terms = model.evaluate(phi, with_gradient=False)
+    phi_cm = displacement(solution.x)
+    energy, _, terms = model.evaluate(phi_cm, with_gradient=False)
+    phi = np.ascontiguousarray(phi_cm.T)
     converged = bool(solution.success) or stalled[0]
     message = f"energy fell by less than {tol:g} over {window} iterations" if stalled[0] else str(solution.message)
     return DeformationResult(points=model.points + phi, displacements=phi, energy_initial=float(energy0),
@@ -412,7 +429,9 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
 class ThinPlateSpline3D:
     """3D thin-plate spline ``x -> x + sum_i w_i |x - c_i| + a_0 + A V^T (x - c_mean)``.
 
-    It interpolates the control *displacements*. The affine part spans the affine hull of
+    ``U(r) = r`` is the biharmonic kernel of 3D (Bookstein 1989); the weights solve the
+    ``(k + 1 + r) x (k + 1 + r)`` system ``[[U + lambda I, Q], [Q^T, 0]]``. It interpolates
+    the control *displacements*. The affine part spans the affine hull of
     the controls (``V``): with coplanar or collinear controls the directions of no extent
     are left out (the displacement is constant along them) instead of making the system
     singular, so any number ``k >= 1`` of distinct controls gives a well-posed fit. With
@@ -523,22 +542,33 @@ def _edge_weighted_graph(points: np.ndarray, adjacency) -> scipy.sparse.csr_matr
     return graph.maximum(graph.T).tocsr()
 
 
-def _nearest_assigned(graph, sources: np.ndarray, assigned: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """Assigned nodes reachable from ``sources`` within ``limit`` mm, and their distances."""
-    distance = csgraph.dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
+#: Largest (sources x nodes) distance table computed in one Dijkstra call.
+_DISTANCE_TABLE_LIMIT = 4_000_000
+
+
+def _nearest_assigned(graph, sources: np.ndarray, assigned: np.ndarray, limit: float,
+                      distance=None) -> tuple[np.ndarray, np.ndarray]:
+    """Assigned nodes reachable from ``sources`` within ``limit`` mm, and their distances.
+
+    ``distance`` (n,) may hold these geodesic distances already.
+    """
+    if distance is None:
+        distance = csgraph.dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
     found = np.flatnonzero(assigned & np.isfinite(distance))
     return found, distance[found]
 
 
-def _choose_controls(points, graph, nodes, assigned, candidates, neighbourhood_mm, max_controls, min_controls):
+def _choose_controls(points, graph, nodes, assigned, candidates, neighbourhood_mm, max_controls, min_controls,
+                     distance=None):
     """Control nodes for the unassigned ``nodes``: assigned ``candidates`` nearest along the skeleton.
 
-    Geodesic neighbourhood of ``neighbourhood_mm`` first; if that holds fewer than
-    ``min_controls``, the nearest reachable assigned nodes at any distance; if still too few,
-    the Euclidean-nearest assigned nodes. At most ``max_controls`` are kept, nearest first.
+    Geodesic neighbourhood of ``neighbourhood_mm`` first (``distance``, if given, holds the
+    geodesic distances from ``nodes`` within it); if that holds fewer than ``min_controls``,
+    the nearest reachable assigned nodes at any distance; if still too few, the
+    Euclidean-nearest assigned nodes. At most ``max_controls`` are kept, nearest first.
     """
     allowed = assigned & candidates
-    found, distance = _nearest_assigned(graph, nodes, allowed, neighbourhood_mm)
+    found, distance = _nearest_assigned(graph, nodes, allowed, neighbourhood_mm, distance)
     if len(found) < min_controls:
         found, distance = _nearest_assigned(graph, nodes, allowed, np.inf)
     if len(found) < min_controls:
@@ -632,9 +662,14 @@ def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=No
         return result
     sub = graph[remaining][:, remaining]
     _, component_of = csgraph.connected_components(sub, directed=False)
+    table = None
+    if remaining.size * n <= _DISTANCE_TABLE_LIMIT:      # one Dijkstra call for all components
+        table = csgraph.dijkstra(graph, directed=False, indices=remaining, limit=neighbourhood_mm)
     for label in np.unique(component_of):
-        nodes = remaining[component_of == label]
+        rows = np.flatnonzero(component_of == label)
+        nodes = remaining[rows]
+        near = None if table is None else table[rows].min(axis=0)
         controls = _choose_controls(points, graph, nodes, assigned, everywhere, neighbourhood_mm,
-                                    max_controls, 4)
+                                    max_controls, 4, near)
         result[nodes] = _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio)
     return result
