@@ -850,8 +850,12 @@ def rasterize_lumen(anatomy: Anatomy, grid: io.Volume | Grid | None = None, *, s
         Boolean array on the grid.
     """
     volume = _as_volume(grid if grid is not None else ct_grid(anatomy, spacing_mm, margin_mm))
-    field_ = _tube_field(volume, _lumen_tubes(anatomy), pad_mm=1.0)
-    return volume.with_array(field_ <= 0.0)
+    return volume.with_array(_lumen_field(anatomy, volume) <= 0.0)
+
+
+def _lumen_field(anatomy: Anatomy, volume: io.Volume) -> np.ndarray:
+    """Signed distance to the lumen, exact within one voxel (enough for mask and partial volume)."""
+    return _tube_field(volume, _lumen_tubes(anatomy), pad_mm=max(1.0, float(min(volume.spacing))))
 
 
 # --------------------------------------------------------------------------- CT
@@ -890,10 +894,10 @@ def _body_and_spine(volume: io.Volume, anatomy: Anatomy) -> np.ndarray:
 
 
 def _add_kidneys(hu: np.ndarray, anatomy: Anatomy, x, y, z) -> np.ndarray:
-    """Enhancing kidneys: ellipsoids just beyond the end of each renal artery."""
+    """Enhancing kidneys: ellipsoids around the end of each renal artery (at the hilum)."""
     for renal in anatomy.by_label("renal_left") + anatomy.by_label("renal_right"):
         end, tangent = renal.points[-1], _unit(renal.points[-1] - renal.points[-4])
-        centre = end + 22.0 * tangent
+        centre = end + 14.0 * tangent
         semi = np.array([22.0, 25.0, 50.0])
         dx = ((x - centre[0]) / semi[0]) ** 2
         dy = ((y - centre[1]) / semi[1]) ** 2
@@ -922,10 +926,14 @@ def render_ct(anatomy: Anatomy, params: PhantomParams, rng: np.random.Generator,
     """
     grid = grid or ct_grid(anatomy, params.ct_spacing_mm, params.ct_margin_mm)
     volume = grid.volume(dtype=np.int16)
+    return _ct_from_lumen_field(anatomy, params, rng, volume, _lumen_field(anatomy, volume))
+
+
+def _ct_from_lumen_field(anatomy: Anatomy, params: PhantomParams, rng: np.random.Generator, volume: io.Volume,
+                         lumen: np.ndarray) -> io.Volume:
     voxel = float(min(volume.spacing))
     hu = _body_and_spine(volume, anatomy)
     wall = _coarse_tube_field(volume, _wall_tubes(anatomy), pad_mm=_PERIVASCULAR_FAT_MM + 2.0 * voxel)
-    lumen = _tube_field(volume, _lumen_tubes(anatomy), pad_mm=voxel)
     fat = _fraction_inside(wall - _PERIVASCULAR_FAT_MM, voxel)
     hu += fat * (_FAT_HU - hu)
     hu += _fraction_inside(wall, voxel) * (params.thrombus_hu - hu)
@@ -1177,12 +1185,13 @@ def write_case(case: PhantomCase, folder, *, mask_only: bool = False) -> Path:
     pre_rng = np.random.default_rng([case.preop_params.seed, 1])
     intra_rng = np.random.default_rng([case.params.seed, 2])
     with io.atomic_folder(folder) as tmp:
-        mask = rasterize_lumen(case.preop, case.grid)
-        io.write_volume(tmp / "aorta_mask.nrrd", mask.with_array(mask.array.astype(np.uint8)))
+        volume = case.grid.volume(dtype=np.uint8)
+        lumen = _lumen_field(case.preop, volume)
+        io.write_volume(tmp / "aorta_mask.nrrd", volume.with_array((lumen <= 0.0).astype(np.uint8)))
         frame, fluoro_mask = render_fluoro(case.intraop, case.P_true, case.carm, case.params, intra_rng)
         io.write_mask_png(tmp / "fluoro_mask.png", fluoro_mask)
         if not mask_only:
-            ct = render_ct(case.preop, case.preop_params, pre_rng, case.grid)
+            ct = _ct_from_lumen_field(case.preop, case.preop_params, pre_rng, volume, lumen)
             io.write_ct_dicom_series(ct, tmp / "ct", series_description=f"FevarPlanner phantom CT {case.name}",
                                      patient_name=f"Phantom^{case.name}", patient_id=case.name)
             io.write_fluoro_dicom(tmp / "fluoro.dcm", frame, case.carm, patient_name=f"Phantom^{case.name}",
@@ -1202,13 +1211,14 @@ PAPER_STATES = 5
 def paper_protocol(seed: int = 0) -> list:
     """The paper's simulation protocol (Sec. III-A/B): 20 ``(pre_params, intra_params)`` pairs.
 
-    One phantom (shape drawn from ``seed``) in five deformed states, AP view, no
-    misalignment; every ordered pair of different states ``(i, j)`` is one case, in the
-    order ``(0, 1), (0, 2), ..., (4, 3)``.
+    One phantom (shape drawn from ``seed``) with the five main vessels only (like the
+    paper's endovascular evaluator), in five deformed states, AP view, no misalignment;
+    every ordered pair of different states ``(i, j)`` is one case, in the order
+    ``(0, 1), (0, 2), ..., (4, 3)``.
     """
     rng = np.random.default_rng(seed)
     shape = random_params(rng, primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
-                          misalign_rotation_deg=0.0)
+                          misalign_rotation_deg=0.0, sma=False, coeliac=False, internal_iliacs=False)
     defaults = PhantomParams()
     states = []
     for _ in range(PAPER_STATES):
