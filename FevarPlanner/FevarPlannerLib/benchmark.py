@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 from skimage.draw import line as draw_line
 
 from . import evaluation, phantom, skeleton
@@ -43,14 +44,18 @@ ROTATIONS_DEG = (0, 5, 10, 15, 20, 30)
 
 
 def draw_skeleton_mask(points_uv: np.ndarray, edges: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Rasterise a projected skeleton graph as a one-pixel line mask (simulation protocol)."""
+    """Rasterise a projected skeleton graph as a three-pixel-wide line mask (simulation protocol).
+
+    Three pixels so that the 2D stage's smoothing before thinning keeps it; thinning
+    brings it back to the one-pixel skeleton.
+    """
     mask = np.zeros(shape, dtype=bool)
     rc = np.round(points_uv[:, ::-1]).astype(int)
     for a, b in edges:
         rr, cc = draw_line(rc[a, 0], rc[a, 1], rc[b, 0], rc[b, 1])
         keep = (rr >= 0) & (rr < shape[0]) & (cc >= 0) & (cc < shape[1])
         mask[rr[keep], cc[keep]] = True
-    return mask
+    return ndimage.binary_dilation(mask, structure=np.ones((3, 3), dtype=bool))
 
 
 def _thinned(anatomy, grid):

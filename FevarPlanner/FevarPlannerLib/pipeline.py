@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from . import baselines, deformation, evaluation, export, graph, matching, planning, skeleton
 from .alignment import refine_in_plane_pose
@@ -149,14 +150,35 @@ def _pixels_per_mm(P: np.ndarray, at: np.ndarray) -> float:
     return float(np.mean(np.linalg.norm(uv[1:] - uv[0], axis=1)))
 
 
-def _skeleton2d_graph(mask: np.ndarray) -> graph.SkeletonGraph:
-    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask))
+def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
+    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), pixel_size=mm_per_pixel)
 
 
 def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
-    c2 = graph.classify(g2, iota=IOTA_MM * _pixels_per_mm(P, at))
+    """Algorithm 1 on the 2D graph (lengths scaled by ``g2.unit_mm``), labelled through ``P``."""
+    c2 = graph.classify(g2)
     left, superior = image_directions(P, at)
     return graph.label_anatomy(c2.graph, c2, left=left, superior=superior)
+
+
+#: The vessels that a stiff wire moves least: the pose is refined on these alone, so that
+#: the deformation of the sac and the iliacs is not mistaken for a misaligned frame.
+STABLE_VESSELS = ("aorta", "renal_left", "renal_right")
+
+
+def _branch_nodes(classification: graph.Classification, labels) -> np.ndarray:
+    nodes = [b.nodes for b in classification.branches if b.label in labels]
+    return np.concatenate(nodes) if nodes else np.empty(0, dtype=np.int64)
+
+
+def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification,
+                        P: np.ndarray, shape) -> np.ndarray:
+    """``P`` corrected in-plane on the stable vessels (upper aorta and renals)."""
+    nodes3 = _branch_nodes(preop.classification, STABLE_VESSELS)
+    nodes2 = _branch_nodes(c2, STABLE_VESSELS)
+    if len(nodes3) < 10 or len(nodes2) < 10:
+        return P
+    return refine_in_plane_pose(preop.graph.positions[nodes3], g2.positions[nodes2], P, shape).P
 
 
 def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
@@ -194,26 +216,35 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    # small matrices: BLAS threads only cost time here (10x in L-BFGS on 2 cores)
+    with threadpool_limits(1, user_api="blas"):
+        return _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta)
+
+
+def _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta) -> FrameResult:
     timings = {}
     with _timed(timings, "skeleton2d"):
-        g2 = _skeleton2d_graph(mask2d)
+        g2 = _skeleton2d_graph(mask2d, 1.0 / _pixels_per_mm(P, preop.centre))
+    c2 = None
+    if refine_pose or method == "proposed":
+        with _timed(timings, "graph2d"):
+            c2 = _classify_2d(g2, P, preop.centre)
+            g2 = c2.graph
     if refine_pose:
         with _timed(timings, "pose_refinement"):
-            P = refine_in_plane_pose(preop.centerline.points, g2.positions, P, mask2d.shape).P
+            P = _refined_projection(preop, g2, c2, P, mask2d.shape)
     points = preop.centerline.points
-    c2, energy, source = None, None, method
+    energy, source = None, method
     if method == "rigid":
         deformed = points
     elif method == "icp-tps":
         with _timed(timings, "registration"):
             deformed = baselines.icp_tps(points, preop.centerline.edges, g2.positions, P).points
     else:
-        with _timed(timings, "graph2d"):
-            c2 = _classify_2d(g2, P, preop.centre)
         with _timed(timings, "matching"):
-            candidates = matching.candidate_correspondences(preop.graph, preop.classification, c2.graph, c2, P)
+            candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
         with _timed(timings, "deformation"):
-            trials = [(_deform_with(preop, c2.graph, c2, P, c, alpha, beta), c) for c in candidates]
+            trials = [(_deform_with(preop, g2, c2, P, c, alpha, beta), c) for c in candidates]
             (deformed, energy), best = min(trials, key=lambda t: t[0][1])
         source = f"{best.source} ({len(candidates)} candidate(s))"
     timings["intraop"] = sum(timings.values())
