@@ -290,26 +290,31 @@ def _distance_to_label(centerline: Centerline, point_lps: np.ndarray, label: str
     return float(np.linalg.norm(nodes - point_lps, axis=1).min()) if len(nodes) else float("inf")
 
 
-def run_phantom_check(scene, work_dir, *, seed: int = 0) -> dict:
+def run_phantom_check(scene, work_dir, *, seed: int = 0, mask_only: bool = True) -> dict:
     """Generate one phantom case, run it through :class:`FevarPlannerLogic` on ``scene``, measure.
 
-    Used by the Slicer self-test and the pytest suite alike. The path goes from the right
-    iliac to the left renal artery. Returns numbers to assert on: node counts by MRML
-    class, the path's control points read back from the curve node (RAS), and the
-    distances (mm) from the path's ends to the ground-truth intra-operative vessels:
-    ``start_mm`` (start to right iliac), ``end_mm`` (end to left renal) and
-    ``end_wrong_side_mm`` (end to right renal).
+    Used by the Slicer self-test and the pytest suite alike. The path is planned from the
+    right iliac to the left renal artery. Returns numbers to assert on: node counts by MRML
+    class, the path's control points read back from the curve node (RAS), and where its
+    ends lie against the ground-truth intra-operative centreline (LPS mm):
+    ``start_right_of_aorta_mm`` (aorta's mean x minus the start's x: positive on the
+    patient's right), ``start_below_aorta_mm`` (lowest aorta node's z minus the start's z:
+    positive below the bifurcation) and ``end_mm`` (distance from the end to the left renal
+    artery). ``mask_only`` skips writing the CT series and the DICOM frame, which the
+    planner does not read when the aorta mask is there.
     """
     import json
 
     from FevarPlannerLib import phantom
 
-    folder = phantom.write_phantom_set(Path(work_dir) / "phantom", n=1, seed=seed, preset="random")[0]
+    folder = phantom.write_phantom_set(Path(work_dir) / "phantom", n=1, seed=seed, preset="random",
+                                        mask_only=mask_only)[0]
     logic = FevarPlannerLogic(scene)
     result, nodes = logic.run(folder, start="iliac_right", target="renal_left")
     curve = nodes["path"]
     ras = np.array([curve.GetNthControlPointPositionWorld(i) for i in range(curve.GetNumberOfControlPoints())])
     truth = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["intraop_centerline"])
+    aorta = truth.points[np.asarray(truth.labels) == "aorta"]
     start, end = ras_to_lps(ras[0]), ras_to_lps(ras[-1])
     return {
         "result": result,
@@ -317,9 +322,9 @@ def run_phantom_check(scene, work_dir, *, seed: int = 0) -> dict:
         "curves": scene.GetNumberOfNodesByClass("vtkMRMLMarkupsCurveNode"),
         "volumes": scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode"),
         "path_ras": ras,
-        "start_mm": _distance_to_label(truth, start, "iliac_right"),
+        "start_right_of_aorta_mm": float(aorta[:, 0].mean() - start[0]),
+        "start_below_aorta_mm": float(aorta[:, 2].min() - start[2]),
         "end_mm": _distance_to_label(truth, end, "renal_left"),
-        "end_wrong_side_mm": _distance_to_label(truth, end, "renal_right"),
     }
 
 
@@ -454,10 +459,9 @@ if SLICER_APPLICATION:
             self.assertEqual(check["curves"], 1)
             self.assertEqual(check["volumes"], 1)
             self.assertGreaterEqual(len(check["path_ras"]), 10)
-            self.assertLess(check["start_mm"], 10.0)
+            self.assertGreater(check["start_right_of_aorta_mm"], 5.0)
+            self.assertGreater(check["start_below_aorta_mm"], 20.0)
             self.assertLess(check["end_mm"], 10.0)
-            self.assertGreater(check["end_wrong_side_mm"], check["end_mm"])
-            self.assertLess(check["path_ras"][0][2], check["path_ras"][-1][2])  # from the groin up
             expected = lps_to_ras(check["result"].path.points)
             self.assertLess(float(np.abs(check["path_ras"] - expected).max()), 1e-6)
             logging.info("FevarPlanner self-test: path %.1f mm", check["result"].path.length_mm)

@@ -166,8 +166,8 @@ def test_summary_rows_describe_the_result(anatomy):
     rows = dict(summary_rows(result))
     assert rows["Path"] == "iliac_right → renal_left"
     assert rows["Path length (mm)"] == f"{result.path.length_mm:.1f}"
-    assert rows["3D error, result to truth (mm)"] == "1.23 ± 0.50 (max 3.00)"
-    assert rows["2D error, result to skeleton (px)"] == "n/a (no ground truth)"
+    assert rows["3D error: result \u2192 truth (mm)"] == "1.23 ± 0.50 (max 3.00)"
+    assert rows["2D error: result \u2192 skeleton (px)"] == "n/a (no ground truth)"
     assert rows["labels"] == "aorta, renal_left"
     assert list(rows).index("Time: total (s)") < list(rows).index("Time: registration (s)")
     assert format_metric(0.000123456) == "0.000123"
@@ -224,3 +224,15 @@ def test_only_the_module_file_imports_slicer_or_qt():
     offenders = [p.relative_to(REPO).as_posix() for p in (REPO / "FevarPlanner").rglob("*.py")
                  if pattern.search(p.read_text(encoding="utf-8"))]
     assert offenders == ["FevarPlanner/FevarPlanner.py"]
+
+
+def test_logic_plans_a_phantom_case_into_the_scene(scene, tmp_path):
+    """The module's self-test route (run_phantom_check), on the slicer-core scene."""
+    check = fp.run_phantom_check(scene, tmp_path)
+    assert (check["models"], check["curves"], check["volumes"]) == (2, 1, 1)
+    assert len(check["path_ras"]) >= 10
+    np.testing.assert_allclose(check["path_ras"], fp.lps_to_ras(check["result"].path.points), atol=1e-9)
+    assert check["start_right_of_aorta_mm"] > 5.0  # the access is on the patient's right ...
+    assert check["start_below_aorta_mm"] > 20.0  # ... in the iliac, below the bifurcation
+    assert check["end_mm"] < 10.0  # and the path ends at the left renal artery
+    assert check["path_ras"][0][0] > check["path_ras"][-1][0]  # RAS: +x is the patient's right

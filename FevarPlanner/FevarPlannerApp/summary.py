@@ -12,11 +12,11 @@ __all__ = ["METRIC_NAMES", "format_metric", "summary_rows"]
 
 #: Readable names of the metrics that :func:`FevarPlannerLib.evaluation.evaluate` returns.
 METRIC_NAMES = {
-    "2d_px": "2D error, result to skeleton (px)",
-    "2d_reverse_px": "2D error, skeleton to result (px)",
-    "3d_mm": "3D error, result to truth (mm)",
-    "3d_reverse_mm": "3D error, truth to result (mm)",
-    "3d_symmetric_mm": "3D error, symmetric (mm)",
+    "2d_px": "2D error: result \u2192 skeleton (px)",
+    "2d_reverse_px": "2D error: skeleton \u2192 result (px)",
+    "3d_mm": "3D error: result \u2192 truth (mm)",
+    "3d_reverse_mm": "3D error: truth \u2192 result (mm)",
+    "3d_symmetric_mm": "3D error: symmetric (mm)",
 }
 
 
@@ -49,7 +49,7 @@ def summary_rows(result) -> list[tuple[str, str]]:
         ("Path", f"{path.start_label} → {path.target_label}"),
         ("Path length (mm)", f"{path.length_mm:.1f}"),
         ("Path points", str(len(path.points))),
-        ("Centreline nodes (pre-op / deformed)", f"{len(result.preop)} / {len(result.deformed)}"),
+        ("Nodes (pre-op / deformed)", f"{len(result.preop)} / {len(result.deformed)}"),
         ("2D skeleton nodes", str(len(result.skeleton2d_points))),
     ]
     for key, value in (result.errors or {}).items():

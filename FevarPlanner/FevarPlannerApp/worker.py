@@ -1,0 +1,86 @@
+"""Running the pipeline off the GUI thread.
+
+:class:`PlanWorker` lives in a :class:`QThread`; it calls
+:func:`FevarPlannerLib.pipeline.plan_case` (the one logic entry point) and reports
+progress, the outcome or a one-line error through Qt signals, which Qt delivers on the
+GUI thread.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from PySide6.QtCore import QObject, Signal, Slot
+
+__all__ = ["PlanRequest", "PlanOutcome", "PlanWorker", "aorta_surface"]
+
+
+@dataclass
+class PlanRequest:
+    """What the panel asks for: the case, the options and the overriding input files."""
+
+    case_dir: Path
+    method: str = "proposed"
+    start: str = "iliac_right"
+    target: str = "renal_left"
+    out_dir: Path | None = None
+    overrides: dict = field(default_factory=dict)
+    with_surface: bool = True
+
+
+@dataclass
+class PlanOutcome:
+    """A planning result and the pre-operative lumen surface, when the case has a mask."""
+
+    result: object
+    surface: object = None
+    written: dict = field(default_factory=dict)
+
+
+def aorta_surface(case_dir, aorta_mask=None):
+    """Lumen surface (vtkPolyData, LPS mm) of the case's aorta mask, or None without one.
+
+    ``aorta_mask`` (a path) wins over the folder's ``aorta_mask.*`` file.
+    """
+    from FevarPlannerLib import io, segmentation
+
+    path = Path(aorta_mask) if aorta_mask else io.find_case_file(case_dir, "aorta_mask", io.VOLUME_SUFFIXES)
+    if path is None:
+        return None
+    return segmentation.mask_surface(io.read_mask(path), smooth_sigma_vox=1.0)
+
+
+class PlanWorker(QObject):
+    """Runs one :class:`PlanRequest`; emits ``progress``, then ``succeeded`` or ``failed``."""
+
+    progress = Signal(float, str)
+    succeeded = Signal(object)
+    failed = Signal(str)
+    done = Signal()
+
+    def __init__(self, request: PlanRequest):
+        super().__init__()
+        self.request = request
+
+    @Slot()
+    def run(self) -> None:
+        from FevarPlannerLib.pipeline import plan_case, write_outputs
+
+        request = self.request
+        try:
+            result = plan_case(request.case_dir, method=request.method, start=request.start, target=request.target,
+                               progress=lambda fraction, message: self.progress.emit(float(fraction), str(message)),
+                               **{key: value for key, value in request.overrides.items() if value})
+            outcome = PlanOutcome(result)
+            if request.out_dir is not None:
+                self.progress.emit(1.0, f"writing the outputs to {request.out_dir}")
+                outcome.written = write_outputs(result, request.out_dir)
+            if request.with_surface:
+                self.progress.emit(1.0, "extracting the aorta surface")
+                outcome.surface = aorta_surface(request.case_dir, request.overrides.get("aorta_mask"))
+            self.succeeded.emit(outcome)
+        except Exception as exc:  # the GUI shows any failure as one line and stays usable
+            self.failed.emit(f"{type(exc).__name__}: {exc}".splitlines()[0])
+        finally:
+            self.done.emit()

@@ -1,0 +1,241 @@
+"""The standalone workstation, headless: offscreen Qt and OSMesa VTK in one window.
+
+The display tests show a PlanResult built from a phantom's true centrelines (the GUI only
+displays results); the end-to-end test runs the real pipeline on a phantom case in the
+worker thread.
+"""
+
+import json
+import os
+
+if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    os.environ["QT_QPA_PLATFORM"] = "offscreen"
+    os.environ["VTK_DEFAULT_OPENGL_WINDOW"] = "vtkOSOpenGLRenderWindow"
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+pytest.importorskip("PySide6.QtUiTools")
+
+from PySide6.QtGui import QImage  # noqa: E402
+from PySide6.QtWidgets import QApplication  # noqa: E402
+
+from FevarPlannerApp import app as cli  # noqa: E402
+from FevarPlannerApp.summary import summary_rows  # noqa: E402
+from FevarPlannerApp.views import COLORS  # noqa: E402
+from FevarPlannerApp.window import MainWindow, as_array  # noqa: E402
+from FevarPlannerLib import phantom, planning  # noqa: E402
+from FevarPlannerLib.centerline import Centerline  # noqa: E402
+from FevarPlannerLib.pipeline import METHODS, PlanResult  # noqa: E402
+from FevarPlannerLib.projection import project  # noqa: E402
+
+GREEN = np.array(COLORS["path"]) * 255
+
+
+@pytest.fixture(scope="module")
+def qapp():
+    return QApplication.instance() or QApplication([])
+
+
+@pytest.fixture(scope="module")
+def plan_result():
+    """The phantom's true intra-operative centreline shown as if it were the deformed one."""
+    case = phantom.generate_case(phantom.PhantomParams())
+    image, _ = phantom.render_fluoro(case.intraop, case.P_true, case.carm, case.params, np.random.default_rng(1))
+    preop, intraop = case.preop.to_centerline(2.0), case.intraop.to_centerline(2.0)
+    skeleton = project(case.P_true, intraop.points) + [3.0, 0.0]
+    return PlanResult("proposed", preop, intraop, planning.plan_path(intraop), case.P_true, skeleton, intraop.edges,
+                      image, {"total": 1.5, "registration": 0.25},
+                      {"3d_mm": {"mean": 1.0, "std": 0.5, "median": 0.9, "max": 2.5}, "labels": ["aorta"]})
+
+
+@pytest.fixture()
+def window(qapp):
+    win = MainWindow(interactive=False)
+    win.resize(1400, 800)
+    win.show()
+    qapp.processEvents()
+    yield win
+    win.close()
+    qapp.processEvents()
+
+
+def _green_mask(pixels: np.ndarray) -> np.ndarray:
+    """Pixels within a small distance of the path colour (lit tubes vary a little)."""
+    return np.linalg.norm(pixels.astype(float) - GREEN, axis=2) < 60
+
+
+def _green_rows_cols(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Path-coloured pixels below the legend (top 130 rows) and above the title (bottom 40)."""
+    return np.nonzero(_green_mask(pixels[130:-40]))
+
+
+def _runs_from_lower_left_to_upper_right(pixels: np.ndarray) -> bool:
+    """The path (right iliac -> left renal) as seen from the front: bottom part left of the top part."""
+    rows, cols = _green_rows_cols(pixels)
+    low, high = np.percentile(rows, [15, 85])
+    return cols[rows >= high].mean() < cols[rows <= low].mean()
+
+
+def test_panel_comes_from_the_shared_ui_file(window):
+    assert [window.widget("methodComboBox").itemText(i) for i in range(3)] == list(METHODS)
+    assert window.widget("startComboBox").currentText() == "iliac_right"
+    assert window.widget("targetComboBox").currentText() == "renal_left"
+    assert window.widget("resultsTableWidget").columnCount() == 2
+    with pytest.raises(KeyError, match="noSuchWidget"):
+        window.widget("noSuchWidget")
+
+
+def test_run_button_needs_an_existing_case_folder(window, tmp_path):
+    edit, button = window.widget("caseDirLineEdit"), window.widget("runButton")
+    assert not button.isEnabled()
+    edit.setText(str(tmp_path))
+    assert button.isEnabled()
+    edit.setText(str(tmp_path / "missing"))
+    assert not button.isEnabled()
+
+
+def test_overrides_reach_the_request_only_when_checked(window, tmp_path):
+    window.widget("caseDirLineEdit").setText(str(tmp_path))
+    window.widget("fluoroMaskLineEdit").setText("/data/mask.png")
+    window.widget("methodComboBox").setCurrentIndex(2)
+    assert window.request().overrides == {}
+    window.widget("overridesGroupBox").setChecked(True)
+    request = window.request()
+    assert request.overrides["fluoro_mask"] == "/data/mask.png"
+    assert request.method == "rigid"
+    assert request.case_dir == tmp_path
+
+
+def test_result_is_drawn_in_both_views_and_the_table(window, plan_result, qapp):
+    window.show_result(plan_result)
+    qapp.processEvents()
+    table = window.widget("resultsTableWidget")
+    rows = summary_rows(plan_result)
+    assert table.rowCount() == len(rows)
+    assert (table.item(0, 0).text(), table.item(0, 1).text()) == ("Method", "proposed")
+    assert window.widget("progressBar").value() == 100
+    assert "iliac_right \u2192 renal_left" in window.widget("statusLabel").text()
+    for view in (window.view3d, window.fluoro_view):
+        pixels = view.pixels()
+        assert pixels.shape[0] > 100 and pixels.shape[1] > 100
+        background = pixels[-1, pixels.shape[1] // 2]
+        assert (np.abs(pixels.astype(int) - background).sum(axis=2) > 30).mean() > 0.02
+        assert _green_mask(pixels).sum() > 200
+    # seen from the front with the head up: the right iliac at the bottom left
+    assert _runs_from_lower_left_to_upper_right(window.view3d.pixels())
+
+
+def _display_row_col(view, u: float, v: float) -> tuple[int, int]:
+    """Where image point (u, v) lands in the view's pixels (row 0 at the top)."""
+    renderer = view.renderer
+    renderer.SetWorldPoint(u, v, -4.0, 1.0)
+    renderer.WorldToDisplay()
+    x, y, _ = renderer.GetDisplayPoint()
+    return int(round(view.GetRenderWindow().GetSize()[1] - 1 - y)), int(round(x))
+
+
+def test_fluoro_view_keeps_u_right_and_v_down(window, plan_result, qapp):
+    window.show_result(plan_result)
+    qapp.processEvents()
+    pixels = window.fluoro_view.pixels()
+    green = _green_mask(pixels)
+    uv = project(plan_result.P, plan_result.path.points[[0, -1]])
+    ends = [_display_row_col(window.fluoro_view, u, v) for u, v in uv]
+    for row, col in ends:
+        assert green[row - 3:row + 4, col - 3:col + 4].any()
+    (row0, col0), (row1, col1) = ends
+    assert np.sign(col1 - col0) == np.sign(uv[1, 0] - uv[0, 0])
+    assert np.sign(row1 - row0) == np.sign(uv[1, 1] - uv[0, 1])
+    assert row1 < row0  # the renal artery lies above the groin on the monitor
+
+
+def test_display_checkboxes_hide_layers_in_both_views(window, plan_result, qapp):
+    window.show_result(plan_result)
+    window.widget("showPathCheckBox").setChecked(False)
+    qapp.processEvents()
+    for view in (window.view3d, window.fluoro_view):
+        assert _green_mask(view.pixels()).sum() < 20
+    window.widget("showPathCheckBox").setChecked(True)
+    qapp.processEvents()
+    assert _green_mask(window.fluoro_view.pixels()).sum() > 200
+
+
+def test_fluoro_view_is_pixel_aligned_with_the_frame(window, plan_result, qapp):
+    """The frame fills the 2D view's height (minus a margin) and keeps its aspect."""
+    window.show_result(plan_result)
+    qapp.processEvents()
+    pixels = window.fluoro_view.pixels()
+    column = pixels[:, 3 * pixels.shape[1] // 4]  # right of the legend, inside the frame
+    lit = np.nonzero(column.max(axis=1) > 40)[0]
+    frame_rows = np.ptp(lit) + 1
+    rows, cols = plan_result.fluoro_image.shape
+    assert frame_rows == pytest.approx(min(pixels.shape[0], pixels.shape[1] * rows / cols) / 1.04, rel=0.05)
+
+
+def test_screenshot_holds_the_vtk_pixels(window, plan_result, qapp, tmp_path):
+    window.show_result(plan_result)
+    qapp.processEvents()
+    path = window.save_screenshot(tmp_path / "shot.png")
+    shot = as_array(QImage(str(path)))
+    assert shot.shape[:2] == (window.height(), window.width())
+    origin = window.view3d.mapTo(window, window.view3d.rect().topLeft())
+    region = shot[origin.y():origin.y() + window.view3d.height(), origin.x():origin.x() + window.view3d.width()]
+    assert _green_mask(region).sum() > 200
+    assert _green_mask(shot[:, :origin.x()]).sum() < 50  # the panel has no path colour
+
+
+def test_a_failing_case_reports_one_line_and_frees_the_button(window, tmp_path, qapp):
+    window.widget("caseDirLineEdit").setText(str(tmp_path))
+    window.run_plan()
+    assert window.is_running() and not window.widget("runButton").isEnabled()
+    window.wait_until_done()
+    assert window.last_error.startswith("InputError")
+    assert "\n" not in window.last_error
+    assert window.widget("statusLabel").text() == window.last_error
+    assert window.widget("runButton").isEnabled()
+    assert window.outcome is None
+
+
+def test_command_line_options(tmp_path):
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--run"])
+    with pytest.raises(SystemExit):
+        cli.parse_args([str(tmp_path / "missing")])
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--size", "10x10"])
+    args = cli.parse_args([str(tmp_path), "--method", "icp-tps", "--size", "1024x700", "--start", "iliac_left"])
+    assert (args.method, args.size, args.start, args.target) == ("icp-tps", (1024, 700), "iliac_left", "renal_left")
+    environ = {}
+    assert cli.configure_headless(environ) is True
+    assert environ == {"QT_QPA_PLATFORM": "offscreen", "VTK_DEFAULT_OPENGL_WINDOW": "vtkOSOpenGLRenderWindow"}
+    assert cli.configure_headless({"DISPLAY": ":0"}) is False
+
+
+def test_main_saves_a_screenshot_of_the_empty_window(qapp, tmp_path):
+    target = tmp_path / "empty.png"
+    assert cli.main(["--screenshot", str(target), "--size", "1200x700"]) == 0
+    image = QImage(str(target))
+    assert (image.width(), image.height()) == (1200, 700)
+
+
+def test_end_to_end_phantom_case_in_the_worker_thread(window, tmp_path, qapp):
+    folder = phantom.write_phantom_set(tmp_path / "cases", n=1, seed=0, preset="random", mask_only=True)[0]
+    window.widget("caseDirLineEdit").setText(str(folder))
+    window.widget("outputDirLineEdit").setText(str(tmp_path / "out"))
+    window.run_plan()
+    window.wait_until_done()
+    assert window.last_error is None
+    result = window.outcome.result
+    assert (result.path.start_label, result.path.target_label) == ("iliac_right", "renal_left")
+    assert window.outcome.surface is not None and window.outcome.surface.GetNumberOfPolys() > 1000
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == \
+        ["deformed_centerline.vtp", "overlay.png", "path.mrk.json", "result.json"]
+    assert json.loads((tmp_path / "out" / "result.json").read_text())["method"] == "proposed"
+    assert window.widget("resultsTableWidget").rowCount() == len(summary_rows(result))
+    truth = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["intraop_centerline"])
+    renal = truth.points[np.asarray(truth.labels) == "renal_left"]
+    assert np.linalg.norm(renal - result.path.points[-1], axis=1).min() < 10.0
+    qapp.processEvents()
+    for view in (window.view3d, window.fluoro_view):
+        assert _green_mask(view.pixels()).sum() > 200
