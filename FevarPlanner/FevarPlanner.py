@@ -18,6 +18,7 @@ Coordinates: the core works in DICOM LPS millimetres; Slicer's scene is RAS. The
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import tempfile
@@ -29,7 +30,6 @@ import vtk
 from vtk.util import numpy_support
 
 from FevarPlannerApp.summary import summary_rows
-from FevarPlannerLib import export
 from FevarPlannerLib.centerline import Centerline
 
 try:
@@ -48,6 +48,8 @@ except ImportError:
 __all__ = [
     "ROLE_ATTRIBUTE",
     "STYLE",
+    "CORE_REQUIREMENTS",
+    "missing_requirements",
     "lps_to_ras",
     "ras_to_lps",
     "module_resource_path",
@@ -72,6 +74,25 @@ STYLE = {
 }
 
 LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
+
+#: Third-party modules the core imports at planning time (module -> pip requirement).
+#: Slicer ships some of them; torch is left out: only CT segmentation without a given aorta
+#: mask needs it, and Slicer users get it from the PyTorch extension.
+CORE_REQUIREMENTS = {
+    "numpy": "numpy",
+    "scipy": "scipy",
+    "skimage": "scikit-image",
+    "SimpleITK": "SimpleITK",
+    "pydicom": "pydicom",
+    "PIL": "Pillow",
+    "matplotlib": "matplotlib",
+    "threadpoolctl": "threadpoolctl",
+}
+
+
+def missing_requirements(requirements: dict = CORE_REQUIREMENTS) -> list:
+    """pip requirements whose module cannot be imported here (nothing is imported to check)."""
+    return [pip_name for module, pip_name in requirements.items() if importlib.util.find_spec(module) is None]
 
 
 def lps_to_ras(points) -> np.ndarray:
@@ -111,6 +132,10 @@ def centerline_polydata_ras(centerline: Centerline) -> vtk.vtkPolyData:
     The field data ``coordinateSystem`` says ``RAS``, so
     :func:`FevarPlannerLib.export.polydata_to_centerline` reads it back to LPS.
     """
+    # imported here, not at the top: export pulls in the readers (pydicom, Pillow), which a
+    # fresh Slicer may lack until the widget has offered to install them
+    from FevarPlannerLib import export
+
     polydata = export.centerline_to_polydata(centerline)
     polydata.SetPoints(_vtk_points(lps_to_ras(centerline.points)))
     system = polydata.GetFieldData().GetAbstractArray("coordinateSystem")
@@ -417,7 +442,19 @@ if SLICER_APPLICATION:
                 table.setItem(row, 1, qt.QTableWidgetItem(value))
             table.resizeColumnToContents(0)
 
+        def _ensure_requirements(self) -> bool:
+            missing = missing_requirements()
+            if not missing:
+                return True
+            if not slicer.util.confirmOkCancelDisplay(
+                    f"FevarPlanner needs these Python packages: {', '.join(missing)}. Install them now?"):
+                return False
+            slicer.util.pip_install(" ".join(missing))
+            return not missing_requirements()
+
         def onRunButton(self):
+            if not self._ensure_requirements():
+                return
             self.ui.runButton.enabled = False
             try:
                 with slicer.util.tryWithErrorDisplay("FevarPlanner could not plan this case.", waitCursor=True):

@@ -69,6 +69,19 @@ def test_import_under_slicer_core_defines_only_the_mrml_side():
         fp.module_resource_path("UI/missing.ui")
 
 
+def test_missing_requirements_names_pip_packages():
+    assert fp.missing_requirements() == []
+    assert fp.missing_requirements({"numpy": "numpy", "fevar_no_such_module": "fevar-no-such"}) == ["fevar-no-such"]
+    core_imports = set()
+    for file in (MODULE_DIR / "FevarPlannerLib").glob("*.py"):
+        for found in re.findall(r"^\s*(?:from (\w+)[\w.]* import|import (\w+))", file.read_text(encoding="utf-8"),
+                                flags=re.MULTILINE):
+            core_imports |= set(found) - {""}
+    third_party = {name for name in core_imports
+                   if name not in sys.stdlib_module_names and name not in ("FevarPlannerLib", "vtk", "vtkmodules")}
+    assert third_party - set(fp.CORE_REQUIREMENTS) <= {"torch"}
+
+
 def test_lps_to_ras_flips_x_and_y_only():
     points = np.array([[10.0, -20.0, 30.0], [0.5, 0.25, -7.0]])
     assert fp.lps_to_ras(points).tolist() == [[-10.0, 20.0, 30.0], [-0.5, -0.25, -7.0]]
