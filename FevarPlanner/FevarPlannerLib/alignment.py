@@ -64,7 +64,7 @@ def _apply(uv: np.ndarray, params: np.ndarray, center: np.ndarray) -> np.ndarray
 
 def refine_in_plane_pose(points3d: np.ndarray, skeleton_uv: np.ndarray, P: np.ndarray,
                          shape: tuple[int, int], *, max_rotation_deg: float = 30.0,
-                         allow_scale: bool = True) -> PoseRefinement:
+                         allow_scale: bool = False) -> PoseRefinement:
     """Similarity transform of the image plane that best overlays projected 3D on 2D.
 
     Parameters

@@ -38,7 +38,7 @@ from .projection import in_plane_transform, project
 __all__ = ["METHODS", "run_benchmark", "simulation_cases", "phantom_cases"]
 
 #: Method name in tables -> (pipeline method, pose refinement).
-METHODS = {"SV": ("rigid", False), "ICP-TPS": ("icp-tps", False), "Proposed": ("proposed", True)}
+METHODS = {"SV": ("rigid", False), "ICP-TPS": ("icp-tps", False), "Proposed": ("proposed", False)}
 TRANSLATIONS_PX = (0, 10, 20, 30, 40, 60)
 ROTATIONS_DEG = (0, 5, 10, 15, 20, 30)
 
@@ -147,7 +147,7 @@ def _robustness(name, preop, intra_skeleton, P, gt, shape, translations, rotatio
     """Errors against in-plane translation (px) and rotation (deg) of the 2D side."""
     curves = {"translation_px": [], "rotation_deg": []}
     centre = np.array([(shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0])
-    methods = dict(METHODS, **{"Proposed (no pose refinement)": ("proposed", False)})
+    methods = dict(METHODS, **{"Proposed + pose refinement": ("proposed", True)})
     for kind, values in (("translation_px", translations), ("rotation_deg", rotations)):
         for value in values:
             moved_P = in_plane_transform(P, translation=(value, 0.0) if kind == "translation_px" else (0.0, 0.0),

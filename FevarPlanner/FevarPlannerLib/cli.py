@@ -50,7 +50,7 @@ def _cmd_plan(args) -> int:
     result = plan_case(args.case, args.out, method=args.method, progress=progress,
                        ct=args.ct, aorta_mask=args.aorta_mask, skeleton3d=args.skeleton3d, fluoro=args.fluoro,
                        fluoro_mask=args.fluoro_mask, geometry=args.geometry, frame=args.frame,
-                       start=args.start, target=args.target, refine_pose=not args.no_pose_refinement)
+                       start=args.start, target=args.target, refine_pose=args.refine_pose)
     _print_summary(result, args.out)
     return 0
 
@@ -80,19 +80,29 @@ def _cmd_phantoms(args) -> int:
 
 
 def _cmd_demo(args) -> int:
-    from .phantom import generate_case, random_params, write_case
-    from .pipeline import plan_case
     import numpy as np
+
+    from . import export, phantom
+    from .centerline import Centerline
+    from .pipeline import plan_case
 
     out = Path(args.out)
     bar = ProgressBar(enabled=not args.quiet)
-    bar(0.0, "generating a phantom case (CT, XA frame, masks)")
-    case_dir = write_case(generate_case(random_params(np.random.default_rng(args.seed))), out / "case")
-    results = {}
-    for method in ("rigid", "proposed"):
-        results[method] = plan_case(case_dir, out / method, method=method, progress=bar)
+    bar(0.0, "generating a phantom case (CT series, XA frame, masks)")
+    params = phantom.random_params(np.random.default_rng(args.seed), misalign_shift_px=(0.0, 0.0),
+                                   misalign_rotation_deg=0.0)
+    case_dir = phantom.write_case(phantom.generate_case(params, name="demo"), out / "case")
+    results = {method: plan_case(case_dir, out / method, method=method, progress=bar)
+               for method in ("rigid", "icp-tps", "proposed")}
     for method, result in results.items():
-        _print_summary(result, out / method)
+        print(f"\n== {method} ({out / method})")
+        _print_summary(result, None)
+    gt = Centerline.from_dict(json.loads((case_dir / "gt.json").read_text())["intraop_centerline"])
+    proposed = results["proposed"]
+    export.render_centerlines_3d(out / "scene.png", [
+        (proposed.preop, "orange", "pre-operative"), (gt, "white", "intra-operative truth"),
+        (proposed.deformed, "deepskyblue", "recovered (proposed)"), (proposed.path.points, "lime", "catheter path")])
+    print(f"\npictures: {out / 'proposed' / 'overlay.png'} and {out / 'scene.png'}")
     return 0
 
 
@@ -124,7 +134,8 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--method", choices=("proposed", "icp-tps", "rigid"), default="proposed")
     plan.add_argument("--start", default="iliac_right", help="access vessel (default iliac_right)")
     plan.add_argument("--target", default="renal_left", help="target vessel ostium (default renal_left)")
-    plan.add_argument("--no-pose-refinement", action="store_true", help="use P exactly as given")
+    plan.add_argument("--refine-pose", action="store_true",
+                      help="correct the frame's in-plane pose first (for a frame known to be misaligned)")
     _add_case_overrides(plan)
     plan.set_defaults(func=_cmd_plan)
 
