@@ -125,6 +125,17 @@ def test_progress_reports_every_iteration(tmp_path):
     assert calls[-1][2].startswith("loss ")
 
 
+def test_text_progress_bar_lines_and_eta():
+    import io as textio
+    stream = textio.StringIO()
+    bar = seg.TextProgress(stream, width=10, line_every=2)
+    for done in range(3, 7):           # a resumed run: starts at 3 of 6
+        bar(done, 6, "loss 0.5")
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 2 and lines[-1].startswith("[##########] 6/6 loss 0.5")
+    assert lines[-1].endswith("eta 0s")
+
+
 def test_load_unet_roundtrip_and_segment_ct_runs(tmp_path):
     path = seg.train_unet(_tiny_training_pairs(), tmp_path / "m.pt", iterations=2, crop=64, base=4,
                           max_channels=8, pixel_mm=2.0)

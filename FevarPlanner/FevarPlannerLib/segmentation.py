@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import SimpleITK as sitk
 import torch
 import vtk
 from scipy import ndimage as ndi
@@ -36,7 +35,8 @@ from torch import nn
 from torch.nn import functional as F
 from vtk.util import numpy_support
 
-from .io import InputError, Volume, atomic_path, read_volume
+from . import io
+from .io import InputError, Volume, atomic_path
 
 __all__ = [
     "UNet",
@@ -63,8 +63,6 @@ MODEL_RELATIVE_PATH = Path("..", "..", "Resources", "Models", "aorta_unet.pt")
 #: resampled to, and the HU window mapped linearly onto [0, 1].
 DEFAULT_PIXEL_MM = 1.0
 DEFAULT_NET_HU_WINDOW = (-200.0, 800.0)
-
-CT_SUFFIXES = (".nrrd", ".nii.gz", ".nii", ".mha", ".mhd")
 
 
 # ----------------------------------------------------------------------------------------
@@ -192,33 +190,22 @@ def _resample_slices(slices: np.ndarray, out_shape: tuple[int, int], mode: str =
 # ----------------------------------------------------------------------------------------
 
 def read_case(case_dir) -> tuple[Volume, Volume]:
-    """Read ``(ct, aorta_mask)`` from a case folder (DESIGN.md section 4).
+    """Read ``(ct, aorta_mask)`` from a case folder (DESIGN.md section 4) for training.
 
-    The CT is ``ct.nrrd`` / ``ct.nii.gz`` / ``ct.mha`` (or a DICOM series in ``ct/``), the label
+    The CT is ``ct/`` (DICOM series) or ``ct.nrrd`` / ``.nii.gz`` / ``.mha``, the label
     ``aorta_mask.*`` on the same grid.
     """
     case_dir = Path(case_dir)
-    ct = _read_named_volume(case_dir, "ct", allow_dicom_dir=True)
-    mask = _read_named_volume(case_dir, "aorta_mask", allow_dicom_dir=False)
-    if mask.shape != ct.shape:
-        raise InputError(f"{case_dir}: aorta_mask shape {mask.shape} differs from ct shape {ct.shape}")
-    return ct, mask.with_array(mask.array > 0)
-
-
-def _read_named_volume(case_dir: Path, stem: str, allow_dicom_dir: bool) -> Volume:
-    for suffix in CT_SUFFIXES:
-        candidate = case_dir / f"{stem}{suffix}"
-        if candidate.exists():
-            return read_volume(candidate)
-    folder = case_dir / stem
-    if allow_dicom_dir and folder.is_dir():
-        reader = sitk.ImageSeriesReader()
-        files = reader.GetGDCMSeriesFileNames(str(folder))
-        if not files:
-            raise InputError(f"{folder}: no DICOM series found")
-        reader.SetFileNames(files)
-        return Volume.from_sitk(reader.Execute())
-    raise InputError(f"{case_dir}: no {stem} volume ({', '.join(stem + s for s in CT_SUFFIXES)})")
+    found = {}
+    for name in ("ct", "aorta_mask"):
+        stem, suffixes = io.CASE_INPUTS[name]
+        found[name] = io.find_case_file(case_dir, stem, suffixes)
+        if found[name] is None:
+            raise InputError(f"{case_dir}: no {name} input for training")
+    ct = io.read_ct(found["ct"])
+    mask = io.read_mask(found["aorta_mask"])
+    io.check_same_grid(mask, ct, found["aorta_mask"])
+    return ct, mask
 
 
 class _SliceBank:
@@ -278,11 +265,14 @@ class TextProgress:
         self.stream = stream if stream is not None else sys.stderr
         self.width, self.line_every = width, line_every
         self.start = time.monotonic()
+        self.first_done = None
 
     def __call__(self, done: int, total: int, message: str = "") -> None:
+        if self.first_done is None:         # a resumed run starts counting part-way
+            self.first_done = done - 1
         fraction = done / total if total else 1.0
         elapsed = time.monotonic() - self.start
-        eta = elapsed / fraction - elapsed if fraction > 0 else float("nan")
+        eta = elapsed / max(done - self.first_done, 1) * (total - done)
         bar = "#" * int(round(fraction * self.width))
         line = f"[{bar:<{self.width}}] {done}/{total} {message} elapsed {elapsed:.0f}s eta {eta:.0f}s"
         if self.line_every:
@@ -360,7 +350,6 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
     settings = {"lr": lr, "momentum": momentum, "batch_size": batch_size, "seed": seed, "crop": crop,
                 "pixel_mm": pixel_mm, "hu_window": list(hu_window)}
     torch.manual_seed(seed)
-    torch.use_deterministic_algorithms(True, warn_only=True)
     rng = np.random.default_rng(seed)
     model = UNet(1, 2, base=base, depth=depth, max_channels=max_channels)
     optimizer = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum)
@@ -378,17 +367,20 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
     report = TextProgress() if progress is True else progress
     bank = _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
     window = tuple(settings["hu_window"])
+    was_deterministic = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
     model.train()
-    while iteration < iterations:
-        samples = [bank.sample(rng, settings["crop"], window) for _ in range(settings["batch_size"])]
-        loss = _training_step(model, optimizer, samples)
-        losses.append(loss)
-        iteration += 1
-        if iteration % checkpoint_every == 0 or iteration == iterations:
-            _save_checkpoint(out_path, model, optimizer, iteration, rng, settings, losses)
-        if report:
-            recent = float(np.mean(losses[-50:]))
-            report(iteration, iterations, f"loss {recent:.4f}")
+    try:
+        while iteration < iterations:
+            samples = [bank.sample(rng, settings["crop"], window) for _ in range(settings["batch_size"])]
+            losses.append(_training_step(model, optimizer, samples))
+            iteration += 1
+            if iteration % checkpoint_every == 0 or iteration == iterations:
+                _save_checkpoint(out_path, model, optimizer, iteration, rng, settings, losses)
+            if report:
+                report(iteration, iterations, f"loss {float(np.mean(losses[-50:])):.4f}")
+    finally:
+        torch.use_deterministic_algorithms(was_deterministic)
     if not out_path.exists():
         _save_checkpoint(out_path, model, optimizer, iteration, rng, settings, losses)
     return out_path
@@ -605,20 +597,38 @@ def postprocess_mask(mask, *, min_size_mm3: float = 50.0, keep_largest: bool = T
         Boolean mask, of the same kind as the input.
     """
     array = np.asarray(mask.array if isinstance(mask, Volume) else mask) > 0
+    if array.ndim != 3:
+        raise ValueError(f"postprocess_mask expects a 3D mask, got shape {array.shape}")
     voxel_mm3 = float(np.prod(mask.spacing)) if isinstance(mask, Volume) else 1.0
-    labels, count = ndi.label(array)
-    if count:
-        sizes = np.bincount(labels.ravel())
-        sizes[0] = 0
-        keep = sizes * voxel_mm3 >= min_size_mm3
-        if keep_largest:
-            keep = np.zeros_like(keep)
-            keep[np.argmax(sizes)] = True
-        array = keep[labels]
+    array = _remove_small_objects(array, min_size_mm3 / voxel_mm3)
+    if keep_largest:
+        array = _largest_component(array)
     if fill_holes and array.any():
         array = ndi.binary_fill_holes(array)
-        array = np.stack([ndi.binary_fill_holes(s) if s.any() else s for s in array]) if array.ndim == 3 else array
+        array = np.stack([ndi.binary_fill_holes(s) if s.any() else s for s in array])
     return mask.with_array(array) if isinstance(mask, Volume) else array
+
+
+def _component_sizes(array: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Face-connected component labels and the size of each label (label 0 gets size 0)."""
+    labels, _ = ndi.label(array)
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return labels, sizes
+
+
+def _remove_small_objects(array: np.ndarray, min_voxels: float) -> np.ndarray:
+    """``array`` without the connected objects of fewer than ``min_voxels`` voxels (bwareaopen)."""
+    labels, sizes = _component_sizes(array)
+    return (sizes >= max(min_voxels, 1))[labels] if array.any() else array
+
+
+def _largest_component(array: np.ndarray) -> np.ndarray:
+    """The largest connected object of ``array`` (regionprops' largest area)."""
+    if not array.any():
+        return array
+    labels, sizes = _component_sizes(array)
+    return labels == np.argmax(sizes)
 
 
 # ----------------------------------------------------------------------------------------
@@ -735,30 +745,32 @@ def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, n
     return np.where(swap, b, a), np.where(swap, a, b)
 
 
-def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, bright: bool = True, beta: float = 0.5,
-               c_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Multi-scale Frangi vesselness of a 2D image.
+def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("bright",), beta: float = 0.5,
+               c_fraction: float = 0.5) -> dict:
+    """Multi-scale Frangi vesselness of a 2D image, for bright and / or dark vessels.
 
     For each scale the Hessian eigenvalues ``l1, l2`` (``|l1| <= |l2|``) give
     ``V = exp(-Rb^2 / (2 beta^2)) (1 - exp(-S^2 / (2 c^2)))`` with ``Rb = l1 / l2``,
     ``S = sqrt(l1^2 + l2^2)`` and ``c = c_fraction * max S``; ``V = 0`` where ``l2`` has the
-    wrong sign for the polarity (``l2 < 0`` for bright vessels). The maximum over scales is
-    returned with the index of the winning scale.
+    wrong sign for the polarity (``l2 < 0`` for bright vessels, ``> 0`` for dark ones).
+
+    Returns
+    -------
+    dict
+        ``polarity -> V``, the maximum over scales (float32, same shape as ``image``).
     """
     image = np.asarray(image, dtype=np.float32)
-    best = np.zeros_like(image)
-    best_scale = np.zeros(image.shape, dtype=np.int16)
-    for index, sigma in enumerate(sigmas):
+    best = {polarity: np.zeros_like(image) for polarity in polarities}
+    for sigma in sigmas:
         l1, l2 = _hessian_eigenvalues(image, float(sigma))
         structure = l1 ** 2 + l2 ** 2
         c2 = (c_fraction ** 2) * float(structure.max()) + 1e-12
         rb2 = (l1 / np.where(l2 == 0, 1e-12, l2)) ** 2
         response = np.exp(-rb2 / (2 * beta ** 2)) * (1 - np.exp(-structure / (2 * c2)))
-        response[(l2 > 0) if bright else (l2 < 0)] = 0
-        better = response > best
-        best[better] = response[better]
-        best_scale[better] = index
-    return best, best_scale
+        for polarity, running in best.items():
+            right_sign = (l2 < 0) if polarity == "bright" else (l2 > 0)
+            np.maximum(running, np.where(right_sign, response, 0.0), out=running)
+    return best
 
 
 def _normalise(image: np.ndarray, photometric: str | None) -> np.ndarray:
@@ -817,39 +829,28 @@ def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str
     frame = _normalise(image, photometric)
     factor = max(1, int(round(max(frame.shape) / work_size)))
     small = _downsample(frame, factor)
-    if vessels == "auto":
-        vessels = _guess_polarity(small, sigmas)
+    responses = vesselness(small, sigmas, polarities=("bright", "dark") if vessels == "auto" else (vessels,))
+    if vessels == "auto":    # the polarity with the stronger tubular responses
+        vessels = max(responses, key=lambda polarity: float(np.percentile(responses[polarity], 98)))
     oriented = small if vessels == "bright" else 1.0 - small
-    response, scale_index = vesselness(oriented, sigmas, bright=True)
-    score = _vessel_score(oriented, response, scale_index, sigmas, high, low, contrast_fraction)
+    score = _vessel_score(oriented, responses[vessels], max(sigmas), high, low, contrast_fraction)
     full = _upsample(score, factor, frame.shape) > 0.5
-    return postprocess_mask(full, min_size_mm3=min_area_fraction * full.size, keep_largest=False,
-                            fill_holes=False)
+    return _remove_small_objects(full, min_area_fraction * full.size)
 
 
-def _guess_polarity(small: np.ndarray, sigmas) -> str:
-    """'bright' or 'dark': the polarity whose strongest tubular responses are larger."""
-    strength = {}
-    for polarity in ("bright", "dark"):
-        response, _ = vesselness(small if polarity == "bright" else 1.0 - small, sigmas, bright=True,
-                                 c_fraction=1.0)
-        strength[polarity] = float(np.percentile(response, 98))
-    return max(strength, key=strength.get)
-
-
-def _vessel_score(oriented: np.ndarray, response: np.ndarray, scale_index: np.ndarray, sigmas,
-                  high: float, low: float, contrast_fraction: float) -> np.ndarray:
+def _vessel_score(oriented: np.ndarray, response: np.ndarray, max_sigma: float, high: float, low: float,
+                  contrast_fraction: float) -> np.ndarray:
     """Soft vessel indicator on the reduced grid (> 0.5 means vessel)."""
     reference = float(np.percentile(response, 99.5)) + 1e-12
     tree = apply_hysteresis_threshold(response / reference, low, high)
     if not tree.any():
         return np.zeros_like(oriented)
-    radius = int(math.ceil(3 * max(sigmas)))
+    radius = int(math.ceil(3 * max_sigma))
     contrast = _local_contrast(oriented, radius)
     tree_contrast = float(np.median(contrast[tree]))
     if tree_contrast <= 0:
         return tree.astype(np.float32)
-    near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max(sigmas))))
+    near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max_sigma)))
     vessel = (contrast > contrast_fraction * tree_contrast) & near_tree
     labels, _ = ndi.label(vessel)
     touching = np.unique(labels[tree & vessel])
@@ -899,7 +900,7 @@ def main(argv=None) -> int:
                    progress=TextProgress(line_every=50))
         return 0
     from .io import write_volume
-    ct = read_volume(args.ct)
+    ct = io.read_ct(args.ct)
     kwargs = {"model": load_unet(args.model)} if args.segmenter == "unet" else {}
     mask = segment_ct(ct, args.segmenter, **kwargs)
     write_volume(args.out, mask.with_array(mask.array.astype(np.uint8)))

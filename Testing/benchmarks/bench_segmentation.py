@@ -1,0 +1,192 @@
+"""Benchmark the segmentation stage on held-out phantom cases.
+
+CT side: Dice of the UNet and the threshold segmenter against the phantom lumen, mean
+distance of the 3D skeleton of each predicted mask to the true centreline, and the time
+of each; CPU inference time of the UNet on a 512 x 512 x 300 CT (a phantom CT embedded in
+a body-sized field). Fluoroscopy side: Dice and time of ``segment_fluoro`` on the cases'
+DSA frames and on a 1024 x 1024 phantom frame.
+
+    .venv/bin/python Testing/benchmarks/bench_segmentation.py --out Testing/benchmarks/results
+
+Held-out cases are generated (``--n-cases``, ``--seed``; the shipped UNet was trained on
+seed 100, so keep a different seed) unless ``--cases`` names existing case folders.
+Writes ``bench_segmentation.json`` and ``bench_segmentation.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "2")
+
+import argparse
+import json
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from PIL import Image
+from scipy.spatial import cKDTree
+
+from FevarPlannerLib import io
+from FevarPlannerLib import phantom as ph
+from FevarPlannerLib import segmentation as seg
+from FevarPlannerLib.centerline import Centerline
+from FevarPlannerLib.skeleton import skeletonize_3d
+
+
+def timed(function, *args, repeat: int = 1, **kwargs):
+    """(result, best wall time in s) of ``function`` over ``repeat`` calls."""
+    best, result = np.inf, None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        result = function(*args, **kwargs)
+        best = min(best, time.perf_counter() - start)
+    return result, best
+
+
+def skeleton_distance_mm(mask: io.Volume, centreline: Centerline) -> dict:
+    """Mean / 95th percentile distance of the mask's 3D skeleton voxels to the true centreline,
+    and of the centreline nodes to the skeleton (coverage)."""
+    skeleton = skeletonize_3d(mask)
+    points = skeleton.index_to_lps(np.argwhere(skeleton.array > 0))
+    to_truth, _ = cKDTree(_densify(centreline)).query(points)
+    to_skeleton, _ = cKDTree(points).query(centreline.points)
+    return {"skeleton_to_truth_mean_mm": float(to_truth.mean()),
+            "skeleton_to_truth_p95_mm": float(np.percentile(to_truth, 95)),
+            "truth_to_skeleton_mean_mm": float(to_skeleton.mean())}
+
+
+def _densify(centreline: Centerline, step_mm: float = 0.1) -> np.ndarray:
+    """Points every ``step_mm`` along each edge (so nearest-point distances are to the curve)."""
+    a, b = centreline.points[centreline.edges[:, 0]], centreline.points[centreline.edges[:, 1]]
+    pieces = [centreline.points]
+    for p, q in zip(a, b):
+        n = max(1, int(np.ceil(np.linalg.norm(q - p) / step_mm)))
+        pieces.append(p + np.linspace(0.0, 1.0, n + 1)[:, None] * (q - p))
+    return np.vstack(pieces)
+
+
+def evaluate_ct_case(folder: Path, model) -> dict:
+    ct, truth = seg.read_case(folder)
+    centreline = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["preop_centerline"])
+    result = {"case": folder.name, "shape_kji": list(ct.shape)}
+    for name, function in (("unet", lambda: seg.segment_ct_unet(ct, model)),
+                           ("threshold", lambda: seg.segment_ct_threshold(ct))):
+        mask, seconds = timed(function)
+        result[name] = {"dice": seg.dice(mask, truth), "time_s": seconds, **skeleton_distance_mm(mask, centreline)}
+    return result
+
+
+def evaluate_fluoro_case(folder: Path) -> dict:
+    fluoro = io.read_fluoro(folder / "fluoro.dcm")
+    truth = np.array(Image.open(folder / "fluoro_mask.png")) > 0
+    mask, seconds = timed(seg.segment_fluoro, fluoro.image, vessels="auto", repeat=3)
+    return {"case": folder.name, "shape": list(fluoro.shape), "dice": seg.dice(mask, truth), "time_s": seconds}
+
+
+def large_ct(ct: io.Volume, shape=(300, 512, 512), spacing=(0.8, 0.8, 1.0)) -> io.Volume:
+    """A phantom CT embedded in a body-sized 512 x 512 field (soft tissue ellipse, air outside)."""
+    nk, nj, ni = shape
+    jj, ii = np.mgrid[0:nj, 0:ni]
+    body = ((ii - ni / 2) / (0.45 * ni)) ** 2 + ((jj - nj / 2) / (0.36 * nj)) ** 2 <= 1.0
+    axial = np.where(body, 40, -1000).astype(np.int16)
+    array = np.broadcast_to(axial, shape).copy()
+    k = np.arange(nk) % ct.shape[0]
+    j0, i0 = (nj - ct.shape[1]) // 2, (ni - ct.shape[2]) // 2
+    array[:, j0:j0 + ct.shape[1], i0:i0 + ct.shape[2]] = ct.array[k]
+    return io.Volume(array, spacing, (-ni * spacing[0] / 2, -nj * spacing[1] / 2, 0.0), np.eye(3))
+
+
+def phantom_frame_1024(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    params = replace(ph.random_params(np.random.default_rng(seed)), detector_rows=1024, detector_cols=1024)
+    case = ph.generate_case(params, name="frame1024")
+    return ph.render_fluoro(case.intraop, case.P_true, case.carm, case.params, np.random.default_rng(seed))
+
+
+def held_out_cases(args, work: Path) -> list[Path]:
+    if args.cases:
+        return [Path(c) for c in args.cases]
+    return ph.write_phantom_set(work / "held_out", n=args.n_cases, seed=args.seed, preset="random")
+
+
+def plot(results: dict, example: dict, path: Path) -> None:
+    fig, axes = plt.subplots(1, 4, figsize=(18, 4.5))
+    cases = results["ct_cases"]
+    x = np.arange(len(cases))
+    for offset, name in ((-0.2, "unet"), (0.2, "threshold")):
+        axes[0].bar(x + offset, [c[name]["dice"] for c in cases], 0.4, label=name)
+    axes[0].axhline(0.9, color="k", ls="--", lw=1)
+    axes[0].set(title="CT lumen Dice (goal 0.90)", xticks=x, xticklabels=[c["case"] for c in cases], ylim=(0.5, 1))
+    axes[0].legend()
+    for offset, name in ((-0.2, "unet"), (0.2, "threshold")):
+        axes[1].bar(x + offset, [c[name]["skeleton_to_truth_mean_mm"] for c in cases], 0.4, label=name)
+    axes[1].axhline(1.0, color="k", ls="--", lw=1)
+    axes[1].set(title="3D skeleton to true centreline, mean mm (goal 1)", xticks=x,
+                xticklabels=[c["case"] for c in cases])
+    axes[2].imshow(example["frame"], cmap="gray")
+    axes[2].contour(example["truth"], levels=[0.5], colors="lime", linewidths=0.6)
+    axes[2].contour(example["mask"], levels=[0.5], colors="red", linewidths=0.6)
+    axes[2].set(title=f"1024^2 frame: truth (green), vesselness (red), Dice {example['dice']:.3f}")
+    axes[2].axis("off")
+    axes[3].imshow(example["ct_slice"], cmap="gray", vmin=-200, vmax=600)
+    axes[3].contour(example["ct_truth"], levels=[0.5], colors="lime", linewidths=0.8)
+    axes[3].contour(example["ct_unet"], levels=[0.5], colors="red", linewidths=0.8)
+    axes[3].set(title="CT slice: truth (green), UNet (red)")
+    axes[3].axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cases", nargs="*", help="existing held-out case folders (ct/ + aorta_mask + gt.json)")
+    parser.add_argument("--n-cases", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=200)
+    parser.add_argument("--model", help="UNet checkpoint (default: the shipped weights)")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    model = seg.load_unet(args.model)
+    with tempfile.TemporaryDirectory() as tmp:
+        folders = held_out_cases(args, Path(tmp))
+        ct_cases = [evaluate_ct_case(f, model) for f in folders]
+        fluoro_cases = [evaluate_fluoro_case(f) for f in folders]
+        ct, truth = seg.read_case(folders[0])
+    big = large_ct(ct)
+    _, unet_big_s = timed(seg.segment_ct_unet, big, model)
+    _, unet_big_raw_s = timed(seg.segment_ct_unet, big, model, postprocess=False)
+    frame, frame_truth = phantom_frame_1024(args.seed)
+    frame_mask, frame_s = timed(seg.segment_fluoro, frame, vessels="auto", repeat=5)
+    results = {
+        "ct_cases": ct_cases,
+        "ct_mean": {name: {key: float(np.mean([c[name][key] for c in ct_cases])) for key in ct_cases[0][name]}
+                    for name in ("unet", "threshold")},
+        "ct_512x512x300_unet_s": unet_big_s,
+        "ct_512x512x300_unet_without_postprocess_s": unet_big_raw_s,
+        "fluoro_cases": fluoro_cases,
+        "fluoro_mean_dice": float(np.mean([c["dice"] for c in fluoro_cases])),
+        "fluoro_1024_dice": seg.dice(frame_mask, frame_truth),
+        "fluoro_1024_time_s": frame_s,
+        "model": str(args.model or seg.default_model_path()),
+    }
+    (args.out / "bench_segmentation.json").write_text(json.dumps(results, indent=2))
+    k = int(np.argmax(truth.array.sum(axis=(1, 2))))
+    example = {"frame": frame, "truth": frame_truth, "mask": frame_mask, "dice": results["fluoro_1024_dice"],
+               "ct_slice": ct.array[k], "ct_truth": truth.array[k],
+               "ct_unet": seg.segment_ct_unet(ct, model).array[k]}
+    plot(results, example, args.out / "bench_segmentation.png")
+    print(json.dumps({key: value for key, value in results.items() if key not in ("ct_cases", "fluoro_cases")},
+                     indent=2))
+
+
+if __name__ == "__main__":
+    main()
