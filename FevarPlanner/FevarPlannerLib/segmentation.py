@@ -700,30 +700,27 @@ def write_surface_vtp(path, polydata: vtk.vtkPolyData) -> None:
 # ----------------------------------------------------------------------------------------
 
 def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
-    """Block mean by an integer ``factor`` (edges padded by replication)."""
+    """Block mean by an integer ``factor`` (the last rows / columns padded by replication)."""
     if factor == 1:
         return image
-    pad = [(0, (-n) % factor) for n in image.shape]
-    padded = np.pad(image, pad, mode="edge")
-    h, w = padded.shape
-    return padded.reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
+    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
+    pad = (0, (-image.shape[1]) % factor, 0, (-image.shape[0]) % factor)
+    if any(pad):
+        tensor = F.pad(tensor, pad, mode="replicate")
+    return F.avg_pool2d(tensor, factor)[0, 0].numpy()
 
 
 def _upsample(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
-    """Bilinear upsampling of a block-mean image back onto the full grid (pixel centres aligned)."""
+    """Bilinear upsampling of a block-mean grid back onto the full grid of ``shape``.
+
+    With ``align_corners=False`` and an integer scale, full-grid pixel centres map to
+    ``(u + 0.5) / factor - 0.5`` on the reduced grid, which is where block means sit.
+    """
     if factor == 1:
         return image
-    rows = (np.arange(shape[0]) + 0.5) / factor - 0.5
-    cols = (np.arange(shape[1]) + 0.5) / factor - 0.5
-    r0 = np.clip(np.floor(rows).astype(int), 0, image.shape[0] - 1)
-    c0 = np.clip(np.floor(cols).astype(int), 0, image.shape[1] - 1)
-    r1 = np.minimum(r0 + 1, image.shape[0] - 1)
-    c1 = np.minimum(c0 + 1, image.shape[1] - 1)
-    fr = np.clip(rows - r0, 0, 1)[:, None].astype(np.float32)
-    fc = np.clip(cols - c0, 0, 1)[None, :].astype(np.float32)
-    top = image[r0][:, c0] * (1 - fc) + image[r0][:, c1] * fc
-    bottom = image[r1][:, c0] * (1 - fc) + image[r1][:, c1] * fc
-    return top * (1 - fr) + bottom * fr
+    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
+    full = F.interpolate(tensor, scale_factor=factor, mode="bilinear", align_corners=False)[0, 0]
+    return full[:shape[0], :shape[1]].numpy()
 
 
 def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -773,17 +770,23 @@ def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("b
     return best
 
 
-def _normalise(image: np.ndarray, photometric: str | None) -> np.ndarray:
-    """Float image scaled to [0, 1] by its 0.5 / 99.5 percentiles; MONOCHROME1 inverted."""
-    image = np.asarray(image, dtype=np.float32)
+def _grey_frame(image: np.ndarray, photometric: str | None) -> np.ndarray:
+    """The frame as a float32 grey image (RGB averaged), MONOCHROME1 turned to MONOCHROME2."""
+    image = np.asarray(image)
     if image.ndim == 3 and image.shape[-1] in (3, 4):
         image = image[..., :3].mean(axis=-1)
-    if image.ndim != 2:
+    if image.ndim != 2 or min(image.shape) < 1:
         raise InputError(f"fluoroscopy frame must be 2D (or RGB), got shape {image.shape}")
+    image = image.astype(np.float32, copy=False)
     if not np.isfinite(image).all():
         raise InputError("fluoroscopy frame contains NaN or infinite values")
     if photometric is not None and photometric.upper() == "MONOCHROME1":
         image = -image
+    return image
+
+
+def _normalise(image: np.ndarray) -> np.ndarray:
+    """``image`` scaled to [0, 1] by its 0.5 / 99.5 percentiles."""
     lo, hi = np.percentile(image, [0.5, 99.5])
     if hi <= lo:
         raise InputError("fluoroscopy frame is flat (no contrast)")
@@ -801,13 +804,13 @@ def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str
                    contrast_fraction: float = 0.35, min_area_fraction: float = 0.002) -> np.ndarray:
     """Binary vessel mask of a fluoroscopy / DSA frame on the frame's pixel grid.
 
-    The frame is normalised (MONOCHROME1 inverted when ``photometric`` says so), reduced by a
-    block mean to about ``work_size`` pixels, and turned so that vessels are bright. Frangi
+    The frame (MONOCHROME1 inverted when ``photometric`` says so) is reduced by a block mean
+    to about ``work_size`` pixels, normalised, and turned so that vessels are bright. Frangi
     vesselness over ``sigmas`` (pixels of the reduced grid) is hysteresis-thresholded at
     ``high`` / ``low`` times its 99.5th percentile to find the vessel tree; its extent is then
     refined by local contrast (white top-hat above ``contrast_fraction`` of the tree's median
     contrast), objects smaller than ``min_area_fraction`` of the frame are dropped, and the
-    result is upsampled bilinearly to the input grid.
+    slightly smoothed result is upsampled bilinearly to the input grid and cut at 0.5.
 
     Parameters
     ----------
@@ -826,36 +829,36 @@ def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str
     """
     if vessels not in ("dark", "bright", "auto"):
         raise ValueError(f"vessels must be 'dark', 'bright' or 'auto', got {vessels!r}")
-    frame = _normalise(image, photometric)
+    frame = _grey_frame(image, photometric)
     factor = max(1, int(round(max(frame.shape) / work_size)))
-    small = _downsample(frame, factor)
+    small = _normalise(_downsample(frame, factor))
     responses = vesselness(small, sigmas, polarities=("bright", "dark") if vessels == "auto" else (vessels,))
     if vessels == "auto":    # the polarity with the stronger tubular responses
         vessels = max(responses, key=lambda polarity: float(np.percentile(responses[polarity], 98)))
     oriented = small if vessels == "bright" else 1.0 - small
-    score = _vessel_score(oriented, responses[vessels], max(sigmas), high, low, contrast_fraction)
-    full = _upsample(score, factor, frame.shape) > 0.5
-    return _remove_small_objects(full, min_area_fraction * full.size)
+    vessel = _vessel_region(oriented, responses[vessels], max(sigmas), high, low, contrast_fraction)
+    vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
+    soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)     # smooth edges before upsampling
+    return _upsample(soft, factor, frame.shape) > 0.5
 
 
-def _vessel_score(oriented: np.ndarray, response: np.ndarray, max_sigma: float, high: float, low: float,
-                  contrast_fraction: float) -> np.ndarray:
-    """Soft vessel indicator on the reduced grid (> 0.5 means vessel)."""
+def _vessel_region(oriented: np.ndarray, response: np.ndarray, max_sigma: float, high: float, low: float,
+                   contrast_fraction: float) -> np.ndarray:
+    """Binary vessel mask on the reduced grid: the hysteresis tree widened by local contrast."""
     reference = float(np.percentile(response, 99.5)) + 1e-12
     tree = apply_hysteresis_threshold(response / reference, low, high)
     if not tree.any():
-        return np.zeros_like(oriented)
+        return tree
     radius = int(math.ceil(3 * max_sigma))
     contrast = _local_contrast(oriented, radius)
     tree_contrast = float(np.median(contrast[tree]))
     if tree_contrast <= 0:
-        return tree.astype(np.float32)
+        return tree
     near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max_sigma)))
     vessel = (contrast > contrast_fraction * tree_contrast) & near_tree
     labels, _ = ndi.label(vessel)
     touching = np.unique(labels[tree & vessel])
-    vessel = np.isin(labels, touching[touching > 0])
-    return ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
+    return np.isin(labels, touching[touching > 0])
 
 
 def dice(a, b) -> float:
