@@ -1,10 +1,13 @@
 """Graph matching and soft assignment between the 3D and the 2D skeleton graphs.
 
+Equation numbers are those of the paper's source, where Definition 1's adjacency is eq.
+(2): eq. (3) initialises ``M``, eq. (4) assigns branches, eq. (5) trunks.
+
 Paper section II-B: trunks and junctions are matched first by ranked geodesic length,
 then branches by the similarity of their tangents (eta_s = 1, eta_t = 10 along the
 branch; 3D tangents projected through P) under the junction correspondence. Each matched
-pair is then soft-assigned: branches by equal projected path length (eq. 5), trunks by
-equal proportion of path length (eq. 6). The result gives every assigned 3D node its 2D
+pair is then soft-assigned: branches by equal projected path length (eq. 4), trunks by
+equal proportion of path length (eq. 5). The result gives every assigned 3D node its 2D
 target ``t_j = X M[:, j]``.
 
 Beyond the paper: both graphs also carry anatomical labels (graph.label_anatomy), and
@@ -72,7 +75,7 @@ class Correspondence:
 
 @dataclass
 class SoftAssignment:
-    """The soft assignment matrix ``M`` (n2 x n3, eqs. 5-6) and the 2D target of each 3D node.
+    """The soft assignment matrix ``M`` (n2 x n3, eqs. 3-5) and the 2D target of each 3D node.
 
     Attributes
     ----------
@@ -219,7 +222,7 @@ def _cumulative_length(points: np.ndarray) -> np.ndarray:
 def _assign_by_arc_length(s3: np.ndarray, nodes2: np.ndarray, x2: np.ndarray):
     """Soft weights placing each 3D arc position ``s3`` between two consecutive 2D nodes.
 
-    Implements the common core of eqs. (5) and (6): for the 2D node ``i`` with
+    Implements the common core of eqs. (4) and (5): for the 2D node ``i`` with
     ``c_i <= s < c_{i+1}``, ``m(i+1, j) = (s - c_i) / |x_{i+1} - x_i|`` and
     ``m(i, j) = 1 - m(i+1, j)``; a 3D node beyond the 2D chain gets no weight.
     """
@@ -234,7 +237,7 @@ def _assign_by_arc_length(s3: np.ndarray, nodes2: np.ndarray, x2: np.ndarray):
 
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
                 P: np.ndarray, correspondence: Correspondence) -> SoftAssignment:
-    """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 5) and trunks (eq. 6).
+    """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
 
     A node assigned by several chains (a junction) keeps its first assignment: trunks
     first, so junctions follow the aortic chain.
@@ -253,13 +256,13 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         assigned[j] = True
 
     for nodes3, nodes2 in correspondence.trunk_pairs:
-        # eq. (6): 3D path length scaled by lambda2 / lambda3 (equal proportion of length)
+        # eq. (5): 3D path length scaled by lambda2 / lambda3 (equal proportion of length)
         s3 = _cumulative_length(g3.positions[nodes3])
         lam2 = _cumulative_length(g2.positions[nodes2])[-1]
         add(np.asarray(nodes3), s3 * (lam2 / s3[-1]) if s3[-1] > 0 else s3, np.asarray(nodes2))
     for i3, i2 in correspondence.branch_pairs:
         nodes3, nodes2 = c3.branches[i3].nodes, c2.branches[i2].nodes
-        # eq. (5): projected 3D path length equals 2D path length
+        # eq. (4): projected 3D path length equals 2D path length
         s3 = _cumulative_length(project(P, g3.positions[nodes3]))
         add(np.asarray(nodes3), s3, np.asarray(nodes2))
 

@@ -7,8 +7,8 @@ free of anything that does not depend on the frame (paper Algorithm 2):
     rows 1-2   3D skeleton graph and node classification          prepare_preop
     rows 3-4   2D skeleton graph and node classification          register_frame
     row  5     branch / trunk matching                             matching
-    rows 6-12  soft assignment (eqs. 5-6)                          matching
-    rows 13-15 deformation S_D + alpha S_L + beta S_S (eqs. 7-9)   deformation
+    rows 6-12  soft assignment (eqs. 3-5)                          matching
+    rows 13-15 deformation S_D + alpha S_L + beta S_S (eqs. 6-9)   deformation
     row  16    branch-wise TPS for the unassigned nodes            deformation
 """
 
@@ -221,7 +221,7 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
         misalignment (benchmark: 3D error 1.1 -> 5-11 mm); it pays off only for frames
         known to be misaligned by more than about 10 px (the robustness curves).
     alpha, beta : float
-        Weights of the length and smoothness terms (eq. 7).
+        Weights of the length and smoothness terms (eq. 6).
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
