@@ -158,6 +158,20 @@ def test_load_unet_errors_name_the_file(tmp_path):
         seg.load_unet(bad)
 
 
+def _mirrored_in_plane(volume):
+    """The same physical volume stored with the i and j axes reversed (direction diag(-1, -1, 1))."""
+    corner = volume.index_to_lps([0, volume.shape[1] - 1, volume.shape[2] - 1])
+    return Volume(volume.array[:, ::-1, ::-1].copy(), volume.spacing, corner, np.diag([-1.0, -1.0, 1.0]))
+
+
+def test_shipped_unet_segments_a_synthetic_ct_in_either_storage_order():
+    ct, lumen, _ = synthetic_ct(shape=(24, 72, 80), spacing=(1.2, 1.2, 2.0))
+    model = seg.load_unet()
+    assert seg.dice(seg.segment_ct(ct, "unet", model=model), lumen) >= 0.9
+    mirrored = seg.segment_ct_unet(_mirrored_in_plane(ct), model)
+    assert seg.dice(mirrored, _mirrored_in_plane(lumen)) >= 0.9
+
+
 def test_default_model_path_points_into_resources():
     path = seg.default_model_path()
     assert path.parts[-3:] == ("Resources", "Models", "aorta_unet.pt")

@@ -175,14 +175,12 @@ def _body_box(ct: Volume, threshold_hu: float = -400.0, margin_vox: int = 4) -> 
             slice(max(cols[0] - margin_vox, 0), min(cols[-1] + margin_vox + 1, ct.shape[2])))
 
 
-def _resample_slices(slices: np.ndarray, out_shape: tuple[int, int], mode: str = "bilinear") -> torch.Tensor:
-    """(n, H, W) array -> (n, 1, h, w) float tensor on the model grid."""
+def _resample_slices(slices: np.ndarray, out_shape: tuple[int, int]) -> torch.Tensor:
+    """(n, H, W) array -> (n, 1, h, w) float tensor on the model grid (bilinear)."""
     tensor = torch.as_tensor(np.ascontiguousarray(slices), dtype=torch.float32)[:, None]
     if tuple(tensor.shape[-2:]) == tuple(out_shape):
         return tensor
-    if mode == "nearest":
-        return F.interpolate(tensor, size=out_shape, mode="nearest")
-    return F.interpolate(tensor, size=out_shape, mode=mode, align_corners=False)
+    return F.interpolate(tensor, size=out_shape, mode="bilinear", align_corners=False)
 
 
 # ----------------------------------------------------------------------------------------
@@ -209,7 +207,7 @@ def read_case(case_dir) -> tuple[Volume, Volume]:
 
 
 class _SliceBank:
-    """Training slices of all cases, resampled once to the model grid (HU, float32)."""
+    """Training slices of all cases, LPS-oriented and resampled once to the model grid (HU)."""
 
     def __init__(self, pairs, pixel_mm: float):
         self.images, self.labels = [], []
@@ -218,10 +216,11 @@ class _SliceBank:
                 raise ValueError(f"CT shape {ct.shape} and mask shape {mask.shape} differ")
             rows, cols = _body_box(ct)
             shape = _model_grid_shape(ct, (rows.stop - rows.start, cols.stop - cols.start), pixel_mm)
-            image = _resample_slices(ct.array[:, rows, cols].astype(np.float32), shape)[:, 0]
-            label = _resample_slices(mask.array[:, rows, cols].astype(np.float32), shape)[:, 0] > 0.5
-            self.images.append(image)
-            self.labels.append(label)
+            flips = _lps_flips(ct)
+            image = np.flip(ct.array[:, rows, cols], flips).astype(np.float32)
+            label = np.flip(mask.array[:, rows, cols], flips).astype(np.float32)
+            self.images.append(_resample_slices(image, shape)[:, 0])
+            self.labels.append(_resample_slices(label, shape)[:, 0] > 0.5)
         self.slices = [(c, k) for c, label in enumerate(self.labels) for k in range(label.shape[0])]
         self.foreground = [(c, k) for c, k in self.slices if self.labels[c][k].any()]
         if not self.slices:
@@ -460,21 +459,27 @@ def segment_ct_unet(ct: Volume, model: UNet | None = None, *, progress=None, chu
     rows, cols = _body_box(ct)
     crop_shape = (rows.stop - rows.start, cols.stop - cols.start)
     net_shape = _model_grid_shape(ct, crop_shape, settings["pixel_mm"])
+    flips = _lps_flips(ct)
     mask = np.zeros(ct.shape, dtype=bool)
     n_slices = ct.shape[0]
     with torch.inference_mode():
         for start in range(0, n_slices, chunk):
             stop = min(start + chunk, n_slices)
-            x = _window(_resample_slices(ct.array[start:stop, rows, cols].astype(np.float32), net_shape),
-                        settings["hu_window"])
-            logits = model(x)
+            hu = np.flip(ct.array[start:stop, rows, cols], flips).astype(np.float32)
+            logits = model(_window(_resample_slices(hu, net_shape), settings["hu_window"]))
             if tuple(logits.shape[-2:]) != crop_shape:
                 logits = F.interpolate(logits, size=crop_shape, mode="bilinear", align_corners=False)
-            mask[start:stop, rows, cols] = (logits[:, 1] > logits[:, 0]).numpy()
+            mask[start:stop, rows, cols] = np.flip((logits[:, 1] > logits[:, 0]).numpy(), flips)
             if progress:
                 progress(stop, n_slices)
     result = ct.with_array(mask)
     return postprocess_mask(result) if postprocess else result
+
+
+def _lps_flips(ct: Volume) -> tuple[int, ...]:
+    """Axes of a (k, j, i) slice stack to flip so that columns run to +x (patient left) and
+    rows to +y (posterior), as in the LPS-aligned training CTs."""
+    return tuple(axis for axis, column in ((2, 0), (1, 1)) if ct.direction[column, column] < 0)
 
 
 def _check_ct(ct: Volume) -> None:
@@ -600,13 +605,26 @@ def postprocess_mask(mask, *, min_size_mm3: float = 50.0, keep_largest: bool = T
     if array.ndim != 3:
         raise ValueError(f"postprocess_mask expects a 3D mask, got shape {array.shape}")
     voxel_mm3 = float(np.prod(mask.spacing)) if isinstance(mask, Volume) else 1.0
-    array = _remove_small_objects(array, min_size_mm3 / voxel_mm3)
-    if keep_largest:
-        array = _largest_component(array)
-    if fill_holes and array.any():
-        array = ndi.binary_fill_holes(array)
-        array = np.stack([ndi.binary_fill_holes(s) if s.any() else s for s in array])
-    return mask.with_array(array) if isinstance(mask, Volume) else array
+    cleaned = np.zeros_like(array)
+    if array.any():
+        box = _bounding_box(array)        # nothing outside it changes, and it is much faster
+        crop = _remove_small_objects(array[box], min_size_mm3 / voxel_mm3)
+        if keep_largest:
+            crop = _largest_component(crop)
+        if fill_holes and crop.any():
+            crop = ndi.binary_fill_holes(crop)
+            crop = np.stack([ndi.binary_fill_holes(s) if s.any() else s for s in crop])
+        cleaned[box] = crop
+    return mask.with_array(cleaned) if isinstance(mask, Volume) else cleaned
+
+
+def _bounding_box(array: np.ndarray) -> tuple[slice, ...]:
+    """Index box of the non-zero voxels of a non-empty array."""
+    box = []
+    for axis in range(array.ndim):
+        hit = np.nonzero(array.any(axis=tuple(a for a in range(array.ndim) if a != axis)))[0]
+        box.append(slice(hit[0], hit[-1] + 1))
+    return tuple(box)
 
 
 def _component_sizes(array: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -645,10 +663,9 @@ def mask_surface(mask: Volume, *, smooth_sigma_vox: float = 0.0) -> vtk.vtkPolyD
     array = np.asarray(mask.array) > 0
     if not array.any():
         raise InputError("mask is empty: no surface to extract")
-    nonzero = np.nonzero(array)
-    lo = np.array([idx.min() for idx in nonzero])
-    hi = np.array([idx.max() for idx in nonzero]) + 1
-    field = np.pad(array[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32), 1)
+    box = _bounding_box(array)
+    lo = np.array([b.start for b in box])
+    field = np.pad(array[box].astype(np.float32), 1)
     if smooth_sigma_vox > 0:
         field = ndi.gaussian_filter(field, smooth_sigma_vox)
     verts, faces, normals, _ = measure.marching_cubes(field, level=0.5, gradient_direction="descent")
