@@ -22,7 +22,6 @@ from vtkmodules.qt.QVTKRenderWindowInteractor import QVTKRenderWindowInteractor 
 from vtkmodules.util import numpy_support  # noqa: E402
 from vtkmodules.vtkCommonCore import vtkPoints  # noqa: E402
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData  # noqa: E402
-from vtkmodules.vtkFiltersCore import vtkStripper, vtkTubeFilter  # noqa: E402
 from vtkmodules.vtkFiltersSources import vtkSphereSource  # noqa: E402
 from vtkmodules.vtkInteractionStyle import vtkInteractorStyleImage, vtkInteractorStyleTrackballCamera  # noqa: E402
 from vtkmodules.vtkInteractionWidgets import vtkOrientationMarkerWidget  # noqa: E402
@@ -31,7 +30,7 @@ from vtkmodules.vtkRenderingCore import (vtkActor, vtkBillboardTextActor3D, vtkI
                                          vtkImageSliceMapper, vtkPolyDataMapper, vtkRenderer, vtkTextActor,
                                          vtkWindowToImageFilter)
 
-from FevarPlannerLib.export import centerline_to_polydata  # noqa: E402
+from FevarPlannerLib.export import centerline_to_polydata, tube_actor  # noqa: E402
 from FevarPlannerLib.projection import project  # noqa: E402
 
 __all__ = ["COLORS", "polyline_polydata", "segments_polydata", "View3D", "FluoroView", "render_to_array"]
@@ -72,27 +71,6 @@ def segments_polydata(points: np.ndarray, edges: np.ndarray, z: float | None = N
                   numpy_support.numpy_to_vtkIdTypeArray(np.ascontiguousarray(edges.ravel()), deep=True))
     polydata.SetLines(lines)
     return polydata
-
-
-def _tube_actor(polydata: vtkPolyData, color, radius: float, opacity: float = 1.0) -> vtkActor:
-    stripper = vtkStripper()
-    stripper.SetInputData(polydata)
-    tubes = vtkTubeFilter()
-    tubes.SetInputConnection(stripper.GetOutputPort())
-    tubes.SetRadius(radius)
-    tubes.SetNumberOfSides(18)
-    tubes.CappingOn()
-    mapper = vtkPolyDataMapper()
-    mapper.SetInputConnection(tubes.GetOutputPort())
-    mapper.ScalarVisibilityOff()
-    actor = vtkActor()
-    actor.SetMapper(mapper)
-    prop = actor.GetProperty()
-    prop.SetColor(*color)
-    prop.SetOpacity(opacity)
-    prop.SetSpecular(0.35)
-    prop.SetSpecularPower(30)
-    return actor
 
 
 def _line_actor(polydata: vtkPolyData, color, width: float, opacity: float = 1.0) -> vtkActor:
@@ -260,11 +238,11 @@ class View3D(_LayeredView):
         self.clear()
         extent = float(np.ptp(np.vstack([result.preop.points, result.deformed.points]), axis=0).max())
         radius = max(0.4, 0.006 * extent)
-        self.add_to_layer("preop", _tube_actor(centerline_to_polydata(result.preop), COLORS["preop"], radius, 0.55))
-        self.add_to_layer("deformed", _tube_actor(centerline_to_polydata(result.deformed), COLORS["deformed"],
+        self.add_to_layer("preop", tube_actor(centerline_to_polydata(result.preop), COLORS["preop"], radius, 0.55))
+        self.add_to_layer("deformed", tube_actor(centerline_to_polydata(result.deformed), COLORS["deformed"],
                                                   radius * 1.25))
         path = np.asarray(result.path.points, dtype=float)
-        self.add_to_layer("path", _tube_actor(polyline_polydata(path), COLORS["path"], radius * 2.0))
+        self.add_to_layer("path", tube_actor(polyline_polydata(path), COLORS["path"], radius * 2.0))
         for point, text in ((path[0], result.path.start_label), (path[-1], result.path.target_label)):
             self.add_to_layer("path", _sphere_actor(point, radius * 3.2, COLORS["path"]))
             self.add_to_layer("path", _label_3d(text, point, COLORS["text"]))

@@ -52,6 +52,7 @@ __all__ = [
     "path_layer",
     "render_overlay",
     "render_centerlines_3d",
+    "tube_actor",
 ]
 
 RESULT_VERSION = 1
@@ -663,23 +664,31 @@ def _as_centerline(item) -> Centerline:
     return Centerline(points, edges, ["other"] * len(points))
 
 
-def _tube_actor(centerline: Centerline, color, radius: float):
+def tube_actor(polydata, color, radius: float, opacity: float = 1.0, sides: int = 16):
+    """A VTK actor drawing the lines of ``polydata`` as capped tubes of ``radius`` (mm).
+
+    Shared by the offscreen pictures here and the workstation's 3D view.
+    """
     from vtkmodules.vtkFiltersCore import vtkStripper, vtkTubeFilter
     from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
 
     stripper = vtkStripper()
-    stripper.SetInputData(centerline_to_polydata(centerline))
+    stripper.SetInputData(polydata)
     tubes = vtkTubeFilter()
     tubes.SetInputConnection(stripper.GetOutputPort())
     tubes.SetRadius(radius)
-    tubes.SetNumberOfSides(16)
+    tubes.SetNumberOfSides(sides)
     tubes.CappingOn()
     mapper = vtkPolyDataMapper()
     mapper.SetInputConnection(tubes.GetOutputPort())
     mapper.ScalarVisibilityOff()
     actor = vtkActor()
     actor.SetMapper(mapper)
-    actor.GetProperty().SetColor(*_rgb(color))
+    prop = actor.GetProperty()
+    prop.SetColor(*_rgb(color))
+    prop.SetOpacity(opacity)
+    prop.SetSpecular(0.35)
+    prop.SetSpecularPower(30)
     return actor
 
 
@@ -754,7 +763,7 @@ def render_centerlines_3d(path, centerlines, *, surface=None, size=(800, 800)) -
     radius = max(0.5, 0.005 * float(extent))
     for index, (centerline, color, name) in enumerate(centerlines):
         # later entries are drawn a little thicker, so they stay visible where they coincide
-        renderer.AddActor(_tube_actor(centerline, color, radius * (1.0 + 0.3 * index)))
+        renderer.AddActor(tube_actor(centerline_to_polydata(centerline), color, radius * (1.0 + 0.3 * index)))
         renderer.AddViewProp(_text_actor(name, color, (10, height - 24 - 20 * index), 16))
     if surface is not None:
         renderer.AddActor(_surface_actor(surface))
