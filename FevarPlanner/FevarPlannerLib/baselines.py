@@ -83,6 +83,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from .centerline import as_points
 from .projection import project, validate_projection_matrix
 
 __all__ = ["BaselineResult", "rigid", "icp_tps", "annealing_temperatures", "default_control_count", "select_controls",
@@ -127,17 +128,8 @@ def rigid(points) -> BaselineResult:
     ``P`` already carries the rigid pre-alignment, so the SV result is the input nodes.
     """
     start = time.perf_counter()
-    points = _check_points3d(points)
+    points = as_points(points, "3D centreline points", 3, min_count=1)
     return BaselineResult(points.copy(), 0, {"total": time.perf_counter() - start}, "rigid")
-
-
-def _check_points3d(points) -> np.ndarray:
-    points = np.asarray(points, dtype=float)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-        raise ValueError(f"3D centreline points: expected shape (n, 3) with n > 0, got {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("3D centreline points: contain NaN or infinite values")
-    return points
 
 
 def _check_edges(edges, n: int) -> np.ndarray:
@@ -145,15 +137,6 @@ def _check_edges(edges, n: int) -> np.ndarray:
     if len(edges) and (edges.min() < 0 or edges.max() >= n):
         raise ValueError(f"3D centreline edges: index out of range for {n} nodes")
     return edges
-
-
-def _check_skeleton2d(points) -> np.ndarray:
-    points = np.asarray(points, dtype=float)
-    if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
-        raise ValueError(f"2D skeleton points: expected shape (k, 2) with k > 0, got {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("2D skeleton points: contain NaN or infinite values")
-    return points
 
 
 def _check_schedule(t_init: float, t_final: float, t_update: float, alpha: float, beta_final: float) -> None:
@@ -471,9 +454,9 @@ def icp_tps(points, edges, skeleton2d, P, *, alpha: float = 0.01, beta_final: fl
         ``points`` the deformed nodes (n, 3); ``n_iter`` the temperatures run; ``timings``.
     """
     start = time.perf_counter()
-    points = _check_points3d(points)
+    points = as_points(points, "3D centreline points", 3, min_count=1)
     edges = _check_edges(edges, len(points))
-    skeleton = _check_skeleton2d(skeleton2d)
+    skeleton = as_points(skeleton2d, "2D skeleton points", 2, min_count=1)
     P = validate_projection_matrix(P)
     _check_schedule(t_init, t_final, t_update, alpha, beta_final)
     if iterations_per_temperature < 1:

@@ -6,10 +6,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ANATOMY_LABELS", "Centerline"]
+__all__ = ["ANATOMY_LABELS", "Centerline", "as_points"]
 
 #: Anatomical labels, as result.json and the exports name them (DESIGN.md section 4).
 ANATOMY_LABELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right", "other")
+
+
+def as_points(array, name: str, dim: int | None = None, min_count: int = 0) -> np.ndarray:
+    """``array`` as a finite float (n, dim) array, or a ValueError naming ``name`` and the problem."""
+    array = np.asarray(array, dtype=float)
+    if array.ndim != 2 or (dim is not None and array.shape[1] != dim):
+        want = f"(n, {dim})" if dim is not None else "(n, d)"
+        raise ValueError(f"{name}: expected an array of shape {want}, got {array.shape}")
+    if len(array) < min_count:
+        raise ValueError(f"{name}: needs at least {min_count} points, got {len(array)}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    return array
 
 
 @dataclass

@@ -33,6 +33,7 @@ import scipy.sparse
 from scipy.sparse import csgraph
 from scipy.spatial.distance import cdist
 
+from .centerline import as_points
 from .projection import validate_projection_matrix
 
 __all__ = [
@@ -247,19 +248,10 @@ class _BandedPreconditioner:
         return g[:, 0]
 
 
-def _as_points(array, name: str, columns: int) -> np.ndarray:
-    array = np.asarray(array, dtype=float)
-    if array.ndim != 2 or array.shape[1] != columns:
-        raise ValueError(f"{name}: expected shape (n, {columns}), got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name}: contains NaN or infinite values")
-    return array
-
-
 def _build_model(points, targets, edges, P, alpha, beta, weights, rest_lengths) -> _EnergyModel:
-    points = _as_points(points, "points", 3)
+    points = as_points(points, "points", 3)
     n = len(points)
-    targets = _as_points(targets, "targets", 2)
+    targets = as_points(targets, "targets", 2)
     if len(targets) != n:
         raise ValueError(f"targets: {len(targets)} rows for {n} points")
     P = validate_projection_matrix(P)
@@ -469,8 +461,8 @@ class ThinPlateSpline3D:
         ThinPlateSpline3D
             ``self``.
         """
-        source = _as_points(source, "TPS source", 3)
-        target = _as_points(target, "TPS target", 3)
+        source = as_points(source, "TPS source", 3)
+        target = as_points(target, "TPS target", 3)
         if len(source) != len(target) or len(source) == 0:
             raise ValueError(f"TPS: need the same non-zero number of source and target points "
                              f"(got {len(source)} and {len(target)})")
@@ -505,7 +497,7 @@ class ThinPlateSpline3D:
         """Map ``points`` (q, 3) through the fitted spline; returns (q, 3)."""
         if self.controls is None:
             raise ValueError("TPS: call fit() before transform()")
-        points = _as_points(points, "TPS points", 3)
+        points = as_points(points, "TPS points", 3)
         displacement = cdist(points, self.controls) @ self._kernel_weights + self._polynomial(points) @ self._affine
         return points + displacement
 
@@ -626,7 +618,7 @@ def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=No
         All nodes: assigned ones exactly at ``deformed_assigned``, the rest TPS-moved. With no
         assigned node at all, ``points`` unchanged.
     """
-    points = _as_points(points, "points", 3)
+    points = as_points(points, "points", 3)
     n = len(points)
     assigned = np.asarray(assigned, dtype=bool).reshape(-1)
     if len(assigned) != n:

@@ -38,7 +38,7 @@ from collections.abc import Iterable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .centerline import ANATOMY_LABELS, Centerline
+from .centerline import ANATOMY_LABELS, Centerline, as_points
 from .projection import project, validate_projection_matrix
 
 __all__ = [
@@ -56,16 +56,6 @@ __all__ = [
 _CANDIDATES = 8
 #: Below this many segments the plain all-pairs computation is as fast as the tree.
 _BRUTE_FORCE_SEGMENTS = 64
-
-
-def _as_points(array, name: str, dim: int | None = None) -> np.ndarray:
-    array = np.asarray(array, dtype=float)
-    if array.ndim != 2 or (dim is not None and array.shape[1] != dim):
-        want = f"(n, {dim})" if dim is not None else "(n, d)"
-        raise ValueError(f"{name}: expected an array of shape {want}, got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name}: contains NaN or infinite values")
-    return array
 
 
 def _segment_distances_all_pairs(points: np.ndarray, seg_a: np.ndarray, seg_b: np.ndarray,
@@ -123,9 +113,9 @@ def point_to_segments(points, seg_a, seg_b, *, chunk_elements: int = 2_000_000) 
     every other segment lies at least that far. The points that fail the check are
     computed against all segments.
     """
-    points = _as_points(points, "points")
-    seg_a = _as_points(seg_a, "segment starts", points.shape[1])
-    seg_b = _as_points(seg_b, "segment ends", points.shape[1])
+    points = as_points(points, "points")
+    seg_a = as_points(seg_a, "segment starts", points.shape[1])
+    seg_b = as_points(seg_b, "segment ends", points.shape[1])
     if len(seg_a) != len(seg_b):
         raise ValueError(f"{len(seg_a)} segment starts but {len(seg_b)} segment ends")
     if len(seg_a) == 0:
@@ -169,7 +159,7 @@ def point_to_graph(points, graph_points, graph_edges) -> np.ndarray:
     -------
     numpy.ndarray, shape (n,)
     """
-    graph_points = _as_points(graph_points, "graph points")
+    graph_points = as_points(graph_points, "graph points")
     if len(graph_points) == 0:
         raise ValueError("the graph has no nodes")
     graph_edges = np.asarray(graph_edges, dtype=np.int64).reshape(-1, 2)
@@ -209,8 +199,8 @@ def error_2d(deformed_points3d, P, skeleton2d_points, skeleton2d_edges) -> dict:
         ``{"mean", "std", "median", "max"}`` in pixels.
     """
     P = validate_projection_matrix(P)
-    projected = project(P, _as_points(deformed_points3d, "deformed points", 3))
-    skeleton = _as_points(skeleton2d_points, "2D skeleton points", 2)
+    projected = project(P, as_points(deformed_points3d, "deformed points", 3))
+    skeleton = as_points(skeleton2d_points, "2D skeleton points", 2)
     return distance_statistics(point_to_graph(projected, skeleton, skeleton2d_edges))
 
 
@@ -221,7 +211,7 @@ def _graph_of(curve, name: str) -> tuple[np.ndarray, np.ndarray]:
         points, edges = curve
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected a Centerline or a (points, edges) pair") from None
-    return _as_points(points, f"{name} points", 3), np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    return as_points(points, f"{name} points", 3), np.asarray(edges, dtype=np.int64).reshape(-1, 2)
 
 
 def error_3d(deformed, gt) -> dict:
@@ -304,7 +294,7 @@ def evaluate(deformed: Centerline, gt: Centerline | None, P, skeleton2d_points, 
         ``{"mean", "std", "median", "max"}``, and ``labels``, the labels compared.
     """
     P = validate_projection_matrix(P)
-    skeleton = _as_points(skeleton2d_points, "2D skeleton points", 2)
+    skeleton = as_points(skeleton2d_points, "2D skeleton points", 2)
     skeleton_edges = np.asarray(skeleton2d_edges, dtype=np.int64).reshape(-1, 2)
     if labels is None:
         labels = common_labels(deformed, gt) if gt is not None else common_labels(deformed, deformed)
