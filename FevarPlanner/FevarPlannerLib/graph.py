@@ -56,6 +56,7 @@ __all__ = [
     "Classification",
     "classify",
     "label_anatomy",
+    "anatomical_roles",
     "smooth_positions",
     "skeleton_graph_3d",
     "skeleton_graph_2d",
@@ -519,11 +520,17 @@ class _BranchSearch:
             self.kept_degree[node] = 0
             self.kept_degree[adjacency.indices[adjacency.indptr[node]:adjacency.indptr[node + 1]]] -= 1
 
-    def run(self, ends: np.ndarray) -> None:
+    def run(self, ends: np.ndarray, protected=()) -> None:
+        """Find, preserve, omit or delete the branches; ``protected`` ends are taken last.
+
+        Taking an end last preserves its branch (the paper preserves the last ``tau``); the
+        others go in order of growing geodesic length, as in Algorithm 1.
+        """
         marked = list(int(e) for e in ends)
+        protected = set(int(e) for e in protected)
         dist, pred, source = self._nearest_junctions()
         while marked:
-            end = min(marked, key=lambda e: (dist[e], e))
+            end = min(marked, key=lambda e: (e in protected, dist[e], e))
             if not np.isfinite(dist[end]):
                 break
             junction = int(source[end])
@@ -583,7 +590,8 @@ def _sorted_nodes(nodes) -> np.ndarray:
 
 
 def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
-             max_gap: float | None = None, max_loop: float | None = None) -> Classification:
+             max_gap: float | None = None, max_loop: float | None = None,
+             directions: dict | None = None) -> Classification:
     """Classify skeleton nodes into branches, trunks and junctions (paper Algorithm 1).
 
     Parameters
@@ -598,6 +606,12 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
     max_gap, max_loop : float, optional
         Gap bridging and loop breaking lengths in graph units (defaults from
         :data:`DEFAULT_MAX_GAP_MM` and :data:`DEFAULT_MAX_LOOP_MM`).
+    directions : dict, optional
+        ``{"left": ..., "superior": ..., "anterior": ...}`` in the graph's frame (anterior
+        only in 3D). Departure from Algorithm 1, which preserves the ``tau`` longest
+        branches: with directions, the five ends that play the anatomical roles
+        (:func:`anatomical_roles`) are preserved whatever their length, so a coeliac
+        trunk or an SMA longer than the stub of upper aorta above it cannot take its place.
 
     Returns
     -------
@@ -628,7 +642,11 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
     if len(ends) < tau:
         raise ValueError(f"skeleton has only {len(ends)} end nodes, need {tau} branches "
                          f"(upper aorta, renal and iliac arteries): {_describe(repaired, search, ends)}")
-    search.run(ends)
+    protected = ()
+    if directions is not None and tau == len(BRANCH_LABELS):
+        roles = anatomical_roles(repaired.positions[ends], **directions)
+        protected = ends[list(roles.values())]
+    search.run(ends, protected)
     if len(search.preserved) < tau:
         raise ValueError(f"found only {len(search.preserved)} of {tau} branches: {_describe(repaired, search, ends)}")
 
@@ -670,7 +688,63 @@ def _unit(vector, dim: int, name: str) -> np.ndarray:
     return vector / np.linalg.norm(vector)
 
 
-def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left, superior) -> Classification:
+#: Weights of the role scores in :func:`anatomical_roles` (dimensionless: lengths in the
+#: graph's unit). Renals: lateral counts twice as much as height; a 3D end anterior of the
+#: top end (coeliac, SMA) or posterior of it (internal iliac) is penalised twice its offset.
+ROLE_LATERAL_WEIGHT = 2.0
+ILIAC_LATERAL_WEIGHT = 0.5
+DEPTH_PENALTY = 2.0
+
+
+def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
+    """Which end node plays which of the five roles: label -> row of ``end_positions``.
+
+    With ``p`` an end's offset from the most superior end (the upper aorta's), picked in
+    this order from the ends not yet taken:
+
+    * ``iliac_{side}``: the largest ``-p.superior + 0.5 s p.left - 2 max(0, p.posterior)``
+      (low, on its side, not an internal iliac heading posteriorly), ``s = +1`` left;
+    * ``renal_{side}``: the largest ``2 s p.left + p.superior - 2 max(0, p.anterior)``
+      (lateral and high, not an anterior visceral branch);
+
+    each among the ends on its own side of the top end (``s p.left > 0``) when there are any.
+
+    ``anterior`` (3D only) enables the depth terms; in a 2D view depth is not seen.
+
+    Raises
+    ------
+    ValueError
+        With fewer than five ends.
+    """
+    points = np.asarray(end_positions, dtype=float)
+    if len(points) < len(BRANCH_LABELS):
+        raise ValueError(f"need {len(BRANCH_LABELS)} end nodes for the anatomy, got {len(points)}")
+    dim = points.shape[1]
+    superior = _unit(superior, dim, "superior")
+    left = _unit(left, dim, "left")
+    # in an angulated view the image directions of left and superior are not orthogonal:
+    # lateral offsets are measured across the cranio-caudal direction
+    left = _unit(left - (left @ superior) * superior, dim, "left")
+    top = int(np.argmax(points @ superior))
+    offset = points - points[top]
+    height, lateral = offset @ superior, offset @ left
+    forward = offset @ _unit(anterior, dim, "anterior") if anterior is not None else np.zeros(len(points))
+    scores = {}
+    for side, s in (("left", 1.0), ("right", -1.0)):
+        scores[f"iliac_{side}"] = -height + ILIAC_LATERAL_WEIGHT * s * lateral - DEPTH_PENALTY * np.maximum(0, -forward)
+        scores[f"renal_{side}"] = ROLE_LATERAL_WEIGHT * s * lateral + height - DEPTH_PENALTY * np.maximum(0, forward)
+    roles, taken = {"aorta": top}, {top}
+    for label in ("iliac_left", "iliac_right", "renal_left", "renal_right"):
+        s = 1.0 if label.endswith("left") else -1.0
+        order = [int(i) for i in np.argsort(-scores[label], kind="stable") if int(i) not in taken]
+        on_side = [i for i in order if s * lateral[i] > 0]
+        roles[label] = (on_side or order)[0]
+        taken.add(roles[label])
+    return roles
+
+
+def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left, superior,
+                  anterior=None) -> Classification:
     """Name the five preserved branches and the trunks; fill ``node_labels`` (in place).
 
     Parameters
@@ -683,9 +757,11 @@ def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left,
         ``(1, 0, 0)`` and ``(0, 0, 1)``; in 2D from ``projection.image_directions(P, at)``
         (a mirrored view flips ``left``).
 
-    Rule: the branch whose end node lies most superior is the upper aorta; the two whose
-    ends lie most inferior are the iliacs; the other two are the renals; each pair is split
-    left/right by the position of the end nodes along ``left``. Trunks are aorta.
+    anterior : array_like, shape (3,), optional
+        The patient's anterior direction (3D only: ``(0, -1, 0)`` in LPS).
+
+    Rule: :func:`anatomical_roles` on the five branch ends (the most superior end is the
+    upper aorta; iliacs low and on their side; renals lateral and high). Trunks are aorta.
 
     Returns
     -------
@@ -695,16 +771,12 @@ def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left,
     branches = classification.branches
     if len(branches) != len(BRANCH_LABELS):
         raise ValueError(f"labelling needs exactly {len(BRANCH_LABELS)} preserved branches, got {len(branches)}")
-    left = _unit(left, graph.dim, "left")
-    superior = _unit(superior, graph.dim, "superior")
-    ends = graph.positions[[b.end for b in branches]]
-    by_height = np.argsort(ends @ superior)
-    iliacs, renals, aorta = by_height[:2], by_height[2:4], by_height[4]
-    branches[aorta].label = "aorta"
-    for pair, name in ((iliacs, "iliac"), (renals, "renal")):
-        right_first = pair[np.argsort(ends[pair] @ left)]
-        branches[right_first[0]].label = f"{name}_right"
-        branches[right_first[1]].label = f"{name}_left"
+    _unit(left, graph.dim, "left")
+    _unit(superior, graph.dim, "superior")
+    roles = anatomical_roles(graph.positions[[b.end for b in branches]], left=left, superior=superior,
+                             anterior=anterior)
+    for label, index in roles.items():
+        branches[index].label = label
     labels = ["other"] * len(graph)
     for branch in branches:
         for node in branch.nodes[1:]:

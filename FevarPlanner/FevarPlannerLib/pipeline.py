@@ -24,7 +24,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from . import baselines, deformation, evaluation, export, graph, matching, planning, skeleton
-from .alignment import refine_in_plane_pose
+from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
 from .io import Case, InputError, load_case
 from .projection import image_directions, project
@@ -36,6 +36,9 @@ METHODS = ("proposed", "icp-tps", "rigid")
 #: Branches shorter than this are spurs and deleted (Algorithm 1's iota), mm; 2D uses the
 #: same length converted to pixels at the anatomy's depth.
 IOTA_MM = 10.0
+#: The patient's directions in LPS, for naming the anatomy of the 3D skeleton.
+LPS_DIRECTIONS = {"left": np.array([1.0, 0.0, 0.0]), "superior": np.array([0.0, 0.0, 1.0]),
+                  "anterior": np.array([0.0, -1.0, 0.0])}
 #: Laplacian smoothing passes over the 3D skeleton (graph.smooth_positions). Measured on the
 #: simulation protocol (Testing/benchmarks/bench_registration.py): the 2D error falls from
 #: 0.30 to 0.10 px and the 3D error from 1.06 to 1.04 mm with 5-20 passes.
@@ -132,11 +135,11 @@ def preop_from_skeleton(skeleton_volume, timings: dict | None = None) -> Preoper
     """Classify (Alg. 1) and label a binary 3D skeleton volume: Algorithm 2 rows 1-2."""
     timings = {} if timings is None else timings
     with _timed(timings, "preop_graph3d"):
-        c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM)
+        c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM, directions=LPS_DIRECTIONS)
         # the repaired graph (gaps bridged, small loops broken, spurs isolated), its voxel
         # staircase smoothed away
         g3 = graph.smooth_positions(c3.graph, SMOOTHING_ITERATIONS)
-        c3 = graph.label_anatomy(g3, c3, left=np.array([1.0, 0, 0]), superior=np.array([0, 0, 1.0]))
+        c3 = graph.label_anatomy(g3, c3, **LPS_DIRECTIONS)
     kept = np.asarray(c3.kept_nodes())
     labels = [c3.node_labels[i] for i in kept]
     centerline = Centerline(g3.positions[kept], _induced_edges(g3, kept), labels)
@@ -162,8 +165,8 @@ def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGr
 
 def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
     """Algorithm 1 on the 2D graph (lengths scaled by ``g2.unit_mm``), labelled through ``P``."""
-    c2 = graph.classify(g2)
     left, superior = image_directions(P, at)
+    c2 = graph.classify(g2, directions={"left": left, "superior": superior})
     return graph.label_anatomy(c2.graph, c2, left=left, superior=superior)
 
 
@@ -178,13 +181,22 @@ def _branch_nodes(classification: graph.Classification, labels) -> np.ndarray:
 
 
 def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification,
-                        P: np.ndarray, shape) -> np.ndarray:
-    """``P`` corrected in-plane on the stable vessels (upper aorta and renals)."""
-    nodes3 = _branch_nodes(preop.classification, STABLE_VESSELS)
-    nodes2 = _branch_nodes(c2, STABLE_VESSELS)
-    if len(nodes3) < 10 or len(nodes2) < 10:
+                        P: np.ndarray) -> np.ndarray:
+    """``P`` corrected in-plane on the stable vessels (upper aorta and renals).
+
+    The stable vessels' 3D nodes are soft-assigned to their 2D targets (eqs. 4-5) under the
+    given ``P``; the rotation and translation of the image plane that lays their projections
+    onto the targets (alignment.fit_in_plane_rigid) is folded into ``P``. A rigid in-plane
+    move changes no projected length, so the assignment it was fitted on stays valid.
+    """
+    g3, c3 = preop.graph, preop.classification
+    candidate = matching.candidate_correspondences(g3, c3, g2, c2, P)[0]
+    assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate)
+    stable = _branch_nodes(c3, STABLE_VESSELS)
+    stable = stable[assignment.assigned[stable]]
+    if len(stable) < 10:
         return P
-    return refine_in_plane_pose(preop.graph.positions[nodes3], g2.positions[nodes2], P, shape).P
+    return fit_in_plane_rigid(project(P, g3.positions[stable]), assignment.targets[stable], P).P
 
 
 def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
@@ -216,7 +228,7 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
         Projection matrix (rigid pre-alignment, eq. 1).
     method : {"proposed", "icp-tps", "rigid"}
     refine_pose : bool
-        Correct the in-plane pose on the stable vessels first (alignment.refine_in_plane_pose).
+        Correct the in-plane pose on the stable vessels first (:func:`_refined_projection`).
         Off by default: on deformed but aligned frames it mistakes the deformation for a
         misalignment (benchmark: 3D error 1.1 -> 5-11 mm); it pays off only for frames
         known to be misaligned by more than about 10 px (the robustness curves).
@@ -242,7 +254,7 @@ def _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta) -> Frame
             g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
     if refine_pose:
         with _timed(timings, "pose_refinement"):
-            P = _refined_projection(preop, g2, c2, P, mask2d.shape)
+            P = _refined_projection(preop, g2, c2, P)
     points = preop.centerline.points
     energy, source = None, method
     if method == "rigid":
