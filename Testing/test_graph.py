@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib.graph import (
-    SkeletonGraph, classify, label_anatomy, skeleton_graph_2d, skeleton_graph_3d)
+    SkeletonGraph, anatomical_roles, classify, label_anatomy, skeleton_graph_2d, skeleton_graph_3d)
 from FevarPlannerLib.io import Volume
 from FevarPlannerLib.projection import CArmGeometry, image_directions, project, projection_matrix_from_carm
 from test_skeleton import SAC_CENTRE, TIPS, TRUE_LENGTHS, aaa_mask_2d, aaa_mask_3d
@@ -309,3 +309,40 @@ def test_2d_projection_labels_follow_the_view(mirrored):
     allowed = {name: max(2.5, 0.4 * radius * pixel) for name, radius in radii.items()}
     assert_branches_match(graph, result, tips_2d, lengths_2d, tolerance=allowed, junction_slack=1.5)
     assert len(result.trunks) == 2
+
+
+# ---------------------------------------------------------------------------------------
+# Anatomy-aware preservation: extra arteries longer than the stub of upper aorta
+# ---------------------------------------------------------------------------------------
+
+DIRECTIONS_3D = {"left": LEFT_3D, "superior": SUPERIOR_3D, "anterior": (0.0, -1.0, 0.0)}
+COELIAC_ROOT, COELIAC_TIP = (50, 5, 110), (50, 5 - 4, 110 - 45)   # 45 mm down-anterior, longer than the stub
+
+
+def test_a_long_coeliac_does_not_displace_the_upper_aorta():
+    y_shift = (0, 4, 0)
+    lines = [(TOP, COELIAC_ROOT), (COELIAC_ROOT, RL)] + AAA_LINES[1:]
+    # the coeliac runs anteriorly (-y) and down: move the whole tree to y = 9 to make room
+    lines = [(tuple(np.add(a, y_shift)), tuple(np.add(b, y_shift))) for a, b in lines]
+    lines.append((tuple(np.add(COELIAC_ROOT, y_shift)), (60, 1, 70)))
+    graph = SkeletonGraph.from_volume(draw_lines(lines))
+    plain = classify(graph)
+    label_anatomy(graph, plain, left=LEFT_3D, superior=SUPERIOR_3D)
+    top = node_at(graph, np.add(TOP, y_shift))
+    assert top not in {b.end for b in plain.branches}  # the paper's rule keeps the longer coeliac
+    aware = classify(graph, directions=DIRECTIONS_3D)
+    label_anatomy(graph, aware, **DIRECTIONS_3D)
+    assert aware.branch("aorta").end == top
+    assert node_at(graph, (60, 1, 70)) in {b.end for b in aware.omitted}
+    assert aware.branch("renal_left").end == node_at(graph, np.add(POLY_TIPS["renal_left"], y_shift))
+
+
+def test_roles_in_an_angulated_view_keep_each_iliac_on_its_side():
+    """RAO 25 / caudal 10: image 'left' is tilted against 'superior'."""
+    carm = CArmGeometry(1100.0, 750.0, (0.6, 0.6), -25.0, -10.0, 700, 700)
+    P = projection_matrix_from_carm(carm, (50.0, 5.0, 70.0))
+    tips = {name: project(P, np.asarray(tip, float)) for name, tip in POLY_TIPS.items()}
+    left, superior = image_directions(P, np.array([50.0, 5.0, 70.0]))
+    names = list(tips)
+    roles = anatomical_roles(np.array([tips[n] for n in names]), left=left, superior=superior)
+    assert {label: names[i] for label, i in roles.items()} == {n: n for n in names}
