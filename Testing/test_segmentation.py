@@ -251,6 +251,17 @@ def test_surface_lies_on_the_tube_wall_in_lps(tmp_path):
     assert not list(tmp_path.glob(".lumen.vtp*"))
 
 
+def test_command_line_segments_a_ct_file_and_writes_the_surface(tmp_path):
+    from FevarPlannerLib.io import read_volume, write_volume
+    ct, lumen, _ = synthetic_ct()
+    write_volume(tmp_path / "ct.nrrd", ct.with_array(ct.array.astype(np.int16)))
+    code = seg.main(["segment", str(tmp_path / "ct.nrrd"), "--out", str(tmp_path / "mask.nrrd"),
+                     "--segmenter", "threshold", "--surface", str(tmp_path / "lumen.vtp")])
+    assert code == 0
+    assert seg.dice(read_volume(tmp_path / "mask.nrrd"), lumen) >= 0.9
+    assert (tmp_path / "lumen.vtp").stat().st_size > 1000
+
+
 def test_surface_of_empty_mask_is_an_error():
     with pytest.raises(InputError, match="empty"):
         seg.mask_surface(Volume(np.zeros((3, 3, 3), bool), (1, 1, 1), (0, 0, 0), np.eye(3)))

@@ -8,6 +8,9 @@ DSA frames and on a 1024 x 1024 phantom frame.
 
     .venv/bin/python Testing/benchmarks/bench_segmentation.py --out Testing/benchmarks/results
 
+Timings use ``--threads`` torch threads (default 1: on a 2-core machine shared with other
+work, two threads contend and run slower than one).
+
 Held-out cases are generated (``--n-cases``, ``--seed``; the shipped UNet was trained on
 seed 100, so keep a different seed) unless ``--cases`` names existing case folders.
 Writes ``bench_segmentation.json`` and ``bench_segmentation.png`` into ``--out``.
@@ -33,6 +36,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from PIL import Image
+import torch
 from scipy.spatial import cKDTree
 
 from FevarPlannerLib import io
@@ -153,8 +157,11 @@ def main() -> None:
     parser.add_argument("--n-cases", type=int, default=3)
     parser.add_argument("--seed", type=int, default=200)
     parser.add_argument("--model", help="UNet checkpoint (default: the shipped weights)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (1 is fastest on a busy 2-core machine)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(args.threads)
     model = seg.load_unet(args.model)
     with tempfile.TemporaryDirectory() as tmp:
         folders = held_out_cases(args, Path(tmp))
@@ -177,6 +184,7 @@ def main() -> None:
         "fluoro_1024_dice": seg.dice(frame_mask, frame_truth),
         "fluoro_1024_time_s": frame_s,
         "model": str(args.model or seg.default_model_path()),
+        "torch_threads": torch.get_num_threads(),
     }
     (args.out / "bench_segmentation.json").write_text(json.dumps(results, indent=2))
     k = int(np.argmax(truth.array.sum(axis=(1, 2))))
