@@ -579,6 +579,15 @@ def _trunks(graph: SkeletonGraph, junctions: np.ndarray) -> list[Trunk]:
     return trunks
 
 
+def _ends_beyond_spurs(graph: SkeletonGraph, ends: np.ndarray, iota: float) -> np.ndarray:
+    """The end nodes at least ``iota`` along the skeleton from any quasi-junction node."""
+    forks = np.flatnonzero(graph.degrees >= 3)
+    if len(forks) == 0:
+        return ends
+    reach = csgraph.dijkstra(graph.adjacency, directed=False, indices=forks, min_only=True)
+    return ends[reach[ends] >= iota]
+
+
 def _describe(graph: SkeletonGraph, search: _BranchSearch, ends: np.ndarray) -> str:
     lengths = sorted((round(b.length, 1) for b in search.preserved + search.omitted), reverse=True)
     return (f"{len(graph)} nodes, {len(ends)} end nodes, {len(search.junction_of_cluster)} junctions, "
@@ -644,8 +653,10 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
                          f"(upper aorta, renal and iliac arteries): {_describe(repaired, search, ends)}")
     protected = ()
     if directions is not None and tau == len(BRANCH_LABELS):
-        roles = anatomical_roles(repaired.positions[ends], **directions)
-        protected = ends[list(roles.values())]
+        candidates = _ends_beyond_spurs(repaired, ends, iota)
+        if len(candidates) >= tau:
+            roles = anatomical_roles(repaired.positions[candidates], **directions)
+            protected = candidates[list(roles.values())]
     search.run(ends, protected)
     if len(search.preserved) < tau:
         raise ValueError(f"found only {len(search.preserved)} of {tau} branches: {_describe(repaired, search, ends)}")
@@ -692,24 +703,25 @@ def _unit(vector, dim: int, name: str) -> np.ndarray:
 #: graph's unit). Renals: lateral counts twice as much as height; a 3D end anterior of the
 #: top end (coeliac, SMA) or posterior of it (internal iliac) is penalised twice its offset.
 ROLE_LATERAL_WEIGHT = 2.0
-ILIAC_LATERAL_WEIGHT = 0.5
 DEPTH_PENALTY = 2.0
 
 
 def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
     """Which end node plays which of the five roles: label -> row of ``end_positions``.
 
-    With ``p`` an end's offset from the most superior end (the upper aorta's), picked in
-    this order from the ends not yet taken:
+    With ``p`` an end's offset from the most superior end (the upper aorta's):
 
-    * ``iliac_{side}``: the largest ``-p.superior + 0.5 s p.left - 2 max(0, p.posterior)``
-      (low, on its side, not an internal iliac heading posteriorly), ``s = +1`` left;
-    * ``renal_{side}``: the largest ``2 s p.left + p.superior - 2 max(0, p.anterior)``
-      (lateral and high, not an anterior visceral branch);
+    * the iliacs are the pair of other ends with the largest
+      ``-(p_a + p_b).superior + |p_a - p_b|.left - 2 max(0, p.posterior)`` summed: low and
+      far apart, so that an internal iliac beside its common iliac is not taken for the
+      other side; the one further to the patient's left is ``iliac_left``;
+    * ``renal_{side}`` is the end on its side of the top end (``s p.left > 0``, ``s = +1``
+      for left) with the largest ``2 s p.left + p.superior - 2 max(0, p.anterior)``: lateral
+      and high, not an anterior visceral branch.
 
-    each among the ends on its own side of the top end (``s p.left > 0``) when there are any.
-
-    ``anterior`` (3D only) enables the depth terms; in a 2D view depth is not seen.
+    ``anterior`` (3D only) enables the depth terms; in a 2D view depth is not seen. Lateral
+    offsets are measured across the cranio-caudal direction (in an angulated view the
+    image directions of left and superior are not orthogonal).
 
     Raises
     ------
@@ -722,24 +734,23 @@ def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
     dim = points.shape[1]
     superior = _unit(superior, dim, "superior")
     left = _unit(left, dim, "left")
-    # in an angulated view the image directions of left and superior are not orthogonal:
-    # lateral offsets are measured across the cranio-caudal direction
     left = _unit(left - (left @ superior) * superior, dim, "left")
     top = int(np.argmax(points @ superior))
     offset = points - points[top]
     height, lateral = offset @ superior, offset @ left
     forward = offset @ _unit(anterior, dim, "anterior") if anterior is not None else np.zeros(len(points))
-    scores = {}
+    others = np.array([i for i in range(len(points)) if i != top])
+    low = -height[others] - DEPTH_PENALTY * np.maximum(0.0, -forward[others])
+    pair_score = low[:, None] + low[None, :] + np.abs(lateral[others][:, None] - lateral[others][None, :])
+    np.fill_diagonal(pair_score, -np.inf)
+    a, b = np.unravel_index(np.argmax(pair_score), pair_score.shape)
+    right_iliac, left_iliac = sorted((int(others[a]), int(others[b])), key=lambda i: lateral[i])
+    roles = {"aorta": top, "iliac_left": left_iliac, "iliac_right": right_iliac}
     for side, s in (("left", 1.0), ("right", -1.0)):
-        scores[f"iliac_{side}"] = -height + ILIAC_LATERAL_WEIGHT * s * lateral - DEPTH_PENALTY * np.maximum(0, -forward)
-        scores[f"renal_{side}"] = ROLE_LATERAL_WEIGHT * s * lateral + height - DEPTH_PENALTY * np.maximum(0, forward)
-    roles, taken = {"aorta": top}, {top}
-    for label in ("iliac_left", "iliac_right", "renal_left", "renal_right"):
-        s = 1.0 if label.endswith("left") else -1.0
-        order = [int(i) for i in np.argsort(-scores[label], kind="stable") if int(i) not in taken]
+        score = ROLE_LATERAL_WEIGHT * s * lateral + height - DEPTH_PENALTY * np.maximum(0.0, forward)
+        order = [int(i) for i in np.argsort(-score, kind="stable") if int(i) not in roles.values()]
         on_side = [i for i in order if s * lateral[i] > 0]
-        roles[label] = (on_side or order)[0]
-        taken.add(roles[label])
+        roles[f"renal_{side}"] = (on_side or order)[0]
     return roles
 
 
