@@ -41,6 +41,7 @@ from .io import InputError, Volume, atomic_path
 __all__ = [
     "UNet",
     "train_unet",
+    "TextProgress",
     "load_unet",
     "default_model_path",
     "segment_ct_unet",
