@@ -1,4 +1,4 @@
-"""``fevar-planner``: the command line (plan, phantoms, demo, benchmark, train-unet)."""
+"""``fevar-planner``: the command line (plan, phantoms, demo, benchmark, train-unet, segment)."""
 
 from __future__ import annotations
 
@@ -89,9 +89,12 @@ def _cmd_demo(args) -> int:
     out = Path(args.out)
     bar = ProgressBar(enabled=not args.quiet)
     bar(0.0, "generating a phantom case (CT series, XA frame, masks)")
+    # by default the job starts from the raw images: ct/ + fluoro.dcm + geometry.json
     params = phantom.random_params(np.random.default_rng(args.seed), misalign_shift_px=(0.0, 0.0),
                                    misalign_rotation_deg=0.0)
     case_dir = phantom.write_case(phantom.generate_case(params, name="demo"), out / "case")
+    if not args.masks:
+        case_dir = _raw_copy(case_dir, out / "case_raw")
     results = {method: plan_case(case_dir, out / method, method=method, progress=bar)
                for method in ("rigid", "icp-tps", "proposed")}
     for method, result in results.items():
@@ -106,6 +109,18 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _raw_copy(case_dir: Path, raw_dir: Path) -> Path:
+    """The raw images of a phantom case only (CT series, XA frame, geometry, ground truth)."""
+    import shutil
+
+    if raw_dir.exists():
+        shutil.rmtree(raw_dir)
+    shutil.copytree(case_dir / "ct", raw_dir / "ct")
+    for name in ("fluoro.dcm", "geometry.json", "gt.json"):
+        shutil.copy2(case_dir / name, raw_dir / name)
+    return raw_dir
+
+
 def _cmd_benchmark(args) -> int:
     from .benchmark import run_benchmark
 
@@ -117,9 +132,27 @@ def _cmd_benchmark(args) -> int:
 def _cmd_train_unet(args) -> int:
     from .segmentation import train_unet
 
-    path = train_unet(args.cases, args.out, iterations=args.iterations, seed=args.seed, resume=args.resume,
-                      progress=ProgressBar(enabled=not args.quiet))
+    bar = ProgressBar(enabled=not args.quiet)
+    path = train_unet(args.cases, args.out, iterations=args.iterations, seed=args.seed, lr=args.lr, crop=args.crop,
+                      base=args.base, max_channels=args.max_channels, pixel_mm=args.pixel_mm, resume=args.resume,
+                      progress=bar.count)
     print(f"weights written to {path}")
+    return 0
+
+
+def _cmd_segment(args) -> int:
+    import numpy as np
+
+    from .io import read_ct, write_volume
+    from .segmentation import load_unet, mask_surface, segment_ct, write_surface_vtp
+
+    ct = read_ct(args.ct)
+    kwargs = {"model": load_unet(args.model)} if args.segmenter == "unet" else {}
+    mask = segment_ct(ct, args.segmenter, **kwargs)
+    write_volume(args.out, mask.with_array(mask.array.astype(np.uint8)))
+    if args.surface is not None:
+        write_surface_vtp(args.surface, mask_surface(mask))
+    print(f"lumen mask ({int(mask.array.sum())} voxels) written to {args.out}")
     return 0
 
 
@@ -150,6 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run the whole job on a built-in phantom case")
     demo.add_argument("--out", type=Path, default=Path("demo_out"))
     demo.add_argument("--seed", type=int, default=7)
+    demo.add_argument("--masks", action="store_true",
+                      help="use the phantom's masks instead of segmenting the CT and the frame")
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("benchmark", help="the paper's experiments: SV / ICP-TPS / proposed")
@@ -161,10 +196,23 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train-unet", help="train the CT aorta UNet on phantom (or other) case folders")
     train.add_argument("cases", type=Path, nargs="+", help="case folders holding ct/ and aorta_mask.nrrd")
     train.add_argument("--out", type=Path, required=True, help="checkpoint / weights path (.pt)")
-    train.add_argument("--iterations", type=int, default=20000)
+    train.add_argument("--iterations", type=int, default=8000)
     train.add_argument("--seed", type=int, default=0)
-    train.add_argument("--resume", type=Path, default=None)
+    train.add_argument("--resume", type=Path, default=None, help="checkpoint to continue from")
+    train.add_argument("--lr", type=float, default=1e-3, help="SGD learning rate (paper: 1e-3)")
+    train.add_argument("--crop", type=int, default=128, help="training window, pixels")
+    train.add_argument("--base", type=int, default=8, help="channels of the first UNet block")
+    train.add_argument("--max-channels", type=int, default=64)
+    train.add_argument("--pixel-mm", type=float, default=1.0, help="in-plane resampling of the slices")
     train.set_defaults(func=_cmd_train_unet)
+
+    segment = sub.add_parser("segment", help="segment the aorta lumen in a CT (UNet or threshold)")
+    segment.add_argument("ct", type=Path, help="DICOM series folder or NRRD / NIfTI / MHA")
+    segment.add_argument("--out", type=Path, required=True, help="mask file (.nrrd / .nii.gz / .mha)")
+    segment.add_argument("--segmenter", choices=("unet", "threshold"), default="unet")
+    segment.add_argument("--model", type=Path, default=None, help="UNet weights (default: the shipped ones)")
+    segment.add_argument("--surface", type=Path, default=None, help="also write the lumen surface (.vtp)")
+    segment.set_defaults(func=_cmd_segment)
     return parser
 
 

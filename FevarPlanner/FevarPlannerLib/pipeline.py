@@ -173,6 +173,8 @@ def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> grap
 #: The vessels that a stiff wire moves least: the pose is refined on these alone, so that
 #: the deformation of the sac and the iliacs is not mistaken for a misaligned frame.
 STABLE_VESSELS = ("aorta", "renal_left", "renal_right")
+#: A correction turning the frame further than this is a failed fit, not a misalignment.
+MAX_POSE_ROTATION_DEG = 30.0
 
 
 def _branch_nodes(classification: graph.Classification, labels) -> np.ndarray:
@@ -196,7 +198,8 @@ def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.
     stable = stable[assignment.assigned[stable]]
     if len(stable) < 10:
         return P
-    return fit_in_plane_rigid(project(P, g3.positions[stable]), assignment.targets[stable], P).P
+    fit = fit_in_plane_rigid(project(P, g3.positions[stable]), assignment.targets[stable], P)
+    return fit.P if abs(fit.rotation_deg) <= MAX_POSE_ROTATION_DEG else P
 
 
 def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):

@@ -19,10 +19,7 @@ LPS millimetres.
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +38,6 @@ from .io import InputError, Volume, atomic_path
 __all__ = [
     "UNet",
     "train_unet",
-    "TextProgress",
     "load_unet",
     "default_model_path",
     "segment_ct_unet",
@@ -58,7 +54,10 @@ __all__ = [
 ]
 
 #: Where the shipped weights live, relative to this package (FevarPlanner/FevarPlannerLib).
-MODEL_RELATIVE_PATH = Path("..", "..", "Resources", "Models", "aorta_unet.pt")
+#: Where the shipped weights lie relative to this package: inside an installed Slicer module
+#: (``<module>/Resources``, copied there by FevarPlanner/CMakeLists.txt), then in the source tree.
+MODEL_RELATIVE_PATHS = (Path("..", "Resources", "Models", "aorta_unet.pt"),
+                        Path("..", "..", "Resources", "Models", "aorta_unet.pt"))
 
 #: Default preprocessing of CT slices for the network: in-plane spacing (mm) the slices are
 #: resampled to, and the HU window mapped linearly onto [0, 1].
@@ -258,31 +257,6 @@ class _SliceBank:
         return top, left
 
 
-class TextProgress:
-    """A one-line progress bar on a text stream (a new line every ``line_every`` steps)."""
-
-    def __init__(self, stream=None, width: int = 30, line_every: int = 0):
-        self.stream = stream if stream is not None else sys.stderr
-        self.width, self.line_every = width, line_every
-        self.start = time.monotonic()
-        self.first_done = None
-
-    def __call__(self, done: int, total: int, message: str = "") -> None:
-        if self.first_done is None:         # a resumed run starts counting part-way
-            self.first_done = done - 1
-        fraction = done / total if total else 1.0
-        elapsed = time.monotonic() - self.start
-        eta = elapsed / max(done - self.first_done, 1) * (total - done)
-        bar = "#" * int(round(fraction * self.width))
-        line = f"[{bar:<{self.width}}] {done}/{total} {message} elapsed {elapsed:.0f}s eta {eta:.0f}s"
-        if self.line_every:
-            if done % self.line_every == 0 or done == total:
-                self.stream.write(line + "\n")
-        else:
-            self.stream.write("\r" + line + ("\n" if done == total else ""))
-        self.stream.flush()
-
-
 def _as_training_pairs(data) -> list[tuple[Volume, Volume]]:
     pairs = []
     for item in data:
@@ -334,8 +308,8 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
         Total number of optimiser steps (a resumed run continues up to this number).
     resume : path, optional
         Checkpoint to continue from (weights, optimiser, iteration count and random state).
-    progress : callable or bool, optional
-        ``progress(done, total, message)``; ``True`` draws a text bar on stderr.
+    progress : callable, optional
+        ``progress(done, total, message)`` after every iteration (``cli.ProgressBar.count``).
 
     Returns
     -------
@@ -364,7 +338,7 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
         iteration, losses, settings = state["iteration"], list(state["losses"]), state["settings"]
         rng.bit_generator.state = state["rng_state"]
         torch.set_rng_state(state["torch_rng_state"])
-    report = TextProgress() if progress is True else progress
+    report = progress
     bank = _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
     window = tuple(settings["hu_window"])
     was_deterministic = torch.are_deterministic_algorithms_enabled()
@@ -399,8 +373,10 @@ def _training_step(model: UNet, optimizer, samples) -> float:
 
 
 def default_model_path() -> Path:
-    """The shipped weights: ``Resources/Models/aorta_unet.pt`` relative to this package."""
-    return (Path(__file__).resolve().parent / MODEL_RELATIVE_PATH).resolve()
+    """The shipped weights ``Resources/Models/aorta_unet.pt``: the Slicer module's copy, else the source tree's."""
+    here = Path(__file__).resolve().parent
+    candidates = [(here / relative).resolve() for relative in MODEL_RELATIVE_PATHS]
+    return next((path for path in candidates if path.is_file()), candidates[-1])
 
 
 def load_unet(path=None) -> UNet:
@@ -412,7 +388,7 @@ def load_unet(path=None) -> UNet:
     path = Path(path) if path is not None else default_model_path()
     if not path.is_file():
         raise InputError(f"{path}: UNet weights not found (train them with "
-                         f"`python -m FevarPlannerLib.segmentation train`, see Resources/Models/README.md)")
+                         f"`fevar-planner train-unet`, see Resources/Models/README.md)")
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         model = UNet(**state["model_config"])
@@ -892,43 +868,3 @@ def dice(a, b) -> float:
 # ----------------------------------------------------------------------------------------
 # Command line: train the shipped weights, segment a CT
 # ----------------------------------------------------------------------------------------
-
-def main(argv=None) -> int:
-    """``python -m FevarPlannerLib.segmentation train|segment ...``."""
-    parser = argparse.ArgumentParser(prog="python -m FevarPlannerLib.segmentation")
-    sub = parser.add_subparsers(dest="command", required=True)
-    train = sub.add_parser("train", help="train the lumen UNet on case folders")
-    train.add_argument("cases", nargs="+", help="case folders with ct.* and aorta_mask.*")
-    train.add_argument("--out", required=True)
-    train.add_argument("--iterations", type=int, default=2000)
-    train.add_argument("--seed", type=int, default=0)
-    train.add_argument("--lr", type=float, default=1e-3)
-    train.add_argument("--crop", type=int, default=128)
-    train.add_argument("--base", type=int, default=8)
-    train.add_argument("--max-channels", type=int, default=64)
-    train.add_argument("--pixel-mm", type=float, default=DEFAULT_PIXEL_MM)
-    train.add_argument("--resume")
-    segment = sub.add_parser("segment", help="segment a CT volume")
-    segment.add_argument("ct")
-    segment.add_argument("--out", required=True, help="mask file (.nrrd / .nii.gz / .mha)")
-    segment.add_argument("--segmenter", choices=("unet", "threshold"), default="unet")
-    segment.add_argument("--model")
-    segment.add_argument("--surface", help="optional .vtp surface output")
-    args = parser.parse_args(argv)
-    if args.command == "train":
-        train_unet(args.cases, args.out, iterations=args.iterations, seed=args.seed, lr=args.lr, crop=args.crop,
-                   base=args.base, max_channels=args.max_channels, pixel_mm=args.pixel_mm, resume=args.resume,
-                   progress=TextProgress(line_every=50))
-        return 0
-    from .io import write_volume
-    ct = io.read_ct(args.ct)
-    kwargs = {"model": load_unet(args.model)} if args.segmenter == "unet" else {}
-    mask = segment_ct(ct, args.segmenter, **kwargs)
-    write_volume(args.out, mask.with_array(mask.array.astype(np.uint8)))
-    if args.surface:
-        write_surface_vtp(args.surface, mask_surface(mask))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
