@@ -147,3 +147,18 @@ def test_cli_plan_and_a_clear_error_for_bad_input(case_dir, tmp_path):
     lines = failed.stderr.strip().splitlines()
     assert len(lines) == 1 and "aorta_mask.nrrd" in lines[0] and "empty" in lines[0]
     assert not (tmp_path / "o2" / "result.json").exists()
+
+
+@pytest.mark.parametrize("segmenter", ["threshold", "unet"])
+def test_raw_images_only_run_end_to_end(case, tmp_path, segmenter):
+    """ct/ + fluoro.dcm + geometry.json: both segmentations, then the registration (issue 6)."""
+    full = phantom.write_case(case, tmp_path / "full")
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    for name in ("ct", "fluoro.dcm", "geometry.json", "gt.json"):
+        (full / name).rename(raw / name)
+    result = pipeline.plan_case(raw, tmp_path / "out", segmenter=segmenter)
+    assert set(result.inputs) >= {"ct", "fluoro", "geometry"} and "aorta_mask" not in result.inputs
+    assert result.errors["2d_px"]["mean"] < 1.0
+    assert result.errors["3d_mm"]["mean"] < 2.5
+    assert (tmp_path / "out" / "result.json").exists()

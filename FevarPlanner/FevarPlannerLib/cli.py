@@ -50,7 +50,7 @@ def _cmd_plan(args) -> int:
     result = plan_case(args.case, args.out, method=args.method, progress=progress,
                        ct=args.ct, aorta_mask=args.aorta_mask, skeleton3d=args.skeleton3d, fluoro=args.fluoro,
                        fluoro_mask=args.fluoro_mask, geometry=args.geometry, frame=args.frame,
-                       start=args.start, target=args.target, refine_pose=args.refine_pose)
+                       start=args.start, target=args.target, refine_pose=args.refine_pose, segmenter=args.segmenter)
     _print_summary(result, args.out)
     return 0
 
@@ -167,6 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--method", choices=("proposed", "icp-tps", "rigid"), default="proposed")
     plan.add_argument("--start", default="iliac_right", help="access vessel (default iliac_right)")
     plan.add_argument("--target", default="renal_left", help="target vessel ostium (default renal_left)")
+    plan.add_argument("--segmenter", choices=("unet", "threshold"), default="unet",
+                      help="CT segmentation when the case holds no mask (default unet)")
     plan.add_argument("--refine-pose", action="store_true",
                       help="correct the frame's in-plane pose first (for a frame known to be misaligned)")
     _add_case_overrides(plan)

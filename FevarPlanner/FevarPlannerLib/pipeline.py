@@ -118,7 +118,7 @@ def _induced_edges(graph_: graph.SkeletonGraph, nodes: np.ndarray) -> np.ndarray
     return edges[np.all(edges >= 0, axis=1)]
 
 
-def _skeleton3d_volume(case: Case, progress=None):
+def _skeleton3d_volume(case: Case, progress=None, segmenter: str = "unet"):
     if case.skeleton3d is not None:
         return case.skeleton3d
     mask = case.aorta_mask
@@ -126,7 +126,7 @@ def _skeleton3d_volume(case: Case, progress=None):
         from . import segmentation
 
         _report(progress, 0.05, "segmenting the aorta in the CT")
-        mask = segmentation.segment_ct(case.ct)
+        mask = segmentation.segment_ct(case.ct, segmenter)
     _report(progress, 0.15, "thinning the 3D lumen")
     return skeleton.skeletonize_3d(mask)
 
@@ -146,11 +146,14 @@ def preop_from_skeleton(skeleton_volume, timings: dict | None = None) -> Preoper
     return Preoperative(g3, c3, kept, centerline, timings)
 
 
-def prepare_preop(case: Case, progress=None) -> Preoperative:
-    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1) and labelled."""
+def prepare_preop(case: Case, progress=None, segmenter: str = "unet") -> Preoperative:
+    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1) and labelled.
+
+    A case holding only a CT is segmented first with ``segmenter`` ("unet" or "threshold").
+    """
     timings = {}
     with _timed(timings, "preop_skeleton3d"):
-        skeleton_volume = _skeleton3d_volume(case, progress)
+        skeleton_volume = _skeleton3d_volume(case, progress, segmenter)
     return preop_from_skeleton(skeleton_volume, timings)
 
 
@@ -297,11 +300,14 @@ def _vessel_mask(case: Case, progress=None) -> np.ndarray:
 
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
              target: str = "renal_left", refine_pose: bool = False, alpha: float = 500.0,
-             beta: float = 10.0) -> PlanResult:
-    """Run the whole job on a loaded case: pre-op graph, frame registration, path, errors."""
+             beta: float = 10.0, segmenter: str = "unet") -> PlanResult:
+    """Run the whole job on a loaded case: pre-op graph, frame registration, path, errors.
+
+    ``segmenter`` ("unet" or "threshold") segments a case that holds only a CT.
+    """
     t0 = time.perf_counter()
     _report(progress, 0.0, "pre-operative skeleton graph")
-    preop = prepare_preop(case, progress)
+    preop = prepare_preop(case, progress, segmenter)
     timings = dict(preop.timings)
     with _timed(timings, "segmentation2d"):
         mask2d = _vessel_mask(case, progress)
