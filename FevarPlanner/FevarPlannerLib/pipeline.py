@@ -69,9 +69,10 @@ class Preoperative:
     centerline: Centerline
     timings: dict = field(default_factory=dict)
 
-    @property
-    def centre(self) -> np.ndarray:
-        return self.centerline.points.mean(axis=0)
+    def __post_init__(self):
+        # the kept nodes' own graph (node t is graph node kept[t]), for the per-frame TPS fill
+        self.kept_adjacency = self.graph.subgraph(self.kept).adjacency
+        self.centre = self.centerline.points.mean(axis=0)
 
 
 @dataclass
@@ -214,10 +215,9 @@ def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
                                          _induced_edges(g3, assigned), P, alpha=alpha, beta=beta)
     moved = np.array(g3.positions, dtype=float)
     moved[assigned] = result.points
-    sub = g3.subgraph(preop.kept)
     keep_assigned = assignment.assigned[preop.kept]
     filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], keep_assigned,
-                                         sub.adjacency)
+                                         preop.kept_adjacency)
     return filled, float(result.energy_final)
 
 
