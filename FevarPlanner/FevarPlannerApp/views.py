@@ -27,10 +27,10 @@ from vtkmodules.vtkInteractionStyle import vtkInteractorStyleImage, vtkInteracto
 from vtkmodules.vtkInteractionWidgets import vtkOrientationMarkerWidget  # noqa: E402
 from vtkmodules.vtkRenderingAnnotation import vtkAnnotatedCubeActor  # noqa: E402
 from vtkmodules.vtkRenderingCore import (vtkActor, vtkBillboardTextActor3D, vtkImageSlice,  # noqa: E402
-                                         vtkImageSliceMapper, vtkPolyDataMapper, vtkRenderer, vtkTextActor,
+                                         vtkImageSliceMapper, vtkRenderer, vtkTextActor,
                                          vtkWindowToImageFilter)
 
-from FevarPlannerLib.export import centerline_to_polydata, tube_actor  # noqa: E402
+from FevarPlannerLib.export import centerline_to_polydata, polydata_actor, tube_actor  # noqa: E402
 from FevarPlannerLib.projection import project  # noqa: E402
 
 __all__ = ["COLORS", "polyline_polydata", "segments_polydata", "View3D", "FluoroView", "render_to_array"]
@@ -74,16 +74,9 @@ def segments_polydata(points: np.ndarray, edges: np.ndarray, z: float | None = N
 
 
 def _line_actor(polydata: vtkPolyData, color, width: float, opacity: float = 1.0) -> vtkActor:
-    mapper = vtkPolyDataMapper()
-    mapper.SetInputData(polydata)
-    mapper.ScalarVisibilityOff()
-    actor = vtkActor()
-    actor.SetMapper(mapper)
-    prop = actor.GetProperty()
-    prop.SetColor(*color)
-    prop.SetLineWidth(width)
-    prop.SetOpacity(opacity)
-    prop.LightingOff()
+    actor = polydata_actor(polydata, color, opacity)
+    actor.GetProperty().SetLineWidth(width)
+    actor.GetProperty().LightingOff()
     return actor
 
 
@@ -93,12 +86,7 @@ def _sphere_actor(center, radius: float, color) -> vtkActor:
     sphere.SetRadius(radius)
     sphere.SetThetaResolution(24)
     sphere.SetPhiResolution(24)
-    mapper = vtkPolyDataMapper()
-    mapper.SetInputConnection(sphere.GetOutputPort())
-    actor = vtkActor()
-    actor.SetMapper(mapper)
-    actor.GetProperty().SetColor(*color)
-    return actor
+    return polydata_actor(sphere.GetOutputPort(), color)
 
 
 def _text(text: str, color, size: int, bold: bool = False) -> vtkTextActor:
@@ -255,15 +243,8 @@ class View3D(_LayeredView):
 
     @staticmethod
     def _surface_actor(surface: vtkPolyData) -> vtkActor:
-        mapper = vtkPolyDataMapper()
-        mapper.SetInputData(surface)
-        mapper.ScalarVisibilityOff()
-        actor = vtkActor()
-        actor.SetMapper(mapper)
-        prop = actor.GetProperty()
-        prop.SetColor(*COLORS["surface"])
-        prop.SetOpacity(0.22)
-        prop.BackfaceCullingOn()
+        actor = polydata_actor(surface, COLORS["surface"], 0.22)
+        actor.GetProperty().BackfaceCullingOn()
         return actor
 
     def reset_camera(self) -> None:

@@ -53,6 +53,7 @@ __all__ = [
     "render_overlay",
     "render_centerlines_3d",
     "tube_actor",
+    "polydata_actor",
 ]
 
 RESULT_VERSION = 1
@@ -664,13 +665,30 @@ def _as_centerline(item) -> Centerline:
     return Centerline(points, edges, ["other"] * len(points))
 
 
-def tube_actor(polydata, color, radius: float, opacity: float = 1.0, sides: int = 16):
-    """A VTK actor drawing the lines of ``polydata`` as capped tubes of ``radius`` (mm).
+def polydata_actor(polydata_or_port, color, opacity: float = 1.0):
+    """A VTK actor drawing ``polydata`` (or a filter's output port) in one colour, no scalars.
 
-    Shared by the offscreen pictures here and the workstation's 3D view.
+    The shared base of every actor in the pictures here and the workstation's views.
     """
-    from vtkmodules.vtkFiltersCore import vtkStripper, vtkTubeFilter
     from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
+
+    mapper = vtkPolyDataMapper()
+    if hasattr(polydata_or_port, "GetNumberOfPoints"):
+        mapper.SetInputData(polydata_or_port)
+    else:
+        mapper.SetInputConnection(polydata_or_port)
+    mapper.ScalarVisibilityOff()
+    actor = vtkActor()
+    actor.SetMapper(mapper)
+    prop = actor.GetProperty()
+    prop.SetColor(*_rgb(color))
+    prop.SetOpacity(opacity)
+    return actor
+
+
+def tube_actor(polydata, color, radius: float, opacity: float = 1.0, sides: int = 16):
+    """A VTK actor drawing the lines of ``polydata`` as capped tubes of ``radius`` (mm)."""
+    from vtkmodules.vtkFiltersCore import vtkStripper, vtkTubeFilter
 
     stripper = vtkStripper()
     stripper.SetInputData(polydata)
@@ -679,29 +697,9 @@ def tube_actor(polydata, color, radius: float, opacity: float = 1.0, sides: int 
     tubes.SetRadius(radius)
     tubes.SetNumberOfSides(sides)
     tubes.CappingOn()
-    mapper = vtkPolyDataMapper()
-    mapper.SetInputConnection(tubes.GetOutputPort())
-    mapper.ScalarVisibilityOff()
-    actor = vtkActor()
-    actor.SetMapper(mapper)
-    prop = actor.GetProperty()
-    prop.SetColor(*_rgb(color))
-    prop.SetOpacity(opacity)
-    prop.SetSpecular(0.35)
-    prop.SetSpecularPower(30)
-    return actor
-
-
-def _surface_actor(surface):
-    from vtkmodules.vtkRenderingCore import vtkActor, vtkPolyDataMapper
-
-    mapper = vtkPolyDataMapper()
-    mapper.SetInputData(surface)
-    mapper.ScalarVisibilityOff()
-    actor = vtkActor()
-    actor.SetMapper(mapper)
-    actor.GetProperty().SetColor(0.9, 0.75, 0.7)
-    actor.GetProperty().SetOpacity(0.25)
+    actor = polydata_actor(tubes.GetOutputPort(), color, opacity)
+    actor.GetProperty().SetSpecular(0.35)
+    actor.GetProperty().SetSpecularPower(30)
     return actor
 
 
@@ -766,7 +764,7 @@ def render_centerlines_3d(path, centerlines, *, surface=None, size=(800, 800)) -
         renderer.AddActor(tube_actor(centerline_to_polydata(centerline), color, radius * (1.0 + 0.3 * index)))
         renderer.AddViewProp(_text_actor(name, color, (10, height - 24 - 20 * index), 16))
     if surface is not None:
-        renderer.AddActor(_surface_actor(surface))
+        renderer.AddActor(polydata_actor(surface, (0.9, 0.75, 0.7), 0.25))
     renderer.AddViewProp(_text_actor("R", "white", (10, height // 2), 18))
     renderer.AddViewProp(_text_actor("L", "white", (width - 10, height // 2), 18, justify_right=True))
     renderer.AddViewProp(_text_actor("anterior view", "lightgrey", (10, 10), 12))
