@@ -8,12 +8,15 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from FevarPlannerLib.graph import (
-    SkeletonGraph, anatomical_roles, classify, label_anatomy, skeleton_graph_2d, skeleton_graph_3d)
+    SkeletonGraph, anatomical_roles, centre_in_lumen, classify, label_anatomy, skeleton_graph_2d, skeleton_graph_3d,
+    smooth_positions)
 from FevarPlannerLib.io import Volume
 from FevarPlannerLib.projection import CArmGeometry, image_directions, project, projection_matrix_from_carm
-from test_skeleton import SAC_CENTRE, TIPS, TRUE_LENGTHS, aaa_mask_2d, aaa_mask_3d
+from test_skeleton import (
+    SAC_CENTRE, TIPS, TRUE_LENGTHS, aaa_mask_2d, aaa_mask_3d, aaa_segments, draw_tubes, y_mask_2d)
 
 LEFT_3D, SUPERIOR_3D = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
 
@@ -346,3 +349,77 @@ def test_roles_in_an_angulated_view_keep_each_iliac_on_its_side():
     names = list(tips)
     roles = anatomical_roles(np.array([tips[n] for n in names]), left=left, superior=superior)
     assert {label: names[i] for label, i in roles.items()} == {n: n for n in names}
+
+
+# ---------------------------------------------------------------------------------------
+# Sub-voxel centring in the lumen
+# ---------------------------------------------------------------------------------------
+
+def arc_tube(radius_mm=4.0, spacing=1.0):
+    """A tube of ``radius_mm`` along a 60 degree arc (radius 60 mm) in a plane tilted off every
+    grid axis, on a 1 mm grid: its thinned skeleton has a staircase. Returns mask, axis points."""
+    angles = np.linspace(0.0, np.pi / 3, 400)
+    u, v = np.array([1.0, 0.3, 0.2]), np.array([-0.2, 0.4, 1.0])
+    u /= np.linalg.norm(u)
+    v -= (v @ u) * u
+    v /= np.linalg.norm(v)
+    axis = 60.0 * (np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * v)
+    lo = axis.min(axis=0) - radius_mm - 3
+    shape_ijk = np.ceil((axis.max(axis=0) + radius_mm + 3 - lo) / spacing).astype(int)
+    grid = Volume(np.zeros(shape_ijk[::-1], dtype=np.uint8), [spacing] * 3, lo, np.eye(3))
+    points = grid.index_to_lps(np.indices(grid.shape).reshape(3, -1).T)
+    segments = [(a, b, radius_mm) for a, b in zip(axis[:-1], axis[1:])]
+    mask = np.zeros(len(points), dtype=bool)
+    near = cKDTree(axis).query(points, distance_upper_bound=radius_mm + 1.0)[0] < np.inf
+    mask[near] = draw_tubes(points[near], segments)
+    return grid.with_array(mask.reshape(grid.shape).astype(np.uint8)), axis
+
+
+def distance_to_polyline(points, axis):
+    return np.array([np.min([np.linalg.norm(p - a - np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1) * (b - a))
+                             for a, b in zip(axis[:-1], axis[1:])]) for p in points])
+
+
+def test_centring_in_the_lumen_takes_out_the_thinning_staircase():
+    lumen, axis = arc_tube()
+    smoothed = smooth_positions(skeleton_graph_3d(lumen), 10)
+    centred = centre_in_lumen(smoothed, lumen)
+    inner = smoothed.degrees == 2
+    before = distance_to_polyline(smoothed.positions[inner], axis)
+    after = distance_to_polyline(centred.positions[inner], axis)
+    assert before.mean() > 0.25
+    assert after.mean() < 0.12 and after.mean() < 0.4 * before.mean()
+    assert np.percentile(after, 95) < 0.3
+    # ends stay, topology and grid indices are kept, edge lengths follow the positions
+    np.testing.assert_array_equal(centred.positions[~inner], smoothed.positions[~inner])
+    np.testing.assert_array_equal(centred.edges(), smoothed.edges())
+    a, b = centred.edges()[0]
+    assert centred.adjacency[a, b] == pytest.approx(np.linalg.norm(centred.positions[a] - centred.positions[b]))
+
+
+def test_centring_near_junctions_does_not_pull_nodes_off_the_axes():
+    """The synthetic AAA's vessels lie on grid lines (their skeleton is exact) except round
+    the junctions: there the centred nodes must come closer to the true axes, not move
+    towards the other branch, and elsewhere they must stay."""
+    lumen = aaa_mask_3d(VOXEL)
+    smoothed = smooth_positions(skeleton_graph_3d(lumen), 10)
+    centred = centre_in_lumen(smoothed, lumen)
+    junctions = smoothed.positions[smoothed.degrees >= 3]
+    to_junction = np.min(np.linalg.norm(smoothed.positions[:, None] - junctions[None], axis=2), axis=1)
+    near, far = (to_junction < 8) & (smoothed.degrees == 2), to_junction >= 15
+
+    def to_axes(points):
+        return np.min([distance_to_polyline(points, np.array([a, b])) for a, b, _ in aaa_segments()], axis=0)
+
+    assert near.sum() > 20
+    assert to_axes(centred.positions[near]).mean() < 0.8 * to_axes(smoothed.positions[near]).mean()
+    assert np.max(np.linalg.norm(centred.positions[far] - smoothed.positions[far], axis=1)) < 0.05
+
+
+def test_centring_rejects_a_2d_graph_and_an_empty_lumen():
+    graph = skeleton_graph_2d(y_mask_2d())
+    with pytest.raises(ValueError, match="3D skeleton graph"):
+        centre_in_lumen(graph, aaa_mask_3d(VOXEL))
+    lumen = aaa_mask_3d(VOXEL)
+    with pytest.raises(ValueError, match="lumen mask is empty"):
+        centre_in_lumen(skeleton_graph_3d(lumen), lumen.with_array(np.zeros(lumen.shape, dtype=np.uint8)))

@@ -1,6 +1,7 @@
 """Synthetic AAA phantoms: geometry, ground truth, files and the paper protocol."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -193,6 +194,17 @@ def test_paper_protocol_pairs_five_states_of_one_phantom(tmp_path):
         assert gt["vessel_lengths_mm"]["intraop"][name] == pytest.approx(length, rel=0.05)
     case = json.loads((folders[1] / "case.json").read_text())
     assert (case["preop_state"], case["intraop_state"]) == (0, 2)
+
+
+def test_paper_protocol_bends_in_the_frontal_plane_unless_asked_otherwise():
+    frontal = [p for pair in ph.paper_protocol(seed=3) for p in pair]
+    tilted = [p for pair in ph.paper_protocol(seed=3, out_of_plane_deg=1.0) for p in pair]
+    assert all(p.bend_anterior_deg == 0.0 for p in frontal)
+    bends = np.array([p.bend_anterior_deg for p in tilted])
+    assert np.all(np.abs(bends) <= 1.0) and np.ptp(bends) > 0.2
+    # everything else is drawn the same, so the two sets differ by the out-of-plane bend only
+    for a, b in zip(frontal, tilted):
+        assert replace(a, bend_anterior_deg=b.bend_anterior_deg) == b
 
 
 def test_params_round_trip_and_reject_bad_values():

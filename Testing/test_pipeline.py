@@ -22,7 +22,12 @@ def case():
 
 @pytest.fixture(scope="module")
 def preop(case):
-    return pipeline.preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.preop, case.grid)))
+    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+
+
+@pytest.fixture(scope="module")
+def intra(case):
+    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.intraop, case.grid))
 
 
 def simulated_mask(case, centerline, P=None):
@@ -39,16 +44,31 @@ def test_preop_graph_is_labelled_anatomy(preop):
 
 
 def test_intraop_equal_to_preop_is_recovered_exactly(case, preop):
-    """Up to the thinning of the drawn 2D skeleton, which moves a junction by a pixel or two."""
+    """Up to the thinning of the drawn 2D skeleton, which moves a junction by a pixel or two:
+    nodes may slide along their vessel (eq. 4 assigns by arc length from the junction) but
+    stay on the pre-operative curve."""
     mask = simulated_mask(case, preop.centerline)
     frame = pipeline.register_frame(preop, mask, case.P_true, refine_pose=False)
+    off_curve = evaluation.point_to_graph(frame.deformed.points, preop.centerline.points, preop.centerline.edges)
+    assert off_curve.mean() < 0.25 and np.percentile(off_curve, 95) < 0.5 and off_curve.max() < 1.5
     moved = np.linalg.norm(frame.deformed.points - preop.centerline.points, axis=1)
-    assert moved.mean() < 0.75 and np.percentile(moved, 95) < 1.5  # voxels of 1.25 mm
+    assert moved.mean() < 1.0 and np.percentile(moved, 95) < 1.5  # voxels of 1.25 mm
     assert frame.deformed.labels == preop.centerline.labels
 
 
-def test_noise_free_phantom_registers_in_2d_and_beats_rigid_in_3d(case, preop):
-    intra = pipeline.preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.intraop, case.grid)))
+def test_preop_centreline_is_centred_in_the_lumen(case, preop):
+    """Sub-voxel centring brings the thinned skeleton closer to the true centreline."""
+    lumen = phantom.rasterize_lumen(case.preop, case.grid)
+    thinned_only = pipeline.preop_from_skeleton(skeleton.skeletonize_3d(lumen))
+    truth = case.preop.to_centerline()
+    before = evaluation.point_to_graph(thinned_only.centerline.points, truth.points, truth.edges).mean()
+    after = evaluation.point_to_graph(preop.centerline.points, truth.points, truth.edges).mean()
+    assert after < 0.7 * before and after < 0.3
+    assert "preop_centring" in preop.timings and "preop_centring" not in thinned_only.timings
+    assert preop.centerline.labels == thinned_only.centerline.labels
+
+
+def test_noise_free_phantom_registers_in_2d_and_beats_rigid_in_3d(case, preop, intra):
     mask = simulated_mask(case, intra.centerline)
     gt = case.intraop.to_centerline()
     errors = {}
@@ -90,8 +110,7 @@ def test_branch_assignment_follows_projected_arc_length():
     np.testing.assert_allclose(w_lo + w_hi, 1.0)
 
 
-def test_energy_decreases(case, preop):
-    intra = pipeline.preop_from_skeleton(skeleton.skeletonize_3d(phantom.rasterize_lumen(case.intraop, case.grid)))
+def test_energy_decreases(case, preop, intra):
     frame = pipeline.register_frame(preop, simulated_mask(case, intra.centerline), case.P_true, refine_pose=False)
     g2, c2 = frame.skeleton2d, frame.classification2d
     candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]

@@ -29,7 +29,8 @@ from .centerline import Centerline
 from .io import Case, InputError, load_case
 from .projection import image_directions, project
 
-__all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "prepare_preop",
+__all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "preop_from_lumen",
+           "prepare_preop",
            "register_frame", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
@@ -120,27 +121,36 @@ def _induced_edges(graph_: graph.SkeletonGraph, nodes: np.ndarray) -> np.ndarray
     return edges[np.all(edges >= 0, axis=1)]
 
 
-def _skeleton3d_volume(case: Case, progress=None, segmenter: str = "unet"):
-    if case.skeleton3d is not None:
-        return case.skeleton3d
+def _skeleton3d_and_lumen(case: Case, progress=None, segmenter: str = "unet"):
+    """The case's 3D skeleton volume (given, or thinned from the lumen) and its lumen mask (or None)."""
     mask = case.aorta_mask
+    if case.skeleton3d is not None:
+        return case.skeleton3d, mask
     if mask is None:
         from . import segmentation
 
         _report(progress, 0.05, "segmenting the aorta in the CT")
         mask = segmentation.segment_ct(case.ct, segmenter)
     _report(progress, 0.15, "thinning the 3D lumen")
-    return skeleton.skeletonize_3d(mask)
+    return skeleton.skeletonize_3d(mask), mask
 
 
-def preop_from_skeleton(skeleton_volume, timings: dict | None = None) -> Preoperative:
-    """Classify (Alg. 1) and label a binary 3D skeleton volume: Algorithm 2 rows 1-2."""
+def preop_from_skeleton(skeleton_volume, timings: dict | None = None, lumen=None) -> Preoperative:
+    """Classify (Alg. 1) and label a binary 3D skeleton volume: Algorithm 2 rows 1-2.
+
+    With the ``lumen`` mask it was thinned from, the smoothed skeleton is also centred in
+    the lumen's cross-sections (graph.centre_in_lumen, sub-voxel).
+    """
     timings = {} if timings is None else timings
     with _timed(timings, "preop_graph3d"):
         c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM, directions=LPS_DIRECTIONS)
         # the repaired graph (gaps bridged, small loops broken, spurs isolated), its voxel
         # staircase smoothed away
         g3 = graph.smooth_positions(c3.graph, SMOOTHING_ITERATIONS)
+    if lumen is not None:
+        with _timed(timings, "preop_centring"):
+            g3 = graph.centre_in_lumen(g3, lumen)
+    with _timed(timings, "preop_graph3d"):
         c3 = graph.label_anatomy(g3, c3, **LPS_DIRECTIONS)
     kept = np.asarray(c3.kept_nodes())
     labels = [c3.node_labels[i] for i in kept]
@@ -148,15 +158,20 @@ def preop_from_skeleton(skeleton_volume, timings: dict | None = None) -> Preoper
     return Preoperative(g3, c3, kept, centerline, timings)
 
 
+def preop_from_lumen(lumen, timings: dict | None = None) -> Preoperative:
+    """Thin a binary 3D lumen mask (a Volume) and build its :class:`Preoperative`, centred in it."""
+    return preop_from_skeleton(skeleton.skeletonize_3d(lumen), timings, lumen)
+
+
 def prepare_preop(case: Case, progress=None, segmenter: str = "unet") -> Preoperative:
-    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1) and labelled.
+    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1), centred and labelled.
 
     A case holding only a CT is segmented first with ``segmenter`` ("unet" or "threshold").
     """
     timings = {}
     with _timed(timings, "preop_skeleton3d"):
-        skeleton_volume = _skeleton3d_volume(case, progress, segmenter)
-    return preop_from_skeleton(skeleton_volume, timings)
+        skeleton_volume, lumen = _skeleton3d_and_lumen(case, progress, segmenter)
+    return preop_from_skeleton(skeleton_volume, timings, lumen)
 
 
 def _pixels_per_mm(P: np.ndarray, at: np.ndarray) -> float:

@@ -42,6 +42,8 @@ __all__ = [
     "skeletonize_3d",
     "grid_edges",
     "nonzero_linear",
+    "as_binary",
+    "bounding_box",
     "DEFAULT_MIN_SIZE",
     "DOWNSAMPLE_ABOVE_PIXELS",
 ]
@@ -53,7 +55,7 @@ DEFAULT_MIN_SIZE = 64
 DOWNSAMPLE_ABOVE_PIXELS = 400_000
 
 
-def _as_binary(mask: np.ndarray, what: str = "mask") -> np.ndarray:
+def as_binary(mask: np.ndarray, what: str = "mask") -> np.ndarray:
     mask = np.asarray(mask)
     if mask.ndim not in (2, 3):
         raise ValueError(f"{what}: expected a 2D or 3D array, got {mask.ndim}D with shape {mask.shape}")
@@ -64,7 +66,7 @@ def _as_binary(mask: np.ndarray, what: str = "mask") -> np.ndarray:
     return mask != 0
 
 
-def _bounding_box(mask: np.ndarray, pad: int = 0) -> tuple[slice, ...]:
+def bounding_box(mask: np.ndarray, pad: int = 0) -> tuple[slice, ...]:
     """Slices of the smallest box holding every non-zero element, grown by ``pad`` (clipped)."""
     box = []
     for axis in range(mask.ndim):
@@ -148,10 +150,10 @@ def clean_mask(mask: np.ndarray, *, fill_holes: bool = True, largest_component: 
     -------
     numpy.ndarray of bool, same shape as ``mask``.
     """
-    binary = _as_binary(mask)
+    binary = as_binary(mask)
     if not binary.any():
         raise ValueError(f"mask of shape {binary.shape} is empty (no foreground)")
-    box = _bounding_box(binary)
+    box = bounding_box(binary)
     crop = binary[box]
     kept = _largest_component(crop) if largest_component else _drop_small_components(crop, min_size)
     size = int(kept.sum())
@@ -285,11 +287,11 @@ def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: i
     -------
     numpy.ndarray of bool, same shape as ``mask``.
     """
-    binary = _as_binary(mask)
+    binary = as_binary(mask)
     if binary.ndim != 2:
         raise ValueError(f"skeletonize_2d: expected a 2D mask, got shape {binary.shape}")
     cleaned = clean_mask(binary, largest_component=False)
-    box = _bounding_box(cleaned, pad=int(math.ceil(3 * smooth_sigma)) + 2)
+    box = bounding_box(cleaned, pad=int(math.ceil(3 * smooth_sigma)) + 2)
     crop = cleaned[box]
     step = downsample if downsample is not None else (2 if crop.size > DOWNSAMPLE_ABOVE_PIXELS else 1)
     if step < 1:
@@ -371,12 +373,12 @@ def skeletonize_3d(mask: Volume, *, smooth_sigma: float = 0.0) -> Volume:
     io.Volume
         uint8 0/1 skeleton on the same grid.
     """
-    binary = _as_binary(mask.array, "3D mask")
+    binary = as_binary(mask.array, "3D mask")
     if binary.ndim != 3:
         raise ValueError(f"skeletonize_3d: expected a 3D mask, got shape {binary.shape}")
     cleaned = clean_mask(binary, largest_component=False)
     sigma_kji = smooth_sigma / np.asarray(mask.spacing, dtype=float)[::-1]
-    box = _bounding_box(cleaned, pad=int(math.ceil(3 * sigma_kji.max())) + 2)
+    box = bounding_box(cleaned, pad=int(math.ceil(3 * sigma_kji.max())) + 2)
     crop = cleaned[box]
     if smooth_sigma > 0:
         crop = _smooth_and_sample(crop, sigma_kji, 1)
