@@ -14,6 +14,7 @@ free of anything that does not depend on the frame (paper Algorithm 2):
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from contextlib import contextmanager
@@ -21,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from . import baselines, deformation, evaluation, export, graph, matching, planning, skeleton
 from .alignment import fit_in_plane_rigid
@@ -238,6 +239,12 @@ def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
     return filled, float(result.energy_final)
 
 
+@functools.cache
+def _threadpools() -> ThreadpoolController:
+    """The process's BLAS / OpenMP pools, found once (finding them costs about 3 ms a frame)."""
+    return ThreadpoolController()
+
+
 def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, method: str = "proposed",
                    refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
     """Register the pre-operative skeleton to one frame's 2D vessel mask (the per-frame part).
@@ -261,7 +268,7 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     # small matrices: BLAS threads only cost time here (10x in L-BFGS on 2 cores)
-    with threadpool_limits(1, user_api="blas"):
+    with _threadpools().limit(limits=1, user_api="blas"):
         return _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta)
 
 
