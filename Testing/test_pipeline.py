@@ -181,3 +181,16 @@ def test_raw_images_only_run_end_to_end(case, tmp_path, segmenter):
     assert result.errors["2d_px"]["mean"] < 1.0
     assert result.errors["3d_mm"]["mean"] < 2.5
     assert (tmp_path / "out" / "result.json").exists()
+
+
+def test_robustness_reads_an_offset_frame_as_patient_motion_or_as_a_wrong_P(case, preop, intra):
+    """Paper Fig. 5: the anatomy moved 30 px / 10 degrees in the image, P kept. Following the
+    frame is right if the patient moved and wrong by about the offset if P is off instead."""
+    gt = case.intraop.to_centerline()
+    shape = (case.carm.rows, case.carm.cols)
+    curves = benchmark._robustness("t", preop, intra.centerline, case.P_true, gt, shape, (30,), (10,), lambda m: None)
+    for kind in ("translation_px", "rotation_deg"):
+        (point,) = curves[kind]
+        proposed, rigid = point["results"]["Proposed"], point["results"]["SV"]
+        assert proposed["3d_mm"]["mean"] < 1.5 and proposed["3d_mm"]["mean"] < 0.25 * rigid["3d_mm"]["mean"]
+        assert proposed["3d_mm_if_P_off"]["mean"] > 4.0 > rigid["3d_mm_if_P_off"]["mean"]

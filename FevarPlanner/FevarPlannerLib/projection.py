@@ -51,6 +51,8 @@ __all__ = [
     "read_geometry_json",
     "write_geometry_json",
     "in_plane_transform",
+    "principal_point",
+    "patient_motion",
 ]
 
 
@@ -181,6 +183,55 @@ def in_plane_transform(P: np.ndarray, translation=(0.0, 0.0), rotation_deg: floa
     A[:2, :2] = R
     A[:2, 2] = c - R @ c + np.asarray(translation, dtype=float)
     return A @ np.asarray(P, dtype=float)
+
+
+def principal_point(P: np.ndarray) -> np.ndarray:
+    """Where the principal axis (the ray normal to the detector) meets the image, ``(u, v)``."""
+    P = np.asarray(P, dtype=float)
+    axis = P[2, :3] / np.linalg.norm(P[2, :3])
+    return project(P, source_position(P) + axis)
+
+
+def patient_motion(P: np.ndarray, at, translation_px=(0.0, 0.0), rotation_deg: float = 0.0) -> np.ndarray:
+    """The rigid motion of the patient that moves their image by an in-plane offset.
+
+    A rotation about the principal axis by ``rotation_deg`` turns the image about
+    :func:`principal_point` exactly as ``in_plane_transform(P, rotation_deg=...,
+    center=principal_point(P))`` does; then a translation parallel to the detector moves the
+    image of ``at`` by ``translation_px`` (points at other depths move by their own
+    magnification, a fraction of a pixel apart over an abdomen). So a frame that shows the
+    anatomy offset in-plane is read as "the patient moved and ``P`` is still right".
+
+    Parameters
+    ----------
+    P : (3, 4)
+    at : (3,)
+        LPS point whose image moves by exactly ``translation_px`` (the anatomy's centre).
+    translation_px : (2,)
+    rotation_deg : float
+
+    Returns
+    -------
+    numpy.ndarray, shape (4, 4)
+        Homogeneous LPS motion: ``moved = points @ T[:3, :3].T + T[:3, 3]``.
+    """
+    P = np.asarray(P, dtype=float)
+    source, axis = source_position(P), P[2, :3] / np.linalg.norm(P[2, :3])
+    angle = np.deg2rad(rotation_deg)
+    # Rodrigues, about the axis through the source; the sign makes the image turn as in
+    # in_plane_transform (u right, v down)
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    R = np.eye(3) - np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+    turned = source + (np.asarray(at, dtype=float) - source) @ R.T
+    # the image of ``turned`` moves by J d for a small shift d; the least-norm d is parallel
+    # to the detector (J's null space is the ray), and linear in d at fixed depth
+    w = depth(P, turned)
+    jacobian = (P[:2, :3] - np.outer(project(P, turned), P[2, :3])) / w
+    shift = np.linalg.pinv(jacobian) @ np.asarray(translation_px, dtype=float)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = source - source @ R.T + shift
+    return T
 
 
 def read_geometry_json(path) -> np.ndarray:
