@@ -48,12 +48,12 @@ __all__ = ["METHODS", "run_benchmark", "simulation_cases", "phantom_cases"]
 #: Method name in tables -> (pipeline method, pose refinement).
 METHODS = {"SV": ("rigid", False), "ICP-TPS": ("icp-tps", False), "Proposed": ("proposed", False)}
 TRANSLATIONS_PX = (0, 10, 20, 30, 40, 60)
+ROTATIONS_DEG = (0, 5, 10, 15, 20, 30)
 #: The sensitivity set: the simulation protocol with the sac also bent out of the image
 #: plane by up to this much (degrees), a bend that one AP view cannot see.
 OUT_OF_PLANE_DEG = 1.0
 SIMULATION = "Simulation"
 OUT_OF_PLANE = f"Simulation, ±{OUT_OF_PLANE_DEG:g}° out of plane"
-ROTATIONS_DEG = (0, 5, 10, 15, 20, 30)
 
 
 def draw_skeleton_mask(points_uv: np.ndarray, edges: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

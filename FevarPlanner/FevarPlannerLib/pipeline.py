@@ -31,8 +31,7 @@ from .io import Case, InputError, load_case
 from .projection import image_directions, project
 
 __all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "preop_from_lumen",
-           "prepare_preop",
-           "register_frame", "run_case", "plan_case", "write_outputs"]
+           "prepare_preop", "register_frame", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
 #: Branches shorter than this are spurs and deleted (Algorithm 1's iota), mm; 2D uses the
