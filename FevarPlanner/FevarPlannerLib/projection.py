@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 __all__ = [
     "CArmGeometry",
@@ -217,11 +218,9 @@ def patient_motion(P: np.ndarray, at, translation_px=(0.0, 0.0), rotation_deg: f
     """
     P = np.asarray(P, dtype=float)
     source, axis = source_position(P), P[2, :3] / np.linalg.norm(P[2, :3])
-    angle = np.deg2rad(rotation_deg)
-    # Rodrigues, about the axis through the source; the sign makes the image turn as in
+    # about the axis through the source; the sign makes the image turn as in
     # in_plane_transform (u right, v down)
-    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    R = np.eye(3) - np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+    R = Rotation.from_rotvec(-np.deg2rad(rotation_deg) * axis).as_matrix()
     turned = source + (np.asarray(at, dtype=float) - source) @ R.T
     # the image of ``turned`` moves by J d for a small shift d; the least-norm d is parallel
     # to the detector (J's null space is the ray), and linear in d at fixed depth
