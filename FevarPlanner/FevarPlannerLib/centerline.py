@@ -6,10 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["ANATOMY_LABELS", "Centerline", "as_points"]
+from .conventions import ANATOMY_LABELS
 
-#: Anatomical labels, as result.json and the exports name them (DESIGN.md section 4).
-ANATOMY_LABELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right", "other")
+__all__ = ["ANATOMY_LABELS", "Centerline", "as_points"]
 
 
 def as_points(array, name: str, dim: int | None = None, min_count: int = 0) -> np.ndarray:

@@ -84,6 +84,7 @@ def _cmd_demo(args) -> int:
 
     from . import export, phantom
     from .centerline import Centerline
+    from .conventions import PALETTE
     from .pipeline import plan_case
 
     out = Path(args.out)
@@ -103,8 +104,9 @@ def _cmd_demo(args) -> int:
     gt = Centerline.from_dict(json.loads((case_dir / "gt.json").read_text())["intraop_centerline"])
     proposed = results["proposed"]
     export.render_centerlines_3d(out / "scene.png", [
-        (proposed.preop, "orange", "pre-operative"), (gt, "white", "intra-operative truth"),
-        (proposed.deformed, "deepskyblue", "recovered (proposed)"), (proposed.path.points, "lime", "catheter path")])
+        (proposed.preop, PALETTE["preop"], "pre-operative"), (gt, PALETTE["truth"], "intra-operative truth"),
+        (proposed.deformed, PALETTE["recovered"], "recovered (proposed)"),
+        (proposed.path.points, PALETTE["path"], "catheter path")])
     print(f"\npictures: {out / 'proposed' / 'overlay.png'} and {out / 'scene.png'}")
     return 0
 

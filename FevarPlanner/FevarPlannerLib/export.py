@@ -30,7 +30,8 @@ from vtkmodules.vtkCommonCore import (vtkLogger, vtkOutputWindow, vtkPoints, vtk
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
 from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 
-from .centerline import ANATOMY_LABELS, Centerline
+from .centerline import Centerline
+from .conventions import ANATOMY_LABELS, PALETTE
 from .io import InputError, check_readable, atomic_path, write_text_atomic
 from .projection import project, validate_projection_matrix
 
@@ -609,7 +610,7 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
     image : numpy.ndarray, shape (rows, cols)
         The fluoroscopic frame (any real values; shown from its 1st to 99th percentile).
     skeleton2d : numpy.ndarray, shape (k, 2), optional
-        2D skeleton points (u, v), drawn as yellow dots under the other layers.
+        2D skeleton points (u, v), drawn as dots (:data:`conventions.PALETTE` "skeleton2d") under the other layers.
     layers : sequence of OverlayLayer
         Drawn in order (later on top).
     line_px, dot_px : float
@@ -627,7 +628,7 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
         raise ValueError("overlay image contains NaN or infinite values")
     layers = list(layers)
     if skeleton2d is not None:
-        layers.insert(0, OverlayLayer("2D skeleton", skeleton2d, "yellow"))
+        layers.insert(0, OverlayLayer("2D skeleton", skeleton2d, PALETTE["skeleton2d"]))
 
     rows, cols = image.shape
     width, height = max(cols, min_width_px), rows + legend_height_px
@@ -764,7 +765,7 @@ def render_centerlines_3d(path, centerlines, *, surface=None, size=(800, 800)) -
         renderer.AddActor(tube_actor(centerline_to_polydata(centerline), color, radius * (1.0 + 0.3 * index)))
         renderer.AddViewProp(_text_actor(name, color, (10, height - 24 - 20 * index), 16))
     if surface is not None:
-        renderer.AddActor(polydata_actor(surface, (0.9, 0.75, 0.7), 0.25))
+        renderer.AddActor(polydata_actor(surface, PALETTE["surface"], 0.25))
     renderer.AddViewProp(_text_actor("R", "white", (10, height // 2), 18))
     renderer.AddViewProp(_text_actor("L", "white", (width - 10, height // 2), 18, justify_right=True))
     renderer.AddViewProp(_text_actor("anterior view", "lightgrey", (10, 10), 12))

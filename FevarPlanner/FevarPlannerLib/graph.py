@@ -48,6 +48,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from . import skeleton as _skeleton
+from .conventions import BRANCH_LABELS, IOTA_MM
 from .io import Volume
 
 __all__ = [
@@ -68,15 +69,13 @@ __all__ = [
     "BRANCH_LABELS",
 ]
 
-#: Spurs shorter than this are deleted (about one vessel diameter), mm.
-DEFAULT_IOTA_MM = 10.0
+#: Spurs shorter than this are deleted: the one :data:`conventions.IOTA_MM`.
+DEFAULT_IOTA_MM = IOTA_MM
 #: Skeleton pieces closer than this to the main piece are bridged, mm. Thinning pulls each
 #: side of a cut back by about a vessel radius, so this is a gap plus two radii.
 DEFAULT_MAX_GAP_MM = 15.0
 #: Cycles shorter than this are broken (loops from thinning a wide sac), mm.
 DEFAULT_MAX_LOOP_MM = 100.0
-#: Labels of the five preserved branches.
-BRANCH_LABELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
 
 _MIN_WEIGHT = 1e-9
 # Every adjacency here is symmetric by construction, so csgraph calls pass directed=True:

@@ -27,6 +27,7 @@ from threadpoolctl import ThreadpoolController
 from . import baselines, deformation, evaluation, export, graph, matching, planning, skeleton
 from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
+from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
 from .io import Case, InputError, load_case
 from .projection import image_directions, project
 
@@ -34,12 +35,6 @@ __all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_s
            "prepare_preop", "register_frame", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
-#: Branches shorter than this are spurs and deleted (Algorithm 1's iota), mm; 2D uses the
-#: same length converted to pixels at the anatomy's depth.
-IOTA_MM = 10.0
-#: The patient's directions in LPS, for naming the anatomy of the 3D skeleton.
-LPS_DIRECTIONS = {"left": np.array([1.0, 0.0, 0.0]), "superior": np.array([0.0, 0.0, 1.0]),
-                  "anterior": np.array([0.0, -1.0, 0.0])}
 #: Laplacian smoothing passes over both skeletons (graph.smooth_positions), which takes out
 #: the voxel / pixel staircase that eq. (4)'s path lengths and the targets inherit. On the
 #: simulation protocol with +-1 degree out-of-plane bending, before the 3D skeleton was also
@@ -187,7 +182,8 @@ def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGr
 def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
     """Algorithm 1 on the 2D graph (lengths scaled by ``g2.unit_mm``), labelled through ``P``."""
     left, superior = image_directions(P, at)
-    c2 = graph.classify(g2, directions={"left": left, "superior": superior})
+    # Algorithm 1's iota in pixels at the anatomy's depth (g2.unit_mm is mm per pixel there)
+    c2 = graph.classify(g2, iota=IOTA_MM * (1.0 / g2.unit_mm), directions={"left": left, "superior": superior})
     return graph.label_anatomy(c2.graph, c2, left=left, superior=superior)
 
 
@@ -375,9 +371,9 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
     export.write_centerline_vtp(paths["deformed_centerline.vtp"], result.deformed)
     export.write_path_markups(paths["path.mrk.json"], result.path.points)
     layers = [
-        export.centerline_layer("pre-operative (projected)", result.P, result.preop, "tab:orange"),
-        export.centerline_layer("deformed (projected)", result.P, result.deformed, "tab:cyan"),
-        export.path_layer("catheter path", result.P, result.path.points, "lime"),
+        export.centerline_layer("pre-operative (projected)", result.P, result.preop, PALETTE["preop"]),
+        export.centerline_layer("deformed (projected)", result.P, result.deformed, PALETTE["recovered"]),
+        export.path_layer("catheter path", result.P, result.path.points, PALETTE["path"]),
     ]
     export.render_overlay(paths["overlay.png"], result.fluoro_image, skeleton2d=result.skeleton2d_points,
                           layers=layers)

@@ -41,6 +41,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .conventions import LPS_DIRECTIONS
+
 __all__ = [
     "CArmGeometry",
     "project",
@@ -166,8 +168,8 @@ def image_directions(P: np.ndarray, at: np.ndarray, step_mm: float = 10.0) -> tu
     """
     at = np.asarray(at, dtype=float)
     base = project(P, at)
-    left = project(P, at + [step_mm, 0, 0]) - base
-    superior = project(P, at + [0, 0, step_mm]) - base
+    left = project(P, at + step_mm * LPS_DIRECTIONS["left"]) - base
+    superior = project(P, at + step_mm * LPS_DIRECTIONS["superior"]) - base
     return left / np.linalg.norm(left), superior / np.linalg.norm(superior)
 
 
