@@ -5,8 +5,8 @@ import pytest
 
 from benchmarks.bench_baselines import synthetic_case
 from FevarPlannerLib.baselines import (_GroherEnergy, annealing_temperatures, icp_tps, lbfgs, rigid,
-                                       select_controls, soft_assign, tps_control_basis)
-from FevarPlannerLib.deformation import ThinPlateSpline3D
+                                       rpm_soft_assign, select_controls)
+from FevarPlannerLib.deformation import ThinPlateSpline3D, energy_terms
 from FevarPlannerLib.evaluation import error_2d, error_3d
 from FevarPlannerLib.projection import project
 
@@ -105,7 +105,7 @@ def test_tps_basis_matches_the_thin_plate_spline_and_its_bending_energy():
     rng = np.random.default_rng(3)
     controls = rng.uniform(-40, 40, size=(12, 3))
     points = rng.uniform(-50, 50, size=(30, 3))
-    G, B = tps_control_basis(points, controls)
+    G, B = ThinPlateSpline3D.control_basis(points, controls)
     moved = controls + rng.normal(scale=5.0, size=controls.shape)
     expected = ThinPlateSpline3D().fit(controls, moved).transform(points)
     np.testing.assert_allclose(G @ moved, expected, atol=1e-8)
@@ -120,16 +120,16 @@ def test_tps_basis_with_coplanar_controls():
     rng = np.random.default_rng(4)
     controls = np.column_stack([rng.uniform(-30, 30, size=(10, 2)), np.zeros(10)])
     points = np.column_stack([rng.uniform(-30, 30, size=(15, 2)), np.zeros(15)])
-    G, B = tps_control_basis(points, controls)
+    G, B = ThinPlateSpline3D.control_basis(points, controls)
     np.testing.assert_allclose(G @ controls, points, atol=1e-8)
     assert np.all(np.isfinite(B))
 
 
-def test_soft_assign_finds_partners_and_outliers():
+def test_rpm_soft_assign_finds_partners_and_outliers():
     skeleton = np.column_stack([np.arange(0.0, 100.0), np.full(100, 50.0)])     # a horizontal line, 1 px apart
     on_line = np.column_stack([np.arange(2.5, 100.0, 5.0), np.full(20, 51.0)])  # 3D nodes 1 px beside it
     projected = np.vstack([on_line, [[40.0, 400.0]]])                          # and one far away
-    targets, weights = soft_assign(projected, skeleton, temperature=4.0)
+    targets, weights = rpm_soft_assign(projected, skeleton, temperature=4.0)
     np.testing.assert_allclose(targets[2:18, 1], 50.0, atol=1e-6)           # pulled onto the line
     np.testing.assert_allclose(targets[2:18, 0], on_line[2:18, 0], atol=0.1)  # without sliding along it
     assert np.all(weights[2:18] > 0.9)
@@ -140,11 +140,11 @@ def test_soft_assign_finds_partners_and_outliers():
 def test_groher_energy_gradient_matches_finite_differences(case):
     tree = case["preop"]
     controls = select_controls(tree.points, tree.edges, 30)
-    G, B = tps_control_basis(tree.points, tree.points[controls])
+    G, B = ThinPlateSpline3D.control_basis(tree.points, tree.points[controls])
     energy = _GroherEnergy(tree.points, tree.edges, case["P"], G, B, alpha=0.5)
     rng = np.random.default_rng(5)
-    energy.targets = project(case["P"], tree.points) + rng.normal(scale=3.0, size=(len(tree), 2))
-    energy.weights = rng.uniform(0.2, 1.0, size=len(tree))
+    energy.set_correspondences(project(case["P"], tree.points) + rng.normal(scale=3.0, size=(len(tree), 2)),
+                               rng.uniform(0.2, 1.0, size=len(tree)))
     energy.beta = 0.01
     x = rng.normal(scale=1.0, size=len(controls) * 3)
     _, grad = energy(x)
@@ -165,3 +165,22 @@ def test_lbfgs_minimises_the_rosenbrock_function():
     x, evaluations = lbfgs(rosenbrock, np.array([-1.2, 1.0]), max_iter=200)
     np.testing.assert_allclose(x, [1.0, 1.0], atol=1e-4)
     assert evaluations > 10
+
+
+def test_groher_energy_shares_s_d_and_s_l_with_the_proposed_energy(case):
+    """ICP-TPS's data and length terms are eq. 6's, taken at the TPS displacements G V."""
+    tree = case["preop"]
+    controls = select_controls(tree.points, tree.edges, 30)
+    G, B = ThinPlateSpline3D.control_basis(tree.points, tree.points[controls])
+    energy = _GroherEnergy(tree.points, tree.edges, case["P"], G, B, alpha=0.5)
+    rng = np.random.default_rng(6)
+    targets = project(case["P"], tree.points) + rng.normal(scale=3.0, size=(len(tree), 2))
+    weights = rng.uniform(0.2, 1.0, size=len(tree))
+    energy.set_correspondences(targets, weights)
+    displacement = rng.normal(scale=2.0, size=(len(controls), 3))
+    shared = energy_terms(G @ displacement, tree.points, targets, tree.edges, case["P"], weights=weights)
+    terms = energy.terms(displacement)
+    assert terms["S_D"] == pytest.approx(shared["S_D"], rel=1e-12)
+    assert terms["S_L"] == pytest.approx(shared["S_L"], rel=1e-12)
+    assert terms["S_S"] == pytest.approx(float(np.einsum("ca,cd,da->", displacement, B, displacement)))
+    assert terms["S_D"] > 1.0 and terms["S_L"] > 0.0

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib.projection import (
-    CArmGeometry, image_directions, in_plane_transform, patient_motion, principal_point, project,
-    projection_matrix_from_carm, read_geometry_json, source_position, validate_projection_matrix,
-    write_geometry_json)
+    CArmGeometry, homogeneous_columns, image_directions, in_plane_transform, patient_motion, principal_point, project,
+    projection_jacobian, projection_matrix_from_carm, pull_back_columns, read_geometry_json, source_position,
+    validate_projection_matrix, write_geometry_json)
 
 AP = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.4, 0.4), primary_angle=0.0,
                   secondary_angle=0.0, rows=512, cols=640)
@@ -96,3 +96,31 @@ def test_bad_projection_matrices_are_named(bad, why, tmp_path):
         read_geometry_json(path)
     with pytest.raises(ValueError, match=why):
         validate_projection_matrix(bad)
+
+
+def test_projection_jacobian_matches_finite_differences_and_spans_no_ray():
+    P = projection_matrix_from_carm(CArmGeometry(**{**AP.__dict__, "primary_angle": 35.0, "secondary_angle": -10.0}))
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-80, 80, size=(5, 3))
+    jacobian = projection_jacobian(P, points)
+    assert jacobian.shape == (5, 2, 3)
+    h = 1e-5
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = h
+        numeric = (project(P, points + step) - project(P, points - step)) / (2 * h)
+        np.testing.assert_allclose(jacobian[:, :, axis], numeric, rtol=1e-6, atol=1e-8)
+    ray = points - source_position(P)                     # moving along the ray leaves f unchanged
+    np.testing.assert_allclose(np.einsum("nkj,nj->nk", jacobian, ray), 0.0, atol=1e-9)
+
+
+def test_component_major_projection_and_its_pull_back_agree_with_the_jacobian():
+    P = projection_matrix_from_carm(AP, (5.0, -3.0, 2.0))
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-60, 60, size=(7, 3))
+    h = homogeneous_columns(P, np.ascontiguousarray(points.T))
+    np.testing.assert_allclose((h[:2] / h[2]).T, project(P, points), rtol=1e-12)
+    g = rng.normal(size=(7, 2))                           # a gradient with respect to f
+    fu, fv = h[0] / h[2], h[1] / h[2]
+    pulled = pull_back_columns(P, fu, fv, g[:, 0] / h[2], g[:, 1] / h[2])
+    np.testing.assert_allclose(pulled.T, np.einsum("nkj,nk->nj", projection_jacobian(P, points), g), rtol=1e-9)

@@ -36,7 +36,7 @@ annealing of a temperature ``T`` (``T_init = 500``, ``T <- T_update * T`` with
 
 Choices where the papers are silent (or where we had to fix a detail)
 ---------------------------------------------------------------------
-* Normalisation of the terms: those of the proposed method's energy (DESIGN.md section 6),
+* Normalisation of the terms: those of the proposed method's energy (docs/DESIGN.md, "Registration"),
   whose ``S_D`` and ``S_L`` the paper takes from Groher et al.: ``S_D`` the mean over the
   nodes in px^2 (the paper's gradient of ``S_D`` carries ``2 / n``), ``S_L`` the mean over
   the edges of the squared relative length change. The paper's ``alpha = 0.01`` then
@@ -48,7 +48,8 @@ Choices where the papers are silent (or where we had to fix a detail)
   On small graphs (150 nodes, 50 controls) the weak term lets parts drift in depth
   (up to 34 mm on the 150-node synthetic tree of Testing/benchmarks/bench_baselines.py).
   ``S_S`` uses the 3D biharmonic kernel ``U(r) = r`` in millimetres (as
-  :class:`deformation.ThinPlateSpline3D`): ``B = -Z (Z^T K Z)^-1 Z^T`` with
+  :class:`deformation.ThinPlateSpline3D`, whose :meth:`~deformation.ThinPlateSpline3D.control_basis`
+  gives ``G`` and ``B``): ``B = -Z (Z^T K Z)^-1 Z^T`` with
   ``K_ab = |c_a - c_b|`` and ``Z`` spanning the complement of the affine part, so ``S_S``
   is in mm; with ``beta_final = 3e-7`` it is small, and the annealing (wide Gaussians
   average over many 2D points early on) and the finite number of TPS controls carry the
@@ -89,10 +90,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from .centerline import as_points
+from .deformation import ThinPlateSpline3D
+from .deformation.energy import _build_model
 from .projection import project, validate_projection_matrix
 
 __all__ = ["BaselineResult", "rigid", "icp_tps", "annealing_temperatures", "default_control_count", "select_controls",
-           "tps_control_basis", "soft_assign", "lbfgs"]
+           "rpm_soft_assign", "lbfgs"]
 
 #: Outlier bins: a partner more than this many standard deviations away counts as missing.
 OUTLIER_SIGMAS = 3.0
@@ -192,52 +195,17 @@ def select_controls(points: np.ndarray, edges: np.ndarray, n_controls: int) -> n
     return np.sort(np.asarray(chosen, dtype=np.int64))
 
 
-def tps_control_basis(points: np.ndarray, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 3D TPS written as a linear map of the displaced control positions.
-
-    With kernel ``U(r) = r``, ``K_ab = |c_a - c_b|`` and ``Q = [C 1]``, the spline that
-    takes the controls ``C`` to ``V`` moves a point ``y`` to
-    ``U(y, C) W + [y 1] A`` with ``W = -B V`` and ``A = Q^+ (V - K W)``, where
-    ``B = -Z (Z^T K Z)^-1 Z^T`` and ``Z`` is an orthonormal basis of the null space of
-    ``Q^T``. ``trace(V^T B V)`` is the bending energy (``B C = 0``: affine maps cost
-    nothing). Working through ``Z`` and ``Q^+`` keeps it well defined when the controls
-    are coplanar.
-
-    Parameters
-    ----------
-    points : numpy.ndarray, shape (n, 3)
-        Where the spline is evaluated (the nodes).
-    controls : numpy.ndarray, shape (c, 3)
-        Distinct control positions.
-
-    Returns
-    -------
-    G : numpy.ndarray, shape (n, c)
-        ``Y(V) = G V``; since the spline reproduces affine maps, ``Y(V) - points = G (V - C)``.
-    B : numpy.ndarray, shape (c, c)
-        Symmetric positive semi-definite bending matrix.
-    """
-    c = len(controls)
-    K = cdist(controls, controls)
-    Q = np.hstack([controls, np.ones((c, 1))])
-    left, singular, _ = np.linalg.svd(Q, full_matrices=True)
-    rank = int((singular > singular[0] * 1e-10).sum())
-    Z = left[:, rank:]
-    B = -Z @ np.linalg.solve(Z.T @ K @ Z, Z.T)
-    B = 0.5 * (B + B.T)
-    affine = np.linalg.pinv(Q, rcond=1e-10) @ (np.eye(c) + K @ B)
-    G = -cdist(points, controls) @ B + np.hstack([points, np.ones((len(points), 1))]) @ affine
-    return G, B
-
-
 def _outlier_weight() -> float:
     # exp(-d^2 / T) at d = OUTLIER_SIGMAS standard deviations of the Gaussian (variance T / 2)
     return float(np.exp(-0.5 * OUTLIER_SIGMAS ** 2))
 
 
-def soft_assign(projected: np.ndarray, skeleton: np.ndarray, temperature: float,
-                skeleton_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Soft correspondences between projected 3D nodes and 2D points (RPM soft-assign).
+def rpm_soft_assign(projected: np.ndarray, skeleton: np.ndarray, temperature: float,
+                    skeleton_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Soft correspondences between projected 3D nodes and 2D points (RPM soft-assign, Sinkhorn).
+
+    Not the paper's soft assignment (eqs. 3-5, :func:`matching.soft_assign`): this is
+    Gold/Rangarajan's, with outlier bins, for ICP-TPS.
 
     Parameters
     ----------
@@ -283,59 +251,45 @@ def soft_assign(projected: np.ndarray, skeleton: np.ndarray, temperature: float,
 
 
 class _GroherEnergy:
-    """``E(V) = S_D + alpha S_L + beta S_S`` over the control displacements, with its gradient."""
+    """``E(V) = S_D + alpha S_L + beta S_S`` over the control displacements, with its gradient.
+
+    ``S_D`` and ``S_L`` are those of the proposed method (:mod:`deformation.energy`), taken
+    at the node displacements ``G V`` that the TPS makes of the control displacements ``V``;
+    ``S_S`` is the TPS bending energy ``trace(V^T B V)``.
+    """
 
     def __init__(self, points: np.ndarray, edges: np.ndarray, P: np.ndarray, G: np.ndarray, B: np.ndarray,
                  alpha: float):
-        self.points, self.P, self.G, self.B, self.alpha = points, P, G, B, alpha
+        self.points, self.G, self.B = points, G, B
         rest = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
-        self.edges = edges[rest > 0]
-        self.rest = rest[rest > 0]
-        m, n = len(self.edges), len(points)
-        rows = np.repeat(np.arange(m), 2)
-        self.incidence = sp.csr_matrix((np.tile([1.0, -1.0], m), (rows, self.edges.ravel())), shape=(m, n))
-        self.targets = np.zeros((n, 2))
-        self.weights = np.zeros(n)
+        n = len(points)
+        # S_D + alpha S_L (beta = 0: the smoothness here is the TPS bending, below)
+        self.model = _build_model(points, np.zeros((n, 2)), edges[rest > 0], P, alpha, 0.0, np.zeros(n),
+                                  rest[rest > 0])
         self.beta = 0.0
+
+    def set_correspondences(self, targets: np.ndarray, weights: np.ndarray) -> None:
+        """The soft targets ``x_hat_j`` (n, 2) px and confidences ``w_j`` (n,) of the data term."""
+        view = self.model.views[0]
+        view.set_targets(targets)
+        view.data_weights = weights / len(self.points)
 
     def positions(self, displacement: np.ndarray) -> np.ndarray:
         return self.points + self.G @ displacement
 
+    def _node_displacements(self, displacement: np.ndarray) -> np.ndarray:
+        """``G V`` component-major (3, n), as the energy model takes it."""
+        return np.ascontiguousarray((self.G @ displacement).T)
+
     def terms(self, displacement: np.ndarray) -> dict:
         """The three energy terms at a control displacement (c, 3), for reporting."""
-        Y = self.positions(displacement)
-        residual = project(self.P, Y) - self.targets
-        strain = self._strain(Y)[0]
-        return {"S_D": float((self.weights * (residual ** 2).sum(axis=1)).mean()),
-                "S_L": float((strain ** 2).mean()) if len(strain) else 0.0,
-                "S_S": float(np.einsum("ca,cd,da->", displacement, self.B, displacement))}
-
-    def _strain(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        vectors = self.incidence @ Y
-        lengths = np.linalg.norm(vectors, axis=1)
-        return (lengths - self.rest) / self.rest, vectors, lengths
+        _, _, terms = self.model.evaluate(self._node_displacements(displacement), with_gradient=False)
+        return {**terms, "S_S": float(np.einsum("ca,cd,da->", displacement, self.B, displacement))}
 
     def __call__(self, flat: np.ndarray) -> tuple[float, np.ndarray]:
         displacement = flat.reshape(-1, 3)
-        Y = self.positions(displacement)
-        n = len(Y)
-        # S_D: mean weighted squared pixel distance of the projections (eq. 1) to their targets
-        homogeneous = Y @ self.P[:, :3].T + self.P[:, 3]
-        projected = homogeneous[:, :2] / homogeneous[:, 2:3]
-        residual = projected - self.targets
-        weighted = self.weights[:, None] * residual
-        data = float((weighted * residual).sum()) / n
-        # d f / d y = (P[:2, :3] - f P[2, :3]) / w
-        grad_Y = (2.0 / n) * (weighted @ self.P[:2, :3]
-                              - (weighted * projected).sum(axis=1, keepdims=True) * self.P[2, :3]) / homogeneous[:, 2:3]
-        energy = data
-        if self.alpha > 0 and len(self.rest):
-            # S_L: mean over the edges of the squared relative change of their lengths
-            strain, vectors, lengths = self._strain(Y)
-            energy += self.alpha * float((strain ** 2).mean())
-            per_edge = (2.0 * self.alpha / len(strain)) * strain / (self.rest * np.maximum(lengths, 1e-12))
-            grad_Y += self.incidence.T @ (per_edge[:, None] * vectors)
-        grad = self.G.T @ grad_Y
+        energy, grad_nodes, _ = self.model.evaluate(self._node_displacements(displacement))
+        grad = self.G.T @ grad_nodes.T                   # chain rule through Y = points + G V
         if self.beta > 0:
             # S_S: TPS bending energy trace(V^T B V); B C = 0, so it depends on the displacement only
             bent = self.B @ displacement
@@ -365,8 +319,9 @@ def lbfgs(function: Callable[[np.ndarray], tuple[float, np.ndarray]], x0: np.nda
           memory: int = 8, gradient_tol: float = 1e-8) -> tuple[np.ndarray, int]:
     """Minimise a smooth function by limited-memory BFGS with Armijo backtracking.
 
-    A small, single-threaded implementation (the problems here have a few hundred
-    variables; SciPy's L-BFGS-B spends its time in multithreaded BLAS calls at this size).
+    ICP-TPS keeps this optimiser rather than the proposed method's SciPy L-BFGS-B because
+    the baseline is defined by a fixed 10 Armijo steps per temperature, restarted at each,
+    which SciPy's Wolfe line search and stopping rules do not reproduce.
 
     Parameters
     ----------
@@ -468,7 +423,7 @@ def icp_tps(points, edges, skeleton2d, P, *, alpha: float = 0.01, beta_final: fl
         raise ValueError(f"iterations_per_temperature must be at least 1, got {iterations_per_temperature}")
     controls = select_controls(points, edges, default_control_count(len(points)) if n_controls is None
                                else int(n_controls))
-    G, B = tps_control_basis(points, points[controls])
+    G, B = ThinPlateSpline3D.control_basis(points, points[controls])
     energy = _GroherEnergy(points, edges, P, G, B, alpha)
     skeleton_tree = cKDTree(skeleton)
     displacement = np.zeros((len(controls), 3))
@@ -477,8 +432,8 @@ def icp_tps(points, edges, skeleton2d, P, *, alpha: float = 0.01, beta_final: fl
     evaluations = 0
     for step, temperature in enumerate(temperatures):
         tick = time.perf_counter()
-        energy.targets, energy.weights = soft_assign(project(P, energy.positions(displacement)), skeleton,
-                                                     temperature, skeleton_tree)
+        energy.set_correspondences(*rpm_soft_assign(project(P, energy.positions(displacement)), skeleton,
+                                                    temperature, skeleton_tree))
         energy.beta = beta_final * temperature / t_final
         tock = time.perf_counter()
         flat, calls = lbfgs(energy, displacement.ravel(), iterations_per_temperature)

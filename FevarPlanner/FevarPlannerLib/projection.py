@@ -46,6 +46,9 @@ from .conventions import LPS_DIRECTIONS
 __all__ = [
     "CArmGeometry",
     "project",
+    "projection_jacobian",
+    "homogeneous_columns",
+    "pull_back_columns",
     "depth",
     "projection_matrix_from_carm",
     "image_directions",
@@ -94,6 +97,37 @@ def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:
     # eq. (1): f(Y) = (p1^T Y^h / p3^T Y^h, p2^T Y^h / p3^T Y^h)
     h = _homogeneous(points) @ np.asarray(P, dtype=float).T
     return h[..., :2] / h[..., 2:3]
+
+
+def projection_jacobian(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The Jacobian ``d f / d y`` of eq. (1) at LPS points (..., 3), shape (..., 2, 3).
+
+    ``d f_u / d y = (p1 - u p3) / w`` and ``d f_v / d y = (p2 - v p3) / w`` (first three
+    columns of the rows of ``P``); its null space is the ray through the point.
+    """
+    P = np.asarray(P, dtype=float)
+    h = _homogeneous(points) @ P.T
+    f = h[..., :2] / h[..., 2:3]
+    return (P[:2, :3] - f[..., :, None] * P[2, :3]) / h[..., 2, None, None]
+
+
+def homogeneous_columns(P: np.ndarray, points_cm: np.ndarray) -> np.ndarray:
+    """``P [y; 1]`` for component-major points ``(3, n)``: rows ``w u``, ``w v``, ``w`` (eq. 1).
+
+    The registration energies work on (3, n) arrays; ``f = h[:2] / h[2]``.
+    """
+    return P[:, :3] @ points_cm + P[:, 3:4]
+
+
+def pull_back_columns(P: np.ndarray, fu: np.ndarray, fv: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``sum_k (d f_k / d y)^T g_k`` per point, component-major (3, n), from ``(a, b) = g / w``.
+
+    With ``g`` the gradient of a function of the projections ``f = (fu, fv)`` (eq. 1),
+    the chain rule through :func:`projection_jacobian` gives
+    ``P[:, :3]^T [a, b, -(a fu + b fv)]`` where the caller has already divided ``g`` by
+    ``w`` (it usually has ``1 / w`` at hand).
+    """
+    return P[:, :3].T @ np.vstack([a, b, -(a * fu + b * fv)])
 
 
 def depth(P: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -226,8 +260,7 @@ def patient_motion(P: np.ndarray, at, translation_px=(0.0, 0.0), rotation_deg: f
     turned = source + (np.asarray(at, dtype=float) - source) @ R.T
     # the image of ``turned`` moves by J d for a small shift d; the least-norm d is parallel
     # to the detector (J's null space is the ray), and linear in d at fixed depth
-    w = depth(P, turned)
-    jacobian = (P[:2, :3] - np.outer(project(P, turned), P[2, :3])) / w
+    jacobian = projection_jacobian(P, turned)
     shift = np.linalg.pinv(jacobian) @ np.asarray(translation_px, dtype=float)
     T = np.eye(4)
     T[:3, :3] = R

@@ -1,0 +1,158 @@
+"""Algorithm 2 row 16: the unassigned nodes follow branch-wise 3D thin-plate splines."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+from scipy.sparse import csgraph
+from scipy.spatial.distance import cdist
+
+from ..centerline import as_points
+from .tps import ThinPlateSpline3D
+
+__all__ = ["fill_unassigned"]
+
+
+def _edge_weighted_graph(points: np.ndarray, adjacency) -> scipy.sparse.csr_matrix:
+    """The undirected skeleton graph with Euclidean edge lengths (mm) as weights."""
+    coo = scipy.sparse.coo_matrix(adjacency)
+    mask = coo.row != coo.col
+    rows, cols = coo.row[mask], coo.col[mask]
+    lengths = np.linalg.norm(points[rows] - points[cols], axis=1)
+    lengths = np.maximum(lengths, 1e-9)          # csgraph treats an explicit 0 as "no edge"
+    n = len(points)
+    graph = scipy.sparse.csr_matrix((lengths, (rows, cols)), shape=(n, n))
+    return graph.maximum(graph.T).tocsr()
+
+
+#: Largest (sources x nodes) distance table computed in one Dijkstra call.
+_DISTANCE_TABLE_LIMIT = 4_000_000
+
+
+def _nearest_assigned(graph, sources: np.ndarray, assigned: np.ndarray, limit: float,
+                      distance=None) -> tuple[np.ndarray, np.ndarray]:
+    """Assigned nodes reachable from ``sources`` within ``limit`` mm, and their distances.
+
+    ``distance`` (n,) may hold these geodesic distances already.
+    """
+    if distance is None:
+        distance = csgraph.dijkstra(graph, directed=False, indices=sources, min_only=True, limit=limit)
+    found = np.flatnonzero(assigned & np.isfinite(distance))
+    return found, distance[found]
+
+
+def _choose_controls(points, graph, nodes, assigned, candidates, neighbourhood_mm, max_controls, min_controls,
+                     distance=None):
+    """Control nodes for the unassigned ``nodes``: assigned ``candidates`` nearest along the skeleton.
+
+    Geodesic neighbourhood of ``neighbourhood_mm`` first (``distance``, if given, holds the
+    geodesic distances from ``nodes`` within it); if that holds fewer than ``min_controls``,
+    the nearest reachable assigned nodes at any distance; if still too few, the
+    Euclidean-nearest assigned nodes. At most ``max_controls`` are kept, nearest first.
+    """
+    allowed = assigned & candidates
+    found, distance = _nearest_assigned(graph, nodes, allowed, neighbourhood_mm, distance)
+    if len(found) < min_controls:
+        found, distance = _nearest_assigned(graph, nodes, allowed, np.inf)
+    if len(found) < min_controls:
+        pool = np.flatnonzero(assigned)
+        distance = cdist(points[pool], points[nodes]).min(axis=1)
+        found = pool
+    order = np.argsort(distance, kind="stable")[:max_controls]
+    return found[order]
+
+
+def _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio) -> np.ndarray:
+    spline = ThinPlateSpline3D().fit(points[controls], moved[controls], regularization,
+                                     min_extent_ratio=min_extent_ratio)
+    return spline.transform(points[nodes])
+
+
+def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=None, max_controls=80,
+                    neighbourhood_mm=40.0, regularization=0.0, min_extent_ratio=0.05) -> np.ndarray:
+    """Move the unassigned skeleton nodes with branch-wise 3D TPS (Algorithm 2 row 16).
+
+    Each connected piece of unassigned nodes (in the skeleton restricted to them) follows a
+    TPS whose controls are the assigned nodes within ``neighbourhood_mm`` of it along the
+    skeleton: the assigned parts of the branches and trunks it is connected to. With fewer
+    than 4 such controls the nearest assigned nodes further away are used. Where ``groups``
+    are given, the unassigned nodes of a group use that group's assigned nodes instead.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3)
+        Pre-operative skeleton nodes (LPS mm).
+    deformed_assigned : array_like, shape (n, 3)
+        Deformed positions, read only where ``assigned`` is True.
+    assigned : array_like of bool, shape (n,)
+    adjacency : scipy.sparse matrix, shape (n, n)
+        Skeleton adjacency (non-zero = edge; weights are ignored, lengths come from ``points``).
+    groups : sequence of int arrays, optional
+        Explicit branch/trunk node groups; a node in several groups uses the first.
+    max_controls : int
+        Most control points of one spline (the nearest along the skeleton are kept).
+    neighbourhood_mm : float
+        Geodesic radius of the control neighbourhood (mm).
+    regularization : float
+        TPS ``lambda`` (see :meth:`ThinPlateSpline3D.fit`).
+    min_extent_ratio : float
+        Affine directions with less relative spread of the controls are dropped, so that
+        near-collinear controls (a straight branch) do not extrapolate wildly sideways.
+
+    Returns
+    -------
+    numpy.ndarray, shape (n, 3)
+        All nodes: assigned ones exactly at ``deformed_assigned``, the rest TPS-moved. With no
+        assigned node at all, ``points`` unchanged.
+    """
+    points = as_points(points, "points", 3)
+    n = len(points)
+    assigned = np.asarray(assigned, dtype=bool).reshape(-1)
+    if len(assigned) != n:
+        raise ValueError(f"assigned: {len(assigned)} flags for {n} points")
+    moved = np.asarray(deformed_assigned, dtype=float)
+    if moved.shape != (n, 3):
+        raise ValueError(f"deformed_assigned: expected shape ({n}, 3), got {moved.shape}")
+    if not np.all(np.isfinite(moved[assigned])):
+        raise ValueError("deformed_assigned: NaN or infinite values at assigned nodes")
+    if adjacency.shape != (n, n):
+        raise ValueError(f"adjacency: expected shape ({n}, {n}), got {adjacency.shape}")
+    if max_controls < 1:
+        raise ValueError(f"max_controls must be >= 1 (got {max_controls})")
+    result = points.copy()
+    result[assigned] = moved[assigned]
+    if assigned.all() or not assigned.any():
+        return result
+
+    graph = _edge_weighted_graph(points, adjacency)
+    pending = ~assigned
+    everywhere = np.ones(n, dtype=bool)
+    for group in groups or ():
+        group = np.unique(np.asarray(group, dtype=np.int64).reshape(-1))
+        if group.size and (group.min() < 0 or group.max() >= n):
+            raise ValueError(f"groups: node indices must lie in [0, {n})")
+        nodes = group[pending[group]]
+        members = np.zeros(n, dtype=bool)
+        members[group] = True
+        if nodes.size == 0 or np.count_nonzero(assigned & members) < 4:
+            continue
+        controls = _choose_controls(points, graph, nodes, assigned, members, np.inf, max_controls, 4)
+        result[nodes] = _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio)
+        pending[nodes] = False
+
+    remaining = np.flatnonzero(pending)
+    if remaining.size == 0:
+        return result
+    sub = graph[remaining][:, remaining]
+    _, component_of = csgraph.connected_components(sub, directed=False)
+    table = None
+    if remaining.size * n <= _DISTANCE_TABLE_LIMIT:      # one Dijkstra call for all components
+        table = csgraph.dijkstra(graph, directed=False, indices=remaining, limit=neighbourhood_mm)
+    for label in np.unique(component_of):
+        rows = np.flatnonzero(component_of == label)
+        nodes = remaining[rows]
+        near = None if table is None else table[rows].min(axis=0)
+        controls = _choose_controls(points, graph, nodes, assigned, everywhere, neighbourhood_mm,
+                                    max_controls, 4, near)
+        result[nodes] = _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio)
+    return result
