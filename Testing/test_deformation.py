@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from FevarPlannerLib.deformation import (
     ThinPlateSpline3D, deform_assigned, energy_and_gradient, energy_terms, fill_unassigned)
-from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm
+from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm, source_position
 
 GEOMETRY = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.5, 0.5), primary_angle=0.0,
                         secondary_angle=0.0, rows=512, cols=512)
@@ -189,6 +189,101 @@ def test_bad_input_is_refused_with_a_message():
         deform_assigned(points, targets, edges, P, weights=-np.ones(len(points)))
     with pytest.raises(ValueError, match="phi"):
         energy_and_gradient(np.zeros(points.size - 3), points, targets, edges, P)
+
+
+# ---------------------------------------------------------------------------- several views
+
+
+def numeric_gradient(function, x, step=1e-5):
+    numeric = np.empty_like(x)
+    for k in range(x.size):
+        delta = np.zeros_like(x)
+        delta[k] = step
+        numeric[k] = (function(x + delta) - function(x - delta)) / (2 * step)
+    return numeric
+
+
+def test_two_view_gradient_matches_central_differences_with_unseen_nodes():
+    rng = np.random.default_rng(11)
+    points, edges = random_skeleton(rng)
+    P1, P2 = carm(0.0), carm(70.0, 10.0)
+    targets1 = project(P1, points) + rng.normal(0, 6.0, (len(points), 2))
+    targets2 = project(P2, points) + rng.normal(0, 6.0, (len(points), 2))
+    weights2 = rng.uniform(0.3, 1.5, len(points))
+    weights2[:8] = 0.0                       # not in the second frame: no data term there
+    targets2[:8] = np.nan
+    views = ((P2, targets2, weights2),)
+    phi = rng.normal(0, 2.0, points.size)
+
+    def energy(x):
+        return energy_and_gradient(x, points, targets1, edges, P1, extra_views=views)[0]
+
+    _, gradient = energy_and_gradient(phi, points, targets1, edges, P1, extra_views=views)
+    numeric = numeric_gradient(energy, phi)
+    assert np.abs(numeric - gradient).max() / np.abs(gradient).max() < 1e-5
+
+
+def test_s_d_is_the_mean_of_the_views_data_terms():
+    rng = np.random.default_rng(12)
+    points, edges = random_skeleton(rng)
+    P1, P2 = carm(0.0), carm(-60.0)
+    targets1 = project(P1, points) + rng.normal(0, 4.0, (len(points), 2))
+    targets2 = project(P2, points) + rng.normal(0, 4.0, (len(points), 2))
+    weights2 = np.r_[np.zeros(5), np.ones(len(points) - 5)]
+    phi = rng.normal(0, 1.0, points.size)
+    one = energy_terms(phi, points, targets1, edges, P1)
+    other = energy_terms(phi, points, targets2, edges, P2, weights=weights2)
+    both = energy_terms(phi, points, targets1, edges, P1, extra_views=[(P2, targets2, weights2)])
+    assert both["S_D"] == pytest.approx((one["S_D"] + other["S_D"]) / 2, rel=1e-12)
+    assert both["S_L"] == one["S_L"] and both["S_S"] == one["S_S"]
+    # no extra view: exactly the single-view energy; the same view twice: the same mean
+    single = energy_and_gradient(phi, points, targets1, edges, P1)
+    assert energy_and_gradient(phi, points, targets1, edges, P1, extra_views=())[0] == single[0]
+    twice = energy_and_gradient(phi, points, targets1, edges, P1, extra_views=[(P1, targets1, None)])
+    assert twice[0] == pytest.approx(single[0], rel=1e-12)
+    np.testing.assert_allclose(twice[1], single[1], rtol=1e-10, atol=1e-12)
+
+
+def bent_arc(n=41, bend_mm=10.0):
+    """An arc in the frontal plane and the same arc bent ``bend_mm`` along the AP view's rays."""
+    s = np.linspace(0.0, 1.0, n)
+    preop = np.column_stack([30.0 * np.sin(np.pi * s), np.zeros(n), 75.0 - 150.0 * s])
+    rays = preop - source_position(carm(0.0))
+    rays /= np.linalg.norm(rays, axis=1)[:, None]
+    return preop, preop + bend_mm * np.sin(np.pi * s)[:, None] * rays, rays, chain_edges(n)
+
+
+@pytest.mark.parametrize("precondition", [False, True])
+def test_a_second_view_recovers_the_depth_that_one_view_cannot(precondition):
+    preop, truth, rays, edges = bent_arc()
+    P1 = carm(0.0)
+    one = deform_assigned(preop, project(P1, truth), edges, P1, precondition=precondition)
+    along_one = np.abs(np.einsum("nj,nj->n", one.points - truth, rays))
+    assert along_one.mean() > 5.0                                # the bend is invisible in AP
+    for angle in (60.0, 90.0):
+        P2 = carm(angle)
+        two = deform_assigned(preop, project(P1, truth), edges, P1, precondition=precondition,
+                              extra_views=[(P2, project(P2, truth), np.ones(len(preop)))])
+        along_two = np.abs(np.einsum("nj,nj->n", two.points - truth, rays))
+        assert along_two.mean() < 1.0 and along_two.max() < 2.0, (angle, along_two.mean(), along_two.max())
+        assert np.linalg.norm(two.points - truth, axis=1).mean() < 1.0
+
+
+def test_bad_extra_views_are_refused_with_a_message():
+    rng = np.random.default_rng(0)
+    points, edges = random_skeleton(rng)
+    P = carm()
+    targets = project(P, points)
+    with pytest.raises(ValueError, match=r"extra_views\[0\]"):
+        deform_assigned(points, targets, edges, P, extra_views=[(P, targets)])
+    hidden = targets.copy()
+    hidden[2] = np.nan
+    with pytest.raises(ValueError, match=r"extra_views\[0\] targets.*NaN"):
+        deform_assigned(points, targets, edges, P, extra_views=[(P, hidden, None)])
+    with pytest.raises(ValueError, match=r"extra_views\[1\] weights"):
+        deform_assigned(points, targets, edges, P, extra_views=[(P, targets, None), (P, targets, np.ones(3))])
+    with pytest.raises(ValueError, match=r"extra_views\[0\] P"):
+        deform_assigned(points, targets, edges, P, extra_views=[(np.zeros((3, 4)), targets, None)])
 
 
 # ---------------------------------------------------------------------------- TPS
