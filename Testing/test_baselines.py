@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from benchmarks.bench_baselines import synthetic_case
 from FevarPlannerLib.baselines import (_GroherEnergy, annealing_temperatures, icp_tps, lbfgs, rigid,
                                        rpm_soft_assign, select_controls)
 from FevarPlannerLib.deformation import ThinPlateSpline3D, energy_terms
 from FevarPlannerLib.evaluation import error_2d, error_3d
 from FevarPlannerLib.projection import project
+from fixtures import synthetic_case
 
 
 @pytest.fixture(scope="module")

@@ -7,26 +7,15 @@ from scipy.spatial.transform import Rotation
 
 from FevarPlannerLib.deformation import (
     ThinPlateSpline3D, deform_assigned, energy_and_gradient, energy_terms, fill_unassigned)
-from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm, source_position
-
-GEOMETRY = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.5, 0.5), primary_angle=0.0,
-                        secondary_angle=0.0, rows=512, cols=512)
-
-
-def carm(primary=0.0, secondary=0.0, isocenter=(0.0, 0.0, 0.0)):
-    geometry = CArmGeometry(**{**GEOMETRY.__dict__, "primary_angle": primary, "secondary_angle": secondary})
-    return projection_matrix_from_carm(geometry, isocenter)
+from FevarPlannerLib.projection import project
+from fixtures import SMALL_VIEW, bent_arc, carm, chain_edges
 
 
 def mirrored(P):
     """The same view shown left-right flipped: det(P[:, :3]) changes sign."""
     flipped = np.diag([-1.0, 1.0, 1.0]) @ P
-    flipped[0] += (GEOMETRY.cols - 1) * P[2]
+    flipped[0] += (SMALL_VIEW.cols - 1) * P[2]
     return flipped
-
-
-def chain_edges(n):
-    return np.column_stack([np.arange(n - 1), np.arange(1, n)])
 
 
 def planar_curve(n, step, turning):
@@ -242,15 +231,6 @@ def test_s_d_is_the_mean_of_the_views_data_terms():
     twice = energy_and_gradient(phi, points, targets1, edges, P1, extra_views=[(P1, targets1, None)])
     assert twice[0] == pytest.approx(single[0], rel=1e-12)
     np.testing.assert_allclose(twice[1], single[1], rtol=1e-10, atol=1e-12)
-
-
-def bent_arc(n=41, bend_mm=10.0):
-    """An arc in the frontal plane and the same arc bent ``bend_mm`` along the AP view's rays."""
-    s = np.linspace(0.0, 1.0, n)
-    preop = np.column_stack([30.0 * np.sin(np.pi * s), np.zeros(n), 75.0 - 150.0 * s])
-    rays = preop - source_position(carm(0.0))
-    rays /= np.linalg.norm(rays, axis=1)[:, None]
-    return preop, preop + bend_mm * np.sin(np.pi * s)[:, None] * rays, rays, chain_edges(n)
 
 
 @pytest.mark.parametrize("precondition", [False, True])

@@ -1,7 +1,7 @@
 """Tests of the skeleton graph (Definition 1) and node classification (Algorithm 1).
 
-Two kinds of fixtures: skeletons drawn voxel by voxel from polylines (exact topology and
-lengths, fast), and skeletons thinned from the synthetic AAA masks of test_skeleton.py.
+Two kinds of fixtures (fixtures.py): skeletons drawn voxel by voxel from polylines (exact
+topology and lengths, fast), and skeletons thinned from the synthetic AAA masks.
 """
 
 import warnings
@@ -15,37 +15,12 @@ from FevarPlannerLib.graph import (
     smooth_positions)
 from FevarPlannerLib.io import Volume
 from FevarPlannerLib.projection import CArmGeometry, image_directions, project, projection_matrix_from_carm
-from test_skeleton import (
-    SAC_CENTRE, TIPS, TRUE_LENGTHS, aaa_mask_2d, aaa_mask_3d, aaa_segments, draw_tubes, y_mask_2d)
+from fixtures import (
+    AAA_LINES, POLY_LENGTHS, POLY_TIPS, SAC_CENTRE, TIPS, TRUE_LENGTHS, aaa_mask_2d, aaa_mask_3d, aaa_segments,
+    draw_lines, draw_tubes, y_mask_2d)
+from fixtures import POLY_BIF as BIF, POLY_RL as RL, POLY_TOP as TOP
 
 LEFT_3D, SUPERIOR_3D = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
-
-# ---------------------------------------------------------------------------------------
-# Polyline skeletons on a 1 mm grid whose LPS position equals its (i, j, k) index
-# ---------------------------------------------------------------------------------------
-
-GRID_SHAPE = (140, 12, 100)      # (k, j, i)
-TOP, RL, RR, BIF = (50, 5, 130), (50, 5, 90), (50, 5, 84), (50, 5, 30)
-POLY_TIPS = {"aorta": TOP, "renal_left": (85, 5, 90), "renal_right": (15, 5, 84),
-             "iliac_left": (80, 5, 0), "iliac_right": (20, 5, 0)}
-POLY_LENGTHS = {"aorta": 40.0, "renal_left": 35.0, "renal_right": 35.0,
-                "iliac_left": 30 * np.sqrt(2), "iliac_right": 30 * np.sqrt(2)}
-AAA_LINES = [(TOP, RL), (RL, POLY_TIPS["renal_left"]), (RL, RR), (RR, POLY_TIPS["renal_right"]), (RR, BIF),
-             (BIF, POLY_TIPS["iliac_left"]), (BIF, POLY_TIPS["iliac_right"])]
-
-
-def draw_lines(lines, erase=()):
-    """A skeleton Volume with digital lines between (x, y, z) points; ``erase`` clears points."""
-    array = np.zeros(GRID_SHAPE, dtype=np.uint8)
-    for start, end in lines:
-        start, end = np.asarray(start, float), np.asarray(end, float)
-        steps = int(np.abs(end - start).max())
-        xyz = np.rint(start + np.linspace(0, 1, steps + 1)[:, None] * (end - start)).astype(int)
-        array[xyz[:, 2], xyz[:, 1], xyz[:, 0]] = 1
-    for x, y, z in erase:
-        array[z, y, x] = 0
-    return Volume(array, [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], np.eye(3))
-
 
 def node_at(graph, xyz):
     return int(np.argmin(np.linalg.norm(graph.positions - np.asarray(xyz, float), axis=1)))

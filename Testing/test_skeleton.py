@@ -1,7 +1,7 @@
 """Tests of the skeleton stage: mask clean-up, 2D/3D thinning, the grid neighbourhood.
 
-The synthetic AAA shapes defined here (tubes with hemispherical caps, drawn from their exact
-distance to each axis segment) are shared with test_graph.py and the benchmark.
+The synthetic AAA shapes (tubes with hemispherical caps, drawn from their exact distance to
+each axis segment) live in fixtures.py, shared with test_graph.py and the benchmark.
 """
 
 import numpy as np
@@ -10,101 +10,8 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from FevarPlannerLib.io import Volume
-from FevarPlannerLib.projection import project
 from FevarPlannerLib.skeleton import clean_mask, grid_edges, skeletonize_2d, skeletonize_3d
-
-# ---------------------------------------------------------------------------------------
-# Synthetic AAA: axis segments (start, end, radius) in LPS mm. +x = patient left,
-# -y = anterior, +z = superior. Renals run exactly along x and iliacs at exactly 45 degrees
-# in the x-z plane, so their digital skeletons have no staircase error.
-# ---------------------------------------------------------------------------------------
-
-TOP = np.array([0.0, 0.0, 100.0])
-RENAL_LEFT_ORIGIN = np.array([0.0, 0.0, 60.0])
-RENAL_RIGHT_ORIGIN = np.array([0.0, 0.0, 51.0])
-BIFURCATION = np.array([0.0, 0.0, -30.0])
-TIPS = {
-    "aorta": TOP,
-    "renal_left": np.array([40.0, 0.0, 60.0]),
-    "renal_right": np.array([-40.0, 0.0, 51.0]),
-    "iliac_left": np.array([45.0, 0.0, -75.0]),
-    "iliac_right": np.array([-45.0, 0.0, -75.0]),
-}
-ORIGINS = {"aorta": RENAL_LEFT_ORIGIN, "renal_left": RENAL_LEFT_ORIGIN, "renal_right": RENAL_RIGHT_ORIGIN,
-           "iliac_left": BIFURCATION, "iliac_right": BIFURCATION}
-TRUE_LENGTHS = {name: float(np.linalg.norm(TIPS[name] - ORIGINS[name])) for name in TIPS}
-SAC_CENTRE, SAC_RADIUS = np.array([0.0, 0.0, 12.0]), 22.0
-
-
-def aaa_segments(extra_branches=False):
-    """(start, end, radius) of the AAA tubes; extras: SMA and two internal iliacs."""
-    segments = [
-        (TOP, BIFURCATION, 10.0),
-        (RENAL_LEFT_ORIGIN, TIPS["renal_left"], 3.5),
-        (RENAL_RIGHT_ORIGIN, TIPS["renal_right"], 3.5),
-        (BIFURCATION, TIPS["iliac_left"], 5.0),
-        (BIFURCATION, TIPS["iliac_right"], 5.0),
-    ]
-    if extra_branches:
-        segments += [
-            (np.array([0.0, 0.0, 78.0]), np.array([0.0, -24.0, 78.0]), 3.0),        # SMA, anterior
-            (np.array([27.0, 0.0, -57.0]), np.array([27.0, 18.0, -57.0]), 2.5),     # internal iliac L
-            (np.array([-27.0, 0.0, -57.0]), np.array([-27.0, 18.0, -57.0]), 2.5),   # internal iliac R
-        ]
-    return segments
-
-
-def draw_tubes(points, segments, sphere=None):
-    """Boolean membership of ``points`` (..., d) in the union of capsules (and a ball)."""
-    inside = np.zeros(points.shape[:-1], dtype=bool)
-    for start, end, radius in segments:
-        axis = end - start
-        t = np.clip(((points - start) @ axis) / (axis @ axis), 0.0, 1.0)
-        inside |= np.linalg.norm(points - start - t[..., None] * axis, axis=-1) <= radius
-    if sphere is not None:
-        centre, radius = sphere
-        inside |= np.linalg.norm(points - centre, axis=-1) <= radius
-    return inside
-
-
-def aaa_grid(spacing=1.5):
-    """An LPS-aligned grid around the synthetic AAA."""
-    lo, hi = np.array([-60.0, -36.0, -90.0]), np.array([60.0, 36.0, 116.0])
-    shape_ijk = np.floor((hi - lo) / spacing).astype(int) + 1
-    return Volume(np.zeros(shape_ijk[::-1], dtype=np.uint8), [spacing] * 3, lo, np.eye(3))
-
-
-def aaa_mask_3d(spacing=1.5, extra_branches=False, sac=True, cut=None):
-    """The AAA lumen as a uint8 Volume; ``cut=(z_lo, z_hi, side)`` empties a slab of one iliac."""
-    grid = aaa_grid(spacing)
-    kji = np.indices(grid.shape).reshape(3, -1).T
-    points = grid.index_to_lps(kji)
-    mask = draw_tubes(points, aaa_segments(extra_branches), (SAC_CENTRE, SAC_RADIUS) if sac else None)
-    if cut is not None:
-        z_lo, z_hi, side = cut
-        mask &= ~((points[:, 2] >= z_lo) & (points[:, 2] <= z_hi) & (np.sign(points[:, 0]) == side))
-    return grid.with_array(mask.reshape(grid.shape).astype(np.uint8))
-
-
-def aaa_mask_2d(P, shape, extra_branches=False, sac=True):
-    """The AAA projected through ``P`` and drawn as a 2D mask (radii scaled by magnification)."""
-    rows, cols = shape
-    uv = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), axis=-1).astype(float)
-    scale = np.linalg.norm(project(P, [1.0, 0, 0]) - project(P, [0.0, 0, 0]))
-    segments = [(project(P, a), project(P, b), r * scale) for a, b, r in aaa_segments(extra_branches)]
-    sphere = (project(P, SAC_CENTRE), SAC_RADIUS * scale) if sac else None
-    return draw_tubes(uv, segments, sphere)
-
-
-def y_mask_2d(shape=(120, 120), width=4.0):
-    """A 2D Y: stem from (60, 110) up to (60, 60), arms to (20, 15) and (100, 15) as (u, v)."""
-    rows, cols = shape
-    uv = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), axis=-1).astype(float)
-    fork = np.array([60.0, 60.0])
-    segments = [(np.array([60.0, 110.0]), fork, width), (fork, np.array([20.0, 15.0]), width),
-                (fork, np.array([100.0, 15.0]), width)]
-    return draw_tubes(uv, segments)
-
+from fixtures import aaa_grid, aaa_mask_3d, draw_tubes, y_mask_2d
 
 def neighbour_count(skeleton):
     """Number of 8/26 neighbours of every skeleton element."""

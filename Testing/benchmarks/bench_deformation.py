@@ -14,24 +14,18 @@ default one for comparison.
 
 from __future__ import annotations
 
-import os
+from common import argument_parser, single_threaded_blas, timed, write_report
 
-# The stage is made of many small BLAS calls, where extra BLAS threads only add contention
-# (10x slower L-BFGS-B on a busy 2-core machine); set the variables to compare.
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+single_threaded_blas()      # before NumPy: set the variables yourself to compare
 
-import argparse
-import json
-import time
-from pathlib import Path
+from pathlib import Path  # noqa: E402
 
-import numpy as np
-import scipy.sparse
-from scipy.spatial.transform import Rotation
+import numpy as np  # noqa: E402
+import scipy.sparse  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
 
-from FevarPlannerLib.deformation import deform_assigned, fill_unassigned
-from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm
+from FevarPlannerLib.deformation import deform_assigned, fill_unassigned  # noqa: E402
+from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm  # noqa: E402
 
 GEOMETRY = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.5, 0.5), primary_angle=0.0,
                         secondary_angle=0.0, rows=1024, cols=1024)
@@ -130,20 +124,14 @@ def make_case(n_assigned: int, seed: int = 0):
                 targets=targets, P=P, adjacency=adjacency, groups=groups)
 
 
-def _timed(function, *args, **kwargs):
-    wall, cpu = time.perf_counter(), time.process_time()
-    value = function(*args, **kwargs)
-    return value, time.perf_counter() - wall, time.process_time() - cpu
-
-
 def run_once(case, precondition=False):
     """Time one deform + fill; returns (timings dict, result, filled points)."""
     assigned = case["assigned"]
-    result, deform_wall, deform_cpu = _timed(deform_assigned, case["points"][assigned], case["targets"],
-                                             case["assigned_edges"], case["P"], precondition=precondition)
+    result, deform_wall, deform_cpu = timed(deform_assigned, case["points"][assigned], case["targets"],
+                                            case["assigned_edges"], case["P"], precondition=precondition)
     moved = case["points"].copy()
     moved[assigned] = result.points
-    filled, fill_wall, fill_cpu = _timed(fill_unassigned, case["points"], moved, assigned, case["adjacency"])
+    filled, fill_wall, fill_cpu = timed(fill_unassigned, case["points"], moved, assigned, case["adjacency"])
     timings = {"deform_s": deform_wall, "fill_s": fill_wall, "total_s": deform_wall + fill_wall,
                "deform_cpu_s": deform_cpu, "fill_cpu_s": fill_cpu, "total_cpu_s": deform_cpu + fill_cpu}
     return timings, result, filled
@@ -204,8 +192,7 @@ def plot(rows, path: Path) -> None:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="folder for the JSON and PNG")
+    parser = argument_parser(__doc__)
     parser.add_argument("--sizes", type=int, nargs="+", default=[300, 700, 1000, 2000])
     parser.add_argument("--repeats", type=int, default=7)
     args = parser.parse_args(argv)
@@ -221,9 +208,7 @@ def main(argv=None):
                   f"({1e3 * t['fill_s']:5.1f} wall)  iters {r['n_iter']:4d}  "
                   f"2D {r['residual_2d_px_mean']['initial']:.2f}->{r['residual_2d_px_mean']['final']:.2f} px  "
                   f"3D {r['error_3d_mm_mean']['initial']:.2f}->{r['error_3d_mm_mean']['final']:.2f} mm")
-    payload = {"benchmark": "deformation", "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
-               "cpu_count": os.cpu_count(), "load_average": os.getloadavg(), "results": rows}
-    (args.out / "bench_deformation.json").write_text(json.dumps(payload, indent=2))
+    write_report(args.out, "bench_deformation", {"results": rows})
     plot(rows, args.out / "bench_deformation.png")
 
 

@@ -13,13 +13,12 @@ and writes ``bench_registration.json`` and ``bench_registration.png`` into ``--o
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from common import argument_parser, write_report
 from FevarPlannerLib import benchmark, evaluation
 from FevarPlannerLib.pipeline import register_frame
 
@@ -98,8 +97,7 @@ def plot(path: Path, rows: list[dict], times: dict) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True)
+    parser = argument_parser(__doc__)
     parser.add_argument("--cases", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
@@ -115,9 +113,8 @@ def main(argv=None) -> int:
     times["fine_grid"] = {"ct_spacing_mm": FINE_SPACING_MM, **fine}
     print(f"on a {FINE_SPACING_MM} mm CT grid:", {k: round(v * 1000, 1) for k, v in fine["median_s"].items()},
           "nodes (3D, 2D):", fine["nodes_3d_2d"][0])
-    report = {"cases": args.cases, "seed": args.seed, "weights": rows, "timing": times,
-              "wall_s": time.perf_counter() - started}
-    (args.out / "bench_registration.json").write_text(json.dumps(report, indent=1))
+    write_report(args.out, "bench_registration", {"cases": args.cases, "seed": args.seed, "weights": rows,
+                                                  "timing": times, "wall_s": time.perf_counter() - started})
     plot(args.out / "bench_registration.png", rows, times)
     return 0
 

@@ -17,20 +17,17 @@ to ``--out``. Run: ``.venv/bin/python Testing/benchmarks/bench_skeleton.py --out
 import argparse
 import json
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from FevarPlannerLib.graph import SkeletonGraph, classify, label_anatomy  # noqa: E402
 from FevarPlannerLib.io import Volume  # noqa: E402
 from FevarPlannerLib.projection import CArmGeometry, image_directions, projection_matrix_from_carm  # noqa: E402
 from FevarPlannerLib.skeleton import clean_mask, skeletonize_2d, skeletonize_3d  # noqa: E402
-from test_graph import AAA_LINES  # noqa: E402
-from test_skeleton import SAC_CENTRE, SAC_RADIUS, aaa_mask_2d, aaa_segments, draw_tubes  # noqa: E402
+from common import fixtures  # noqa: E402,F401  (registers the shared test fixtures)
+from fixtures import AAA_LINES, SAC_CENTRE, SAC_RADIUS, aaa_mask_2d, aaa_segments, draw_tubes  # noqa: E402
 
 
 def median_ms(function, repeats):
