@@ -1,4 +1,5 @@
 import io
+from pathlib import Path
 
 import pytest
 
@@ -18,11 +19,41 @@ def test_progress_bar_draws_fraction_and_ends_the_line():
     assert silent.getvalue() == ""
 
 
-def test_every_subcommand_is_wired():
-    parser = build_parser()
-    for argv in (["plan", "c", "--out", "o"], ["phantoms", "--out", "o"], ["demo"], ["benchmark", "--out", "o"],
-                 ["train-unet", "c", "--out", "w.pt"], ["segment", "ct.nrrd", "--out", "m.nrrd"]):
-        assert callable(parser.parse_args(argv).func)
+class _Reached(Exception):
+    """Raised by a stand-in for a stage entry point: which one ran, and with what."""
+
+
+def _stand_in(name):
+    def reached(*args, **kwargs):
+        raise _Reached(name, args, kwargs)
+    return reached
+
+
+#: subcommand argv -> (the core entry point it must reach, an argument that must arrive there)
+_WIRING = {
+    "plan": (["plan", "case_dir", "--out", "o"], "FevarPlannerLib.pipeline.plan_case", "case_dir"),
+    "phantoms": (["phantoms", "--out", "o", "--n", "3"], "FevarPlannerLib.phantom.write_phantom_set", 3),
+    "demo": (["demo", "--out", "o", "--seed", "11"], "FevarPlannerLib.phantom.random_params", None),
+    "benchmark": (["benchmark", "--out", "o", "--seed", "5"], "FevarPlannerLib.benchmark.run_benchmark", 5),
+    "train-unet": (["train-unet", "c", "--out", "w.pt", "--iterations", "9"], "FevarPlannerLib.segmentation.train_unet", 9),
+    "segment": (["segment", "ct.nrrd", "--out", "m.nrrd"], "FevarPlannerLib.io.read_ct", "ct.nrrd"),
+}
+
+
+@pytest.mark.parametrize("command", sorted(_WIRING))
+def test_every_subcommand_is_wired(command, monkeypatch):
+    """Each subcommand reaches its own core entry point (and passes its arguments on)."""
+    for _, target, _ in _WIRING.values():
+        monkeypatch.setattr(target, _stand_in(target))
+    argv, target, passed = _WIRING[command]
+    with pytest.raises(_Reached) as reached:
+        main(["-q", *argv])
+    name, args, kwargs = reached.value.args
+    assert name == target
+    if passed is not None:
+        values = [str(v) if isinstance(v, Path) else v for v in (*args, *kwargs.values())]
+        assert (str(passed) if isinstance(passed, str) else passed) in values
+    assert build_parser().parse_args(argv).command == command
 
 
 def test_missing_case_folder_is_a_one_line_error(tmp_path, capsys):

@@ -22,7 +22,7 @@ from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from FevarPlannerApp import app as cli  # noqa: E402
 from FevarPlannerApp.summary import summary_rows  # noqa: E402
-from FevarPlannerApp.views import COLORS  # noqa: E402
+from FevarPlannerApp.views import BACKGROUND_BOTTOM, BACKGROUND_TOP, COLORS  # noqa: E402
 from FevarPlannerApp.window import MainWindow, as_array  # noqa: E402
 from FevarPlannerLib import phantom, planning  # noqa: E402
 from FevarPlannerLib.centerline import Centerline  # noqa: E402
@@ -213,10 +213,21 @@ def test_command_line_options(tmp_path):
 
 
 def test_main_saves_a_screenshot_of_the_empty_window(qapp, tmp_path):
+    """The PNG shows the window: the panel's widgets and the 3D view's background and title."""
     target = tmp_path / "empty.png"
     assert cli.main(["--screenshot", str(target), "--size", "1200x700"]) == 0
     image = QImage(str(target))
     assert (image.width(), image.height()) == (1200, 700)
+    shot = as_array(image).astype(float)
+
+    def near(rgb):
+        return np.linalg.norm(shot - np.array(rgb) * 255, axis=2) < 8
+
+    top, bottom = near(BACKGROUND_TOP), near(BACKGROUND_BOTTOM)
+    assert top.mean() > 0.01 and bottom.mean() > 0.01                 # the 3D view's gradient ...
+    assert np.nonzero(top)[0].mean() < np.nonzero(bottom)[0].mean()   # ... light at the top
+    assert near(COLORS["text"]).mean() > 5e-4                          # its title
+    assert len(np.unique(shot.reshape(-1, 3), axis=0)) > 200           # and the panel's widgets and text
 
 
 def test_end_to_end_phantom_case_in_the_worker_thread(window, tmp_path, qapp):

@@ -86,9 +86,17 @@ def test_unet_output_keeps_odd_input_sizes(height, width):
 
 
 def test_unet_has_six_resolution_blocks_and_small_weights():
-    model = seg.UNet()
-    assert len(model.encoders) == 6 and len(model.decoders) == 5
-    assert model.size_multiple == 32
+    """Data pass through six resolutions (each half the last), and the output is cropped back."""
+    model = seg.UNet().eval()
+    sizes = []
+    hooks = [encoder.register_forward_hook(lambda _module, _input, output: sizes.append(tuple(output.shape[-2:])))
+             for encoder in model.encoders]
+    with torch.no_grad():
+        logits = model(torch.zeros(1, 1, 50, 70))               # padded to 64 x 96 (multiples of 32)
+    for hook in hooks:
+        hook.remove()
+    assert sizes == [(64 // 2 ** level, 96 // 2 ** level) for level in range(6)]
+    assert tuple(logits.shape) == (1, 2, 50, 70)
     n_params = sum(p.numel() for p in model.parameters())
     assert 50_000 < n_params < 1_000_000     # a few MB of float32 at most
 
@@ -126,16 +134,27 @@ def test_progress_reports_every_iteration(tmp_path):
 
 
 def test_load_unet_roundtrip_and_segment_ct_runs(tmp_path):
+    torch.manual_seed(0)
     path = seg.train_unet(_tiny_training_pairs(), tmp_path / "m.pt", iterations=2, crop=64, base=4,
                           max_channels=8, pixel_mm=2.0)
+    state = torch.load(path, weights_only=False)
     model = seg.load_unet(path)
     assert not model.training and model.settings["pixel_mm"] == 2.0
+    for name, tensor in model.state_dict().items():                 # every trained weight came back
+        assert torch.equal(tensor, state["model_state"][name]), name
+    # the mask follows the weights: a head that always says "lumen", then one that never does
     ct, _, _ = synthetic_ct(shape=(5, 40, 44), spacing=(1.5, 1.5, 2.0))
-    seen = []
-    mask = seg.segment_ct_unet(ct, model, progress=lambda done, total: seen.append((done, total)),
-                               postprocess=False, chunk=2)
-    assert mask.shape == ct.shape and mask.array.dtype == bool
-    assert seen[-1] == (5, 5)
+    body = ct.array > -500
+    for lumen_logit in (5.0, -5.0):
+        state["model_state"]["head.weight"].zero_()
+        state["model_state"]["head.bias"].copy_(torch.tensor([0.0, lumen_logit]))
+        torch.save(state, tmp_path / "fixed.pt")
+        seen = []
+        mask = seg.segment_ct_unet(ct, seg.load_unet(tmp_path / "fixed.pt"), postprocess=False, chunk=2,
+                                   progress=lambda done, total: seen.append((done, total)))
+        assert mask.shape == ct.shape and mask.array.dtype == bool
+        assert seen[-1] == (5, 5)
+        assert mask.array[body].all() if lumen_logit > 0 else not mask.array.any()
 
 
 def test_load_unet_errors_name_the_file(tmp_path):
