@@ -265,7 +265,7 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
 
     def run(self, case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
             out_dir=None, overrides: dict | None = None, progress=None, show_fluoro: bool = True):
-        """Plan one case folder (DESIGN.md section 4) and add the result to the scene.
+        """Plan one case folder (docs/DESIGN.md section 4) and add the result to the scene.
 
         Parameters
         ----------

@@ -1,4 +1,4 @@
-"""IO stage: CT series, masks, fluoroscopy frames, writers and the case folder (DESIGN.md 3-5)."""
+"""IO stage: CT series, masks, fluoroscopy frames, writers and the case folder (docs/DESIGN.md 3-5)."""
 
 import json
 import warnings

@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     plan = sub.add_parser("plan", help="register a case and plan the catheter path")
-    plan.add_argument("case", type=Path, help="case folder (DESIGN.md section 4)")
+    plan.add_argument("case", type=Path, help="case folder (docs/DESIGN.md section 4)")
     plan.add_argument("--out", type=Path, required=True, help="output folder")
     plan.add_argument("--method", choices=("proposed", "icp-tps", "rigid"), default="proposed")
     plan.add_argument("--start", default="iliac_right", help="access vessel (default iliac_right)")

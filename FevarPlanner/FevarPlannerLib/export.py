@@ -4,7 +4,7 @@ Everything is written in DICOM LPS millimetres and goes through a temporary file
 the target and a rename (:func:`io.atomic_path`), so a failure never leaves a half-written
 file, and an existing file is only replaced by a complete, validated one.
 
-* ``result.json`` (:data:`RESULT_VERSION` 1) follows DESIGN.md section 4;
+* ``result.json`` (:data:`RESULT_VERSION` 1) follows docs/DESIGN.md section 4;
   :func:`validate_result` is its schema, written out by hand.
 * ``*.vtp``: the centreline graph as vtkPolyData, one line cell per edge, point data
   ``label`` (index into :data:`ANATOMY_LABELS`) and ``label_name``, field data
@@ -87,7 +87,7 @@ def _jsonable(value):
 
 def build_result_dict(method: str, preop: Centerline, deformed: Centerline, path, timings: dict,
                       **extra) -> dict:
-    """Assemble (and validate) the result.json document of DESIGN.md section 4.
+    """Assemble (and validate) the result.json document of docs/DESIGN.md section 4.
 
     Parameters
     ----------
@@ -237,7 +237,7 @@ def _check_timings(timings) -> None:
 
 
 def validate_result(data: dict) -> None:
-    """Check a result.json document against the version-1 contract (DESIGN.md section 4).
+    """Check a result.json document against the version-1 contract (docs/DESIGN.md section 4).
 
     Raises
     ------

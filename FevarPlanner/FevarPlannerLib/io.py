@@ -776,7 +776,7 @@ def read_mask_2d(path, shape: tuple[int, int] | None = None) -> np.ndarray:
 
 # --------------------------------------------------------------------------- case folder
 
-#: Case-folder inputs (DESIGN.md section 4): name -> (file stem, accepted suffixes in the
+#: Case-folder inputs (docs/DESIGN.md section 4): name -> (file stem, accepted suffixes in the
 #: order they are tried; "/" means a folder, i.e. a DICOM series).
 CASE_INPUTS: dict[str, tuple[str, tuple[str, ...]]] = {
     "ct": ("ct", ("/",) + VOLUME_SUFFIXES),
@@ -929,7 +929,7 @@ def frame_from_mask(mask: np.ndarray, path=None) -> Fluoro:
 
 def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluoro=None, fluoro_mask=None,
               geometry=None, frame: int = 0) -> Case:
-    """Read a case folder (DESIGN.md section 4); keyword paths override the folder's files.
+    """Read a case folder (docs/DESIGN.md section 4); keyword paths override the folder's files.
 
     On the 3D side only the most processed input present is read: ``skeleton3d`` >
     ``aorta_mask`` > ``ct`` (a 500 MB CT is not read when a skeleton is there; use

@@ -1160,7 +1160,7 @@ def _case_json(case: PhantomCase) -> dict:
 
 
 def write_case(case: PhantomCase, folder, *, mask_only: bool = False) -> Path:
-    """Write a case folder (DESIGN.md section 4) atomically and return its path.
+    """Write a case folder (docs/DESIGN.md section 4) atomically and return its path.
 
     Files: ``ct/`` (DICOM series, skipped with ``mask_only``), ``aorta_mask.nrrd``,
     ``fluoro.dcm`` (skipped with ``mask_only``), ``fluoro_mask.png``, ``geometry.json``

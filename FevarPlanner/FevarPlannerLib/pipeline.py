@@ -88,7 +88,7 @@ class FrameResult:
 
 @dataclass
 class PlanResult:
-    """Everything a caller shows or writes about one case (see DESIGN.md section 4)."""
+    """Everything a caller shows or writes about one case (see docs/DESIGN.md section 4)."""
 
     method: str
     preop: Centerline
@@ -348,7 +348,7 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
 
 
 def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
-    """Load a case folder (DESIGN.md section 4), run it, and write the outputs if ``out_dir``.
+    """Load a case folder (docs/DESIGN.md section 4), run it, and write the outputs if ``out_dir``.
 
     ``overrides`` are the case-file flags (``ct``, ``aorta_mask``, ``skeleton3d``, ``fluoro``,
     ``fluoro_mask``, ``geometry``, ``frame``) and the options of :func:`run_case`.

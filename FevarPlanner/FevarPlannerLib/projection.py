@@ -1,6 +1,6 @@
 """Perspective projection of LPS points onto the fluoroscopic frame (paper eq. 1).
 
-Conventions (DESIGN.md section 3)
+Conventions (docs/DESIGN.md section 3)
 ---------------------------------
 * World points are DICOM patient LPS in millimetres.
 * Image coordinates: ``u`` = column, ``v`` = row, 0-based, (0, 0) is the centre of the

@@ -188,7 +188,7 @@ def _resample_slices(slices: np.ndarray, out_shape: tuple[int, int]) -> torch.Te
 # ----------------------------------------------------------------------------------------
 
 def read_case(case_dir) -> tuple[Volume, Volume]:
-    """Read ``(ct, aorta_mask)`` from a case folder (DESIGN.md section 4) for training.
+    """Read ``(ct, aorta_mask)`` from a case folder (docs/DESIGN.md section 4) for training.
 
     The CT is ``ct/`` (DICOM series) or ``ct.nrrd`` / ``.nii.gz`` / ``.mha``, the label
     ``aorta_mask.*`` on the same grid.
