@@ -137,16 +137,23 @@ def test_rpm_soft_assign_finds_partners_and_outliers():
     np.testing.assert_array_equal(targets[-1], projected[-1])
 
 
-def test_groher_energy_gradient_matches_finite_differences(case):
+def groher_energy(case, rng):
+    """ICP-TPS's energy on the case's tree with 30 controls and noisy soft targets and weights."""
     tree = case["preop"]
     controls = select_controls(tree.points, tree.edges, 30)
     G, B = ThinPlateSpline3D.control_basis(tree.points, tree.points[controls])
     energy = _GroherEnergy(tree.points, tree.edges, case["P"], G, B, alpha=0.5)
+    targets = project(case["P"], tree.points) + rng.normal(scale=3.0, size=(len(tree), 2))
+    weights = rng.uniform(0.2, 1.0, size=len(tree))
+    energy.set_correspondences(targets, weights)
+    return energy, targets, weights
+
+
+def test_groher_energy_gradient_matches_finite_differences(case):
     rng = np.random.default_rng(5)
-    energy.set_correspondences(project(case["P"], tree.points) + rng.normal(scale=3.0, size=(len(tree), 2)),
-                               rng.uniform(0.2, 1.0, size=len(tree)))
+    energy, _, _ = groher_energy(case, rng)
     energy.beta = 0.01
-    x = rng.normal(scale=1.0, size=len(controls) * 3)
+    x = rng.normal(scale=1.0, size=energy.B.shape[0] * 3)
     _, grad = energy(x)
     h = 1e-6
     for k in rng.choice(len(x), size=12, replace=False):
@@ -169,16 +176,11 @@ def test_lbfgs_minimises_the_rosenbrock_function():
 
 def test_groher_energy_shares_s_d_and_s_l_with_the_proposed_energy(case):
     """ICP-TPS's data and length terms are eq. 6's, taken at the TPS displacements G V."""
-    tree = case["preop"]
-    controls = select_controls(tree.points, tree.edges, 30)
-    G, B = ThinPlateSpline3D.control_basis(tree.points, tree.points[controls])
-    energy = _GroherEnergy(tree.points, tree.edges, case["P"], G, B, alpha=0.5)
     rng = np.random.default_rng(6)
-    targets = project(case["P"], tree.points) + rng.normal(scale=3.0, size=(len(tree), 2))
-    weights = rng.uniform(0.2, 1.0, size=len(tree))
-    energy.set_correspondences(targets, weights)
-    displacement = rng.normal(scale=2.0, size=(len(controls), 3))
-    shared = energy_terms(G @ displacement, tree.points, targets, tree.edges, case["P"], weights=weights)
+    energy, targets, weights = groher_energy(case, rng)
+    tree, B = case["preop"], energy.B
+    displacement = rng.normal(scale=2.0, size=(B.shape[0], 3))
+    shared = energy_terms(energy.G @ displacement, tree.points, targets, tree.edges, case["P"], weights=weights)
     terms = energy.terms(displacement)
     assert terms["S_D"] == pytest.approx(shared["S_D"], rel=1e-12)
     assert terms["S_L"] == pytest.approx(shared["S_L"], rel=1e-12)
