@@ -3,6 +3,7 @@
 Builds a synthetic AAA-like skeleton (aorta, two renal and two iliac branches) with a given
 number of assigned nodes, deforms it without stretching (bent aorta, swung branches), projects the deformed assigned
 nodes through an AP C-arm (plus 0.3 px noise) as the 2D targets, and times the two calls.
+A second view (LAO 60, the same anatomy) is timed too: ``deform_assigned(..., extra_views=...)``.
 
     .venv/bin/python Testing/benchmarks/bench_deformation.py --out Testing/benchmarks/results
 
@@ -29,6 +30,11 @@ from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_
 
 GEOMETRY = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.5, 0.5), primary_angle=0.0,
                         secondary_angle=0.0, rows=1024, cols=1024)
+#: The second view of the two-view variant.
+SECOND_VIEW = CArmGeometry(**{**GEOMETRY.__dict__, "primary_angle": 60.0})
+#: Variants timed per size: name -> (precondition, two views).
+VARIANTS = {"default": (False, False), "preconditioned": (True, False), "two_views": (False, True),
+            "two_views_preconditioned": (True, True)}
 
 # (parent segment index or None, attach at fraction of parent, end-point offsets in mm,
 #  fraction of the segment, from its far end, left unassigned)
@@ -120,15 +126,19 @@ def make_case(n_assigned: int, seed: int = 0):
     targets = project(P, truth[assigned]) + rng.normal(0, 0.3, (np.count_nonzero(assigned), 2))
     adjacency = scipy.sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
                                         shape=(len(points), len(points)))
+    P2 = projection_matrix_from_carm(SECOND_VIEW, points.mean(axis=0))
+    targets2 = project(P2, truth[assigned]) + rng.normal(0, 0.3, (np.count_nonzero(assigned), 2))
     return dict(points=points, truth=truth, assigned=assigned, assigned_edges=assigned_edges,
-                targets=targets, P=P, adjacency=adjacency, groups=groups)
+                targets=targets, P=P, adjacency=adjacency, groups=groups, second_view=(P2, targets2, None))
 
 
-def run_once(case, precondition=False):
+def run_once(case, precondition=False, two_views=False):
     """Time one deform + fill; returns (timings dict, result, filled points)."""
     assigned = case["assigned"]
+    extra_views = [case["second_view"]] if two_views else []
     result, deform_wall, deform_cpu = timed(deform_assigned, case["points"][assigned], case["targets"],
-                                            case["assigned_edges"], case["P"], precondition=precondition)
+                                            case["assigned_edges"], case["P"], precondition=precondition,
+                                            extra_views=extra_views)
     moved = case["points"].copy()
     moved[assigned] = result.points
     filled, fill_wall, fill_cpu = timed(fill_unassigned, case["points"], moved, assigned, case["adjacency"])
@@ -160,8 +170,8 @@ def measure(n_assigned: int, repeats: int) -> dict:
     case = make_case(n_assigned)
     row = {"n_assigned": int(np.count_nonzero(case["assigned"])), "n_nodes": int(len(case["assigned"])),
            "repeats": repeats}
-    for name, precondition in (("default", False), ("preconditioned", True)):
-        runs = [run_once(case, precondition) for _ in range(repeats)]
+    for name, (precondition, two_views) in VARIANTS.items():
+        runs = [run_once(case, precondition, two_views) for _ in range(repeats)]
         timings = {key: float(np.median([r[0][key] for r in runs])) for key in runs[0][0]}
         row[name] = {"median_s": timings, **_quality(case, *runs[0][1:])}
     return row
@@ -180,6 +190,8 @@ def plot(rows, path: Path) -> None:
         ax.plot(n, [1e3 * r["default"]["median_s"][key] for r in rows], "o-", label=label)
     ax.plot(n, [1e3 * r["preconditioned"]["median_s"]["total_cpu_s"] for r in rows], "s--",
             label="total with preconditioned L-BFGS, CPU")
+    ax.plot(n, [1e3 * r["two_views"]["median_s"]["total_cpu_s"] for r in rows], "^--",
+            label="total with two views (AP + LAO 60), CPU")
     ax.axhline(25, color="grey", ls="--", label="stage goal 25 ms")
     ax.set_xlabel("assigned nodes")
     ax.set_ylabel("median time (ms)")
@@ -201,7 +213,7 @@ def main(argv=None):
     for size in args.sizes:
         row = measure(size, args.repeats)
         rows.append(row)
-        for name in ("default", "preconditioned"):
+        for name in VARIANTS:
             r, t = row[name], row[name]["median_s"]
             print(f"n_a={row['n_assigned']:5d} {name:14s} deform {1e3 * t['deform_cpu_s']:6.1f} ms CPU "
                   f"({1e3 * t['deform_s']:6.1f} wall)  fill {1e3 * t['fill_cpu_s']:5.1f} ms CPU "
