@@ -496,7 +496,7 @@ def _independent_table(summaries: dict) -> str:
 
 
 def _independent_sets_figure(path: Path, summaries: dict) -> None:
-    """Per set: 3D error of each method (bars, split into in-plane / along-ray RMS) and the floor."""
+    """Per set: 3D, in-plane and along-ray error of each method (means), the depth floor drawn."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -505,22 +505,21 @@ def _independent_sets_figure(path: Path, summaries: dict) -> None:
     names = list(summaries)
     x = np.arange(len(names))
     width = 0.8 / len(METHODS)
-    fig, axes = plt.subplots(1, 2, figsize=(15, 5.2))
-    for k, label in enumerate(METHODS):
-        offset = (k - (len(METHODS) - 1) / 2) * width
-        rows = [summaries[n]["methods"][label] for n in names]
-        axes[0].bar(x + offset, [r.get("3d_mm", np.nan) for r in rows], width, label=label)
-        axes[1].bar(x + offset, [r.get("in_plane_mm", np.nan) for r in rows], width, color=f"C{k}", alpha=0.45)
-        axes[1].bar(x + offset, [r.get("along_ray_mm", np.nan) for r in rows], width,
-                    bottom=[r.get("in_plane_mm", np.nan) for r in rows], color=f"C{k}", label=label)
+    panels = (("3d_mm", "3D error (mm)", True), ("in_plane_mm", "in-plane part (mm)", False),
+              ("along_ray_mm", "along-ray part (mm)", True))
+    fig, axes = plt.subplots(1, 3, figsize=(19, 5.2), sharey=True)
     floors = [summaries[n]["depth_floor_mm"] for n in names]
-    for ax in axes:
-        ax.hlines(floors, x - 0.45, x + 0.45, colors="k", linewidth=2, label="depth floor")
+    for ax, (key, title, with_floor) in zip(axes, panels):
+        for k, label in enumerate(METHODS):
+            offset = (k - (len(METHODS) - 1) / 2) * width
+            ax.bar(x + offset, [summaries[n]["methods"][label].get(key, np.nan) for n in names], width, label=label)
+        if with_floor:
+            ax.hlines(floors, x - 0.45, x + 0.45, colors="k", linewidth=2, label="depth floor")
         ax.set_xticks(x, [n.replace("Independent: ", "") for n in names], rotation=35, ha="right")
+        ax.set_title(title)
         ax.legend(fontsize=8)
-    axes[0].set_ylabel("3D error, mean (mm)")
-    axes[1].set_ylabel("in-plane (pale) + along-ray (dark), means (mm)")
-    fig.suptitle("Independent sets (scenarios family, case-folder route): 3D error and the single-view depth floor")
+    axes[0].set_ylabel("mean over the set's cases (mm)")
+    fig.suptitle("Independent sets (scenarios family, case-folder route) and the single-view depth floor")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -555,7 +554,8 @@ def _independent_vessels_figure(path: Path, cases: list[dict]) -> None:
     axes[0].plot(x, [np.nan if t is None else t for t in true_along], "kx", label="true along-ray motion")
     axes[0].set_ylabel("along-ray error, mean (mm)")
     axes[1].axhline(0.0, color="k", linewidth=0.8)
-    axes[1].set_ylabel("out-of-plane motion recovered (1 = all)")
+    axes[1].set_ylim(-1.05, 1.05)
+    axes[1].set_ylabel("out-of-plane motion recovered (1 = all; clipped at -1)")
     for ax in axes:
         ax.set_xticks(x, vessels)
         ax.legend(fontsize=8)
