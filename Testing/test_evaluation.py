@@ -165,3 +165,97 @@ def test_evaluate_without_ground_truth_and_bad_labels():
     other = Centerline(tree.points, tree.edges, ["renal_left"] * len(tree))
     with pytest.raises(ValueError, match="share no anatomy label"):
         evaluate(tree, other, P, project(P, tree.points), tree.edges)
+
+
+# --------------------------------------------------------------------------- depth (issue 10)
+
+from FevarPlannerLib.evaluation import (closest_points_on_graph, depth_analysis, depth_floor,  # noqa: E402
+                                        depth_floor_points, ray_components)
+from FevarPlannerLib.projection import source_position  # noqa: E402
+
+FIVE = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+
+
+def arc_tree(P, radius_from_source, n_per_vessel=40):
+    """Five short chains on a sphere about the X-ray source (every node at the same distance)."""
+    source = source_position(P)
+    points, edges, labels = [], [], []
+    for k, label in enumerate(FIVE):
+        angles = np.linspace(-0.05, 0.05, n_per_vessel)
+        tilt = 0.02 * (k - 2)
+        dirs = np.column_stack([np.sin(angles), -np.cos(angles) * np.cos(tilt), np.cos(angles) * np.sin(tilt)])
+        assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0)
+        start = len(points)
+        points.extend(source + radius_from_source * dirs)
+        edges.extend([start + i, start + i + 1] for i in range(n_per_vessel - 1))
+        labels.extend([label] * n_per_vessel)
+    return Centerline(np.array(points), np.array(edges), labels)
+
+
+def test_depth_floor_of_an_undeformed_case_is_zero():
+    P = projection_matrix_from_carm(AP)
+    tree = arc_tree(P, 700.0)
+    floor = depth_floor(tree, tree, P)
+    assert floor["mean"] == pytest.approx(0.0, abs=1e-9) and floor["max"] == pytest.approx(0.0, abs=1e-9)
+    assert set(floor["per_vessel"]) == set(FIVE)
+
+
+def test_depth_floor_of_a_pure_along_ray_move_equals_the_move():
+    P = projection_matrix_from_carm(AP)
+    pre, intra = arc_tree(P, 700.0), arc_tree(P, 707.5)      # every node 7.5 mm farther along its ray
+    # the oracle puts each true point back at its pre-operative distance: on the pre-op arc
+    np.testing.assert_allclose(depth_floor_points(intra.points, pre.points, P), pre.points, atol=1e-9)
+    floor = depth_floor(pre, intra, P)
+    assert floor["mean"] == pytest.approx(7.5, abs=1e-3)
+    assert floor["per_vessel"]["iliac_left"]["max"] == pytest.approx(7.5, abs=1e-3)
+    # the rigid result (the pre-op tree) sits on the floor, all of its error along the ray
+    rigid = depth_analysis(pre, pre, pre, intra, P)
+    assert rigid["3d_mm"]["mean"] == pytest.approx(7.5, abs=1e-3)
+    assert rigid["along_ray_mm"]["mean"] == pytest.approx(7.5, abs=1e-3)
+    assert rigid["in_plane_mm"]["max"] < 0.01
+    assert rigid["out_of_plane_recovered"] == pytest.approx(0.0, abs=1e-3)
+    assert rigid["per_vessel"]["renal_left"]["true_along_ray_mm"] == pytest.approx(7.5, abs=1e-6)
+    # a result at the true depth recovers all of it; one halfway, half
+    perfect = depth_analysis(intra, pre, pre, intra, P)
+    assert perfect["3d_mm"]["max"] < 1e-9 and perfect["out_of_plane_recovered"] == pytest.approx(1.0)
+    halfway = depth_analysis(arc_tree(P, 703.75), pre, pre, intra, P)
+    assert halfway["out_of_plane_recovered"] == pytest.approx(0.5, abs=1e-3)
+
+
+def test_in_plane_and_along_ray_parts_sum_in_quadrature_to_the_total():
+    P = projection_matrix_from_carm(AP)
+    truth = arc_tree(P, 720.0)
+    rng = np.random.default_rng(5)
+    points = truth.points[::3] + rng.normal(scale=3.0, size=(len(truth.points[::3]), 3))
+    parts = ray_components(points, truth.points, truth.edges, P)
+    np.testing.assert_allclose(parts["distance"] ** 2, parts["along"] ** 2 + parts["in_plane"] ** 2, rtol=1e-9)
+    np.testing.assert_allclose(parts["distance"], point_to_graph(points, truth.points, truth.edges), rtol=1e-12)
+    assert np.abs(parts["along"]).mean() > 0.5 and parts["in_plane"].mean() > 0.5
+    result = Centerline(points, np.empty((0, 2)), truth.labels[::3])
+    rms = depth_analysis(result, result, truth, truth, P)["rms_mm"]
+    assert rms["3d"] ** 2 == pytest.approx(rms["in_plane"] ** 2 + rms["along_ray"] ** 2)
+
+
+def test_a_move_along_the_ray_is_all_along_ray_and_a_sideways_move_all_in_plane():
+    P = projection_matrix_from_carm(AP)
+    source = source_position(P)
+    # a segment across the central ray (through the isocentre, at the origin)
+    truth = Centerline(np.array([[-10.0, 0.0, 0.0], [10.0, 0.0, 0.0]]), [[0, 1]], ["aorta", "aorta"])
+    ray = -source / np.linalg.norm(source)
+    parts = ray_components([4.0 * ray, [0.0, 0.0, 3.0]], truth.points, truth.edges, P)
+    np.testing.assert_allclose(parts["along"], [4.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(parts["in_plane"], [0.0, 3.0], atol=1e-9)
+
+
+def test_closest_points_on_graph_hand_case():
+    distance, nearest = closest_points_on_graph([[5.0, 3.0], [13.0, 4.0], [50.0, 47.0]],
+                                                [[0.0, 0.0], [10.0, 0.0], [50.0, 50.0]], [[0, 1]])
+    np.testing.assert_allclose(distance, [3.0, 5.0, 3.0])
+    np.testing.assert_allclose(nearest, [[5.0, 0.0], [10.0, 0.0], [50.0, 50.0]])
+
+
+def test_depth_floor_refuses_truths_that_do_not_correspond():
+    P = projection_matrix_from_carm(AP)
+    tree = arc_tree(P, 700.0)
+    with pytest.raises(ValueError, match="correspond"):
+        depth_floor(tree, arc_tree(P, 700.0, n_per_vessel=30), P)

@@ -24,6 +24,14 @@ Errors are the paper's: mean 2D point-to-curve distance of the projected result 
 skeleton (px), mean 3D point-to-curve distance to the ground-truth centreline (mm), plus the
 reverse 3D distance (ground truth to result). Time is the intra-operative part (2D skeleton
 and graph, matching, assignment, deformation, TPS; for ICP-TPS its whole loop).
+
+``fevar-planner benchmark --sets independent`` (or ``all``) runs the independent sets of
+issue 10 beside them (:func:`run_independent_benchmark`): case folders of the
+:mod:`scenarios` family, which shares no geometry or deformation code with :mod:`phantom`,
+run through the case-folder route (:func:`pipeline.plan_case`, what a user gets), scored
+with the depth floor and the in-plane / along-ray split per vessel
+(:func:`evaluation.depth_analysis`); files ``independent.json``, ``independent_table.md``,
+``independent_sets.png`` and ``independent_vessels.png``.
 """
 
 from __future__ import annotations
@@ -38,12 +46,14 @@ import numpy as np
 from scipy import ndimage
 from skimage.draw import line as draw_line
 
-from . import evaluation, phantom
-from .io import write_text_atomic
-from .pipeline import preop_from_lumen, register_frame
+from . import evaluation, phantom, scenarios
+from .centerline import Centerline
+from .io import InputError, write_text_atomic
+from .pipeline import plan_case, preop_from_lumen, register_frame
 from .projection import patient_motion, project
 
-__all__ = ["METHODS", "run_benchmark", "simulation_cases", "phantom_cases"]
+__all__ = ["METHODS", "run_benchmark", "simulation_cases", "phantom_cases", "INDEPENDENT_SETS",
+           "run_independent_benchmark"]
 
 #: Method name in tables -> (pipeline method, pose refinement).
 METHODS = {"SV": ("rigid", False), "ICP-TPS": ("icp-tps", False), "Proposed": ("proposed", False)}
@@ -334,3 +344,287 @@ def run_benchmark(out_dir, *, quick: bool = False, seed: int = 0, progress=None)
     _bar_figure(out_dir / "fig6_phantom.png", phantoms, "Phantom-like and hard cases: mean ± std")
     return {"summary": summaries, "acceptance": comparisons[SIMULATION], "comparisons": comparisons,
             "wall_s": report["wall_s"]}
+
+
+# --------------------------------------------------------------------------- independent sets (issue 10)
+
+#: Scenario kind -> set name of the independent sets.
+INDEPENDENT_SETS = {
+    "out_of_plane": "Independent: out-of-plane", "straightening": "Independent: straightening",
+    "clipped": "Independent: clipped", "distal_forks": "Independent: distal forks",
+    "wide_sac": "Independent: wide sac", "extra_branches": "Independent: extra branches",
+    "misaligned": "Independent: misaligned", "angulated": "Independent: angulated",
+    "two_views": "Independent: two views",
+}
+#: Cases per independent set (the quick mode runs the last of them only).
+INDEPENDENT_CASES = 4
+#: "Reaches the floor": a 3D error at most this much above the case's depth floor (issue 10).
+FLOOR_TOLERANCE_MM = 0.3
+
+
+def _read_truth(folder: Path) -> tuple[Centerline, Centerline, np.ndarray, dict]:
+    """The ground truth of a scenario folder: pre- and intra-op centrelines, main true P, views."""
+    gt = json.loads((folder / "gt.json").read_text())
+    return (Centerline.from_dict(gt["preop_centerline"]), Centerline.from_dict(gt["intraop_centerline"]),
+            np.asarray(gt["projection_matrix_true"], dtype=float), gt.get("views", {}))
+
+
+def _views_used(result) -> int:
+    """How many views the pipeline registered on (1 unless its result lists several)."""
+    views = getattr(result, "views", None)
+    if views is None:
+        views = result.to_dict().get("views")
+    return max(1, len(views)) if views else 1
+
+
+def _score_case_route(folder: Path, method: str, truth) -> dict:
+    """Run ``plan_case`` on a folder with one method and score it (2D, 3D, depth split)."""
+    gt_pre, gt_intra, P_true, _ = truth
+    t0 = time.perf_counter()
+    try:
+        result = plan_case(folder, method=method)
+    except (InputError, ValueError) as exc:
+        return {"failed": str(exc)}
+    wall = time.perf_counter() - t0
+    depth = evaluation.depth_analysis(result.deformed, result.preop, gt_pre, gt_intra, P_true)
+    errors = evaluation.evaluate(result.deformed, gt_intra, result.P, result.skeleton2d_points,
+                                 result.skeleton2d_edges, labels=depth["labels"])
+    return {"2d_px": errors["2d_px"]["mean"], "3d_mm": depth["3d_mm"]["mean"], "3d_max_mm": depth["3d_mm"]["max"],
+            "3d_reverse_mm": errors["3d_reverse_mm"]["mean"], "in_plane_mm": depth["in_plane_mm"]["mean"],
+            "along_ray_mm": depth["along_ray_mm"]["mean"], "rms_mm": depth["rms_mm"],
+            "out_of_plane_recovered": depth["out_of_plane_recovered"], "per_vessel": depth["per_vessel"],
+            "views_used": _views_used(result), "registration_s": result.timings.get("registration"),
+            "wall_s": wall, "correspondence": result.inputs.get("correspondence")}
+
+
+def _judge_against_sv_and_floor(results: dict, floor_mm: float) -> None:
+    """Mark each method's result worse than SV and / or within the floor tolerance (in place)."""
+    sv = results.get("SV", {}).get("3d_mm")
+    for row in results.values():
+        if "failed" in row:
+            continue
+        row["worse_than_sv"] = bool(sv is not None and row["3d_mm"] > sv)
+        row["within_floor"] = bool(row["3d_mm"] <= floor_mm + FLOOR_TOLERANCE_MM)
+        row["floor_gap_mm"] = row["3d_mm"] - floor_mm
+
+
+def _independent_case(kind: str, folder: Path) -> dict:
+    truth = _read_truth(folder)
+    gt_pre, gt_intra, P_true, views = truth
+    floor = evaluation.depth_floor(gt_pre, gt_intra, P_true)
+    results = {label: _score_case_route(folder, method, truth) for label, (method, _) in METHODS.items()}
+    _judge_against_sv_and_floor(results, floor["mean"])
+    scenario = json.loads((folder / "scenario.json").read_text())
+    return {"name": folder.name, "kind": kind, "folder": str(folder), "views": sorted(views),
+            "depth_floor_mm": floor["mean"], "depth_floor_note": "main view" if len(views) > 1 else "the view",
+            "depth_floor_per_vessel_mm": {k: v["mean"] for k, v in floor["per_vessel"].items()},
+            "scenario": {k: scenario[k] for k in ("kind", "seed", "deformation", "views") if k in scenario}
+            | {k: scenario[k] for k in ("severity_deg", "second_view_deg") if k in scenario},
+            "results": results}
+
+
+def _mean_or_none(values):
+    values = [v for v in values if v is not None]
+    return float(np.mean(values)) if values else None
+
+
+def _vessel_summary(rows: list[dict]) -> dict:
+    """Per vessel: the means over cases of each per-vessel number."""
+    keys = ("3d_mm", "in_plane_mm", "along_ray_mm", "true_along_ray_mm", "depth_floor_mm", "out_of_plane_recovered")
+    vessels = [label for label in evaluation.MAIN_VESSELS if any(label in r["per_vessel"] for r in rows)]
+    return {label: {key: _mean_or_none([r["per_vessel"][label][key] for r in rows if label in r["per_vessel"]])
+                    for key in keys} for label in vessels}
+
+
+def _independent_summary(cases: list[dict]) -> dict:
+    """Per method over a set's cases: means, counts worse than SV and within the floor, per vessel."""
+    summary = {"cases": len(cases), "depth_floor_mm": float(np.mean([c["depth_floor_mm"] for c in cases])),
+               "views_per_case": max(len(c["views"]) for c in cases), "methods": {}}
+    for label in METHODS:
+        rows = [c["results"][label] for c in cases if "failed" not in c["results"][label]]
+        entry = {"cases": len(rows), "failed": len(cases) - len(rows)}
+        if rows:
+            entry.update({key: float(np.mean([r[key] for r in rows])) for key in
+                          ("2d_px", "3d_mm", "in_plane_mm", "along_ray_mm", "floor_gap_mm")})
+            entry.update({"worse_than_sv": int(sum(r["worse_than_sv"] for r in rows)),
+                          "within_floor": int(sum(r["within_floor"] for r in rows)),
+                          "views_used": max(r["views_used"] for r in rows),
+                          "out_of_plane_recovered": _mean_or_none([r["out_of_plane_recovered"] for r in rows]),
+                          "registration_s_median": float(np.median([r["registration_s"] or 0.0 for r in rows])),
+                          "per_vessel": _vessel_summary(rows)})
+        summary["methods"][label] = entry
+    return summary
+
+
+def _views_note(summary: dict) -> str:
+    if summary["views_per_case"] < 2:
+        return ""
+    used = max((m.get("views_used", 1) for m in summary["methods"].values()), default=1)
+    return " (run single-view on the main frame: the pipeline read one view)" if used < 2 else " (all views)"
+
+
+def _independent_table(summaries: dict) -> str:
+    lines = ["| Set | Method | 2D (px) | 3D (mm) | in-plane (mm) | along-ray (mm) | depth floor (mm) | "
+             "worse than SV | within 0.3 mm of floor | depth recovered |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, s in summaries.items():
+        for label, m in s["methods"].items():
+            if not m["cases"]:
+                lines.append(f"| {name} | {label} | failed {m['failed']} of {s['cases']} | | | | | | | |")
+                continue
+            recovered = "" if m["out_of_plane_recovered"] is None else f"{m['out_of_plane_recovered']:.2f}"
+            lines.append(f"| {name}{_views_note(s)} | {label} | {m['2d_px']:.2f} | {m['3d_mm']:.2f} | "
+                         f"{m['in_plane_mm']:.2f} | {m['along_ray_mm']:.2f} | {s['depth_floor_mm']:.2f} | "
+                         f"{m['worse_than_sv']}/{m['cases']} | {m['within_floor']}/{m['cases']} | {recovered} |")
+    lines += ["", "Per vessel (mean over the set's cases): 3D / in-plane / along-ray (mm), depth floor (mm), "
+              "out-of-plane motion recovered.", "",
+              "| Set | Method | " + " | ".join(evaluation.MAIN_VESSELS) + " |",
+              "|---|---|" + "---|" * len(evaluation.MAIN_VESSELS)]
+    for name, s in summaries.items():
+        for label, m in s["methods"].items():
+            cells = []
+            for vessel in evaluation.MAIN_VESSELS:
+                v = m.get("per_vessel", {}).get(vessel)
+                if v is None:
+                    cells.append("")
+                    continue
+                recovered = "" if v["out_of_plane_recovered"] is None else f", rec {v['out_of_plane_recovered']:.2f}"
+                cells.append(f"{v['3d_mm']:.2f} / {v['in_plane_mm']:.2f} / {v['along_ray_mm']:.2f}, "
+                             f"floor {v['depth_floor_mm']:.2f}{recovered}")
+            lines.append(f"| {name} | {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _independent_sets_figure(path: Path, summaries: dict) -> None:
+    """Per set: 3D, in-plane and along-ray error of each method (means), the depth floor drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(summaries)
+    x = np.arange(len(names))
+    width = 0.8 / len(METHODS)
+    panels = (("3d_mm", "3D error (mm)", True), ("in_plane_mm", "in-plane part (mm)", False),
+              ("along_ray_mm", "along-ray part (mm)", True))
+    fig, axes = plt.subplots(1, 3, figsize=(19, 5.2), sharey=True)
+    floors = [summaries[n]["depth_floor_mm"] for n in names]
+    for ax, (key, title, with_floor) in zip(axes, panels):
+        for k, label in enumerate(METHODS):
+            offset = (k - (len(METHODS) - 1) / 2) * width
+            ax.bar(x + offset, [summaries[n]["methods"][label].get(key, np.nan) for n in names], width, label=label)
+        if with_floor:
+            ax.hlines(floors, x - 0.45, x + 0.45, colors="k", linewidth=2, label="depth floor")
+        ax.set_xticks(x, [n.replace("Independent: ", "") for n in names], rotation=35, ha="right")
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+    axes[0].set_ylabel("mean over the set's cases (mm)")
+    fig.suptitle("Independent sets (scenarios family, case-folder route) and the single-view depth floor")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _independent_vessels_figure(path: Path, cases: list[dict]) -> None:
+    """Per vessel over all independent cases: along-ray error per method against the floor, and
+    the fraction of the true along-ray motion recovered."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    vessels = evaluation.MAIN_VESSELS
+    x = np.arange(len(vessels))
+    width = 0.8 / len(METHODS)
+    fig, axes = plt.subplots(1, 2, figsize=(14, 4.8))
+    pooled = {}
+    for label in METHODS:
+        rows = [c["results"][label] for c in cases if "failed" not in c["results"][label]]
+        pooled[label] = _vessel_summary(rows) if rows else {}
+    for k, label in enumerate(METHODS):
+        offset = (k - (len(METHODS) - 1) / 2) * width
+        along = [pooled[label].get(v, {}).get("along_ray_mm") for v in vessels]
+        recovered = [pooled[label].get(v, {}).get("out_of_plane_recovered") for v in vessels]
+        axes[0].bar(x + offset, [np.nan if a is None else a for a in along], width, label=label)
+        axes[1].bar(x + offset, [np.nan if r is None else r for r in recovered], width, label=label)
+    reference = pooled.get("SV", {})
+    floors = [reference.get(v, {}).get("depth_floor_mm") for v in vessels]
+    true_along = [reference.get(v, {}).get("true_along_ray_mm") for v in vessels]
+    axes[0].hlines([np.nan if f is None else f for f in floors], x - 0.45, x + 0.45, colors="k", label="depth floor")
+    axes[0].plot(x, [np.nan if t is None else t for t in true_along], "kx", label="true along-ray motion")
+    axes[0].set_ylabel("along-ray error, mean (mm)")
+    axes[1].axhline(0.0, color="k", linewidth=0.8)
+    axes[1].set_ylim(-1.05, 1.05)
+    axes[1].set_ylabel("out-of-plane motion recovered (1 = all; clipped at -1)")
+    for ax in axes:
+        ax.set_xticks(x, vessels)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"Per vessel, all independent cases ({len(cases)})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def independent_case_folders(out_dir, *, quick: bool = False, seed: int = 0, kinds=None) -> list:
+    """Write (or reuse) the independent sets' case folders under ``out_dir``; ``[(kind, folder)]``.
+
+    Every kind is planned with :data:`INDEPENDENT_CASES` cases; the quick mode keeps the last
+    (so its cases are a subset of the full run's). A folder already holding ``gt.json`` is
+    reused (the same seed writes the same files).
+    """
+    out_dir = Path(out_dir)
+    chosen = []
+    for kind in kinds or INDEPENDENT_SETS:
+        planned = scenarios.plan_scenarios(kind, INDEPENDENT_CASES, seed)
+        for scenario in planned[-1:] if quick else planned:
+            folder = out_dir / scenario.name
+            if not (folder / "gt.json").is_file():
+                scenarios.write_scenario(scenario, folder)
+            chosen.append((kind, folder))
+    return chosen
+
+
+def run_independent_benchmark(out_dir, *, quick: bool = False, seed: int = 0, progress=None, kinds=None) -> dict:
+    """Run the independent sets (issue 10) and write independent.json, the table and figures.
+
+    Parameters
+    ----------
+    out_dir : path
+        Results go here, the case folders under ``out_dir/cases``.
+    quick : bool
+        One case per set (the hardest of each: 20 degrees out of plane, the 90 degree second
+        view), about 1.5 minutes on 2 cores.
+    seed : int
+    progress : callable, optional
+        ``progress(fraction, message)``.
+    kinds : iterable of str, optional
+        A subset of :data:`INDEPENDENT_SETS`' keys.
+
+    Returns
+    -------
+    dict
+        ``summary`` (set name -> per-method means and counts, per vessel) and ``wall_s``.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    folders = independent_case_folders(out_dir / "cases", quick=quick, seed=seed, kinds=kinds)
+    cases = []
+    for index, (kind, folder) in enumerate(folders):
+        cases.append(_independent_case(kind, folder))
+        if progress is not None:
+            progress((index + 1) / len(folders), f"independent {folder.name}")
+    summaries = {INDEPENDENT_SETS[kind]: _independent_summary([c for c in cases if c["kind"] == kind])
+                 for kind in dict.fromkeys(c["kind"] for c in cases)}
+    report = {"version": 1, "quick": quick, "seed": seed, "wall_s": time.perf_counter() - started,
+              "floor_tolerance_mm": FLOOR_TOLERANCE_MM,
+              "machine": {"platform": platform.platform(), "python": platform.python_version()},
+              "metric": "3D: every result node (main vessels) to the nearest true segment, mean mm; in-plane / "
+                        "along-ray: the same error split along the true ray of the main view; depth floor: the "
+                        "oracle on the true rays at pre-operative depth (main view for two-view cases)",
+              "summary": summaries, "cases": cases}
+    write_text_atomic(out_dir / "independent.json", json.dumps(report, indent=1))
+    write_text_atomic(out_dir / "independent_table.md", _independent_table(summaries))
+    _independent_sets_figure(out_dir / "independent_sets.png", summaries)
+    _independent_vessels_figure(out_dir / "independent_vessels.png", cases)
+    return {"summary": summaries, "wall_s": report["wall_s"]}

@@ -1,0 +1,39 @@
+"""Independent-sets benchmark (issue 10): the scenarios phantom family through the case-folder route.
+
+Writes the case folders of every independent set (FevarPlannerLib.scenarios: out-of-plane
+bends at 0/5/10/20 degrees, wire straightening, clipped frames, distal forks the CT lacks,
+wide sacs, extra branches, misaligned and angulated views, two views), runs SV (rigid),
+ICP-TPS and the proposed method on each with ``pipeline.plan_case`` and scores them with
+the depth floor and the in-plane / along-ray split per vessel
+(FevarPlannerLib.benchmark.run_independent_benchmark). Outputs in ``--out``:
+``independent.json``, ``independent_table.md``, ``independent_sets.png``,
+``independent_vessels.png`` and the case folders under ``cases/``.
+
+    .venv/bin/python Testing/benchmarks/bench_scenarios.py --out OUT [--quick] [--seed 0] [--kinds clipped two_views]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from FevarPlannerLib.benchmark import INDEPENDENT_SETS, run_independent_benchmark
+from FevarPlannerLib.cli import ProgressBar
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--quick", action="store_true", help="one case per set (about 1.5 minutes)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--kinds", nargs="+", choices=sorted(INDEPENDENT_SETS), default=None)
+    args = parser.parse_args(argv)
+    summary = run_independent_benchmark(args.out, quick=args.quick, seed=args.seed, kinds=args.kinds,
+                                        progress=ProgressBar())
+    print((args.out / "independent_table.md").read_text())
+    print(f"{summary['wall_s']:.0f} s; details in {args.out / 'independent.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
