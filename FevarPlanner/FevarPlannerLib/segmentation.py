@@ -48,7 +48,14 @@ __all__ = [
     "mask_surface",
     "write_surface_vtp",
     "segment_fluoro",
+    "FluoroPrior",
+    "select_frame",
+    "frame_contrast_in_prior",
     "vesselness",
+    "segment_ct_classical",
+    "find_aorta_in_slices",
+    "trace_aorta",
+    "grow_branches",
     "dice",
     "read_case",
 ]
@@ -793,7 +800,8 @@ def _local_contrast(image: np.ndarray, radius: int) -> np.ndarray:
     return image - ndi.grey_dilation(ndi.grey_erosion(image, size=(size, size)), size=(size, size))
 
 
-def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str | None = None,
+def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, vessels: str = "auto",
+                   photometric: str | None = None,
                    sigmas=(1.0, 2.0, 3.0, 4.5), work_size: int = 256, high: float = 0.25, low: float = 0.08,
                    contrast_fraction: float = 0.35, min_area_fraction: float = 0.002) -> np.ndarray:
     """Binary vessel mask of a fluoroscopy / DSA frame on the frame's pixel grid.
@@ -806,24 +814,41 @@ def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str
     contrast), objects smaller than ``min_area_fraction`` of the frame are dropped, and the
     slightly smoothed result is upsampled bilinearly to the input grid and cut at 0.5.
 
+    With a ``prior`` (the pre-operative tree projected through P, :class:`FluoroPrior`) the
+    search is confined to a band around the projected tree, widened by the expected
+    deformation (:data:`DEFORMATION_MARGIN_MM`); the polarity is read off the frame (inside
+    the projected tree darker or brighter than around it, so subtracted and plain frames of
+    either polarity work); the Frangi scales follow the projected radii; a white top-hat
+    removes bone, soft tissue, table and collimator edges (broad or step-like structures);
+    long, straight components thinner than the vessel expected there (wires, catheters,
+    sheaths) are dropped. A (n, rows, cols) run is reduced to its frame with the most
+    contrast inside the projected tree (:func:`select_frame`).
+
     Parameters
     ----------
     image : numpy.ndarray
-        2D frame (any numeric dtype; RGB is averaged).
+        2D frame (any numeric dtype; RGB is averaged) or a (n, rows, cols) run.
+    prior : FluoroPrior, optional
+        Where the vessels must be; None keeps the prior-free behaviour.
     vessels : {'dark', 'bright', 'auto'}
         Vessel polarity after the photometric correction; ``'auto'`` picks the one with the
-        stronger tubular response.
+        stronger tubular response (without a prior) or the one the prior sees (with it).
     photometric : str, optional
         DICOM Photometric Interpretation; ``'MONOCHROME1'`` inverts the grey scale.
 
     Returns
     -------
     numpy.ndarray of bool
-        Vessel mask, same shape as ``image``.
+        Vessel mask, same shape as (one frame of) ``image``.
     """
     if vessels not in ("dark", "bright", "auto"):
         raise ValueError(f"vessels must be 'dark', 'bright' or 'auto', got {vessels!r}")
+    frames = _frames(image)
+    image = frames[select_frame(image, prior, photometric=photometric)] if len(frames) > 1 else image
     frame = _grey_frame(image, photometric)
+    if prior is not None:
+        return _segment_fluoro_with_prior(frame, prior, vessels, work_size, high, low, contrast_fraction,
+                                          min_area_fraction)
     factor = max(1, int(round(max(frame.shape) / work_size)))
     small = _normalise(_downsample(frame, factor))
     responses = vesselness(small, sigmas, polarities=("bright", "dark") if vessels == "auto" else (vessels,))
@@ -1234,3 +1259,206 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
     if return_labels:
         return mask, ct.with_array(np.where(mask.array, labels, 0).astype(np.uint8))
     return mask
+
+
+# ----------------------------------------------------------------------------------------
+# Fluoroscopy with the pre-operative tree as a prior
+# ----------------------------------------------------------------------------------------
+
+#: Typical lumen radius (mm) of each labelled vessel, used when the lumen is not at hand.
+TYPICAL_RADIUS_MM = {"aorta": 10.0, "renal_left": 3.0, "renal_right": 3.0, "iliac_left": 5.0, "iliac_right": 5.0,
+                     "other": 3.0}
+#: How far (mm) the intra-operative vessel may lie from its projected pre-operative position:
+#: the stiff wires straighten the iliacs most.
+DEFORMATION_MARGIN_MM = {"aorta": 20.0, "renal_left": 20.0, "renal_right": 20.0, "iliac_left": 35.0,
+                         "iliac_right": 35.0, "other": 20.0}
+
+
+class FluoroPrior:
+    """Where the vessels must be in a frame: the pre-operative tree projected through ``P``.
+
+    Parameters
+    ----------
+    points : (n, 3) array
+        Centreline nodes, LPS mm.
+    edges : (m, 2) int array
+    labels : list of str
+        Anatomy label per node (``centerline.ANATOMY_LABELS``).
+    P : (3, 4) array
+        Projection matrix (eq. 1).
+    radii_mm : (n,) array, optional
+        Lumen radius per node; default :data:`TYPICAL_RADIUS_MM` by label.
+    """
+
+    def __init__(self, points, edges, labels, P, radii_mm=None):
+        from .projection import project
+
+        self.points = np.asarray(points, dtype=float)
+        self.edges = np.asarray(edges, dtype=int).reshape(-1, 2)
+        self.labels = list(labels)
+        self.P = np.asarray(P, dtype=float)
+        self.radii_mm = (np.array([TYPICAL_RADIUS_MM.get(label, 3.0) for label in self.labels])
+                         if radii_mm is None else np.asarray(radii_mm, dtype=float))
+        self.uv = project(self.P, self.points)
+        self.px_per_mm = self._pixels_per_mm()
+        self.radii_px = self.radii_mm * self.px_per_mm
+        self.margin_px = np.array([DEFORMATION_MARGIN_MM.get(label, 20.0) for label in self.labels]) * self.px_per_mm
+
+    @classmethod
+    def from_centerline(cls, centerline, P, lumen: Volume | None = None) -> "FluoroPrior":
+        """The prior of a labelled :class:`Centerline`; radii from ``lumen``'s distance map if given."""
+        radii = None
+        if lumen is not None:
+            distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
+            index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
+            radii = np.maximum(distance[tuple(index.T)], 1.0)
+        return cls(centerline.points, centerline.edges, centerline.labels, P, radii)
+
+    def _pixels_per_mm(self) -> np.ndarray:
+        """Image pixels per mm at each node's depth (perspective magnification)."""
+        from .projection import project
+
+        shifted = project(self.P, self.points + np.array([1.0, 0.0, 0.0]))
+        lifted = project(self.P, self.points + np.array([0.0, 0.0, 1.0]))
+        return 0.5 * (np.linalg.norm(shifted - self.uv, axis=1) + np.linalg.norm(lifted - self.uv, axis=1))
+
+    def rasterise(self, shape, factor: int = 1):
+        """Distance (px of the reduced grid) to the projected tree, and the nearest node's index.
+
+        The tree's edges are drawn on a grid reduced by ``factor``; the Euclidean distance
+        transform gives, per pixel, how far the nearest drawn pixel is and which node it came from.
+        """
+        from skimage.draw import line
+
+        node_of_pixel = np.full(shape, -1, dtype=np.int64)
+        uv = (self.uv + 0.5) / factor - 0.5
+        rows_max, cols_max = shape[0] - 1, shape[1] - 1
+        for a, b in self.edges:
+            (ua, va), (ub, vb) = uv[a], uv[b]
+            if not np.all(np.isfinite([ua, va, ub, vb])):
+                continue
+            rr, cc = line(int(round(va)), int(round(ua)), int(round(vb)), int(round(ub)))
+            inside = (rr >= 0) & (rr <= rows_max) & (cc >= 0) & (cc <= cols_max)
+            half = len(rr) // 2
+            nodes = np.where(np.arange(len(rr)) < half, a, b)
+            node_of_pixel[rr[inside], cc[inside]] = nodes[inside]
+        if not (node_of_pixel >= 0).any():
+            return np.full(shape, np.inf, dtype=np.float32), np.zeros(shape + (2,), dtype=np.int64) - 1
+        distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
+        return distance.astype(np.float32), node_of_pixel[ri, ci]
+
+
+def _frames(image: np.ndarray) -> list[np.ndarray]:
+    """The frames of a run: a (n, rows, cols) stack, or one 2D (or RGB) frame."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[-1] not in (3, 4):
+        return [image[n] for n in range(image.shape[0])]
+    return [image]
+
+
+def _polarity_by_prior(small: np.ndarray, distance: np.ndarray, nearest: np.ndarray, prior: FluoroPrior,
+                       factor: int) -> str:
+    """'dark' or 'bright': the sign of (inside the projected tree) - (a ring just outside it)."""
+    radius = prior.radii_px[nearest] / factor
+    core = distance <= np.maximum(0.5 * radius, 1.0)
+    ring = (distance > radius + 2.0) & (distance <= 2.0 * radius + 6.0)
+    if not core.any() or not ring.any():
+        return "dark"
+    return "dark" if np.median(small[core]) < np.median(small[ring]) else "bright"
+
+
+def frame_contrast_in_prior(frame: np.ndarray, prior: FluoroPrior, *, photometric=None, work_size: int = 256) -> float:
+    """|median inside the projected tree - median of a ring around it| over the frame's spread."""
+    grey = _grey_frame(frame, photometric)
+    factor = max(1, int(round(max(grey.shape) / work_size)))
+    small = _downsample(grey, factor)
+    spread = float(np.subtract(*np.percentile(small, [99.5, 0.5])))
+    if spread <= 0:
+        return 0.0
+    distance, nearest = prior.rasterise(small.shape, factor)
+    radius = prior.radii_px[np.maximum(nearest, 0)] / factor
+    core = distance <= np.maximum(0.5 * radius, 1.0)
+    ring = (distance > radius + 2.0) & (distance <= 2.0 * radius + 6.0)
+    if not core.any() or not ring.any():
+        return 0.0
+    return abs(float(np.median(small[core]) - np.median(small[ring]))) / spread
+
+
+def select_frame(image: np.ndarray, prior: FluoroPrior | None = None, *, photometric=None) -> int:
+    """Index of the frame of a run with the most contrast inside the projected tree.
+
+    Without a prior: the frame with the strongest top-hat contrast (the fullest vessels).
+    """
+    frames = _frames(image)
+    if len(frames) == 1:
+        return 0
+    if prior is not None:
+        scores = [frame_contrast_in_prior(f, prior, photometric=photometric) for f in frames]
+    else:
+        scores = []
+        for f in frames:
+            small = _downsample(_grey_frame(f, photometric), max(1, int(round(max(f.shape[:2]) / 128))))
+            lo, hi = np.percentile(small, [0.5, 99.5])
+            scores.append(0.0 if hi <= lo else float(np.percentile(_local_contrast(-(small - lo) / (hi - lo), 4), 99)))
+    return int(np.argmax(scores))
+
+
+def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, straightness: float = 0.08,
+                           width_ratio: float = 0.55, min_length: float = 20.0) -> np.ndarray:
+    """Components that look like a wire, catheter or sheath: long, very straight and thinner than
+    the vessel expected where they lie. Returns the mask of those components."""
+    labels, n = ndi.label(mask)
+    devices = np.zeros_like(mask)
+    for index, region in enumerate(ndi.find_objects(labels), start=1):
+        if region is None:
+            continue
+        component = labels[region] == index
+        coords = np.argwhere(component).astype(float)
+        if len(coords) < 3:
+            continue
+        centred = coords - coords.mean(axis=0)
+        eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(coords)), 0.0))
+        length = 2.0 * math.sqrt(3.0) * eigen[1]
+        width = len(coords) / max(length, 1.0)
+        expected = float(np.median(expected_width[region][component]))
+        if length >= min_length and eigen[0] / max(eigen[1], 1e-9) <= straightness and width < width_ratio * expected:
+            devices[region] |= component
+    return devices
+
+
+def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4) -> np.ndarray:
+    """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
+    (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
+    bowel loop touching it can."""
+    from skimage.morphology import skeletonize
+
+    if not vessel.any():
+        return vessel
+    spine = skeletonize(vessel)
+    distance, (ri, ci) = ndi.distance_transform_edt(~spine, return_indices=True)
+    return distance <= slack * radius[ri, ci] + 1.0
+
+
+def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: str, work_size: int,
+                               high: float, low: float, contrast_fraction: float, min_area_fraction: float):
+    """Vessel mask of one grey frame, looking only in the band around the projected tree."""
+    factor = max(1, int(round(max(frame.shape) / work_size)))
+    small = _normalise(_downsample(frame, factor))
+    distance, nearest = prior.rasterise(small.shape, factor)
+    nearest = np.maximum(nearest, 0)
+    if vessels == "auto":
+        vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
+    oriented = small if vessels == "bright" else 1.0 - small
+    radius = prior.radii_px[nearest] / factor
+    band = distance <= radius + prior.margin_px[nearest] / factor
+    r_min = max(float(np.percentile(prior.radii_px, 5)) / factor, 0.8)
+    r_max = max(float(np.percentile(prior.radii_px, 99)) / factor, r_min)
+    sigmas = np.geomspace(max(0.6 * r_min, 0.8), max(0.6 * r_max, 1.0), 4)
+    response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
+    vessel = _vessel_region(oriented, response, float(sigmas[-1]), high, low, contrast_fraction) & band
+    vessel &= _within_expected_width(vessel, radius)
+    vessel = ndi.binary_opening(vessel, structure=np.ones((2, 2), dtype=bool)) | (vessel & (radius < 1.5))
+    vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
+    vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
+    soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
+    return _upsample(soft, factor, frame.shape) > 0.5
