@@ -34,6 +34,7 @@ from vtk.util import numpy_support
 
 from . import io
 from .io import InputError, Volume, atomic_path
+from .quality import DEFORMATION_MARGIN_MM, TYPICAL_RADIUS_MM, FluoroPrior
 
 __all__ = [
     "UNet",
@@ -1265,89 +1266,6 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
 # Fluoroscopy with the pre-operative tree as a prior
 # ----------------------------------------------------------------------------------------
 
-#: Typical lumen radius (mm) of each labelled vessel, used when the lumen is not at hand.
-TYPICAL_RADIUS_MM = {"aorta": 10.0, "renal_left": 3.0, "renal_right": 3.0, "iliac_left": 5.0, "iliac_right": 5.0,
-                     "other": 3.0}
-#: How far (mm) the intra-operative vessel may lie from its projected pre-operative position:
-#: the stiff wires straighten the iliacs most.
-DEFORMATION_MARGIN_MM = {"aorta": 20.0, "renal_left": 20.0, "renal_right": 20.0, "iliac_left": 35.0,
-                         "iliac_right": 35.0, "other": 20.0}
-
-
-class FluoroPrior:
-    """Where the vessels must be in a frame: the pre-operative tree projected through ``P``.
-
-    Parameters
-    ----------
-    points : (n, 3) array
-        Centreline nodes, LPS mm.
-    edges : (m, 2) int array
-    labels : list of str
-        Anatomy label per node (``centerline.ANATOMY_LABELS``).
-    P : (3, 4) array
-        Projection matrix (eq. 1).
-    radii_mm : (n,) array, optional
-        Lumen radius per node; default :data:`TYPICAL_RADIUS_MM` by label.
-    """
-
-    def __init__(self, points, edges, labels, P, radii_mm=None):
-        from .projection import project
-
-        self.points = np.asarray(points, dtype=float)
-        self.edges = np.asarray(edges, dtype=int).reshape(-1, 2)
-        self.labels = list(labels)
-        self.P = np.asarray(P, dtype=float)
-        self.radii_mm = (np.array([TYPICAL_RADIUS_MM.get(label, 3.0) for label in self.labels])
-                         if radii_mm is None else np.asarray(radii_mm, dtype=float))
-        self.uv = project(self.P, self.points)
-        self.px_per_mm = self._pixels_per_mm()
-        self.radii_px = self.radii_mm * self.px_per_mm
-        self.margin_px = np.array([DEFORMATION_MARGIN_MM.get(label, 20.0) for label in self.labels]) * self.px_per_mm
-
-    @classmethod
-    def from_centerline(cls, centerline, P, lumen: Volume | None = None) -> "FluoroPrior":
-        """The prior of a labelled :class:`Centerline`; radii from ``lumen``'s distance map if given."""
-        radii = None
-        if lumen is not None:
-            distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
-            index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
-            radii = np.maximum(distance[tuple(index.T)], 1.0)
-        return cls(centerline.points, centerline.edges, centerline.labels, P, radii)
-
-    def _pixels_per_mm(self) -> np.ndarray:
-        """Image pixels per mm at each node's depth (perspective magnification)."""
-        from .projection import project
-
-        shifted = project(self.P, self.points + np.array([1.0, 0.0, 0.0]))
-        lifted = project(self.P, self.points + np.array([0.0, 0.0, 1.0]))
-        return 0.5 * (np.linalg.norm(shifted - self.uv, axis=1) + np.linalg.norm(lifted - self.uv, axis=1))
-
-    def rasterise(self, shape, factor: int = 1):
-        """Distance (px of the reduced grid) to the projected tree, and the nearest node's index.
-
-        The tree's edges are drawn on a grid reduced by ``factor``; the Euclidean distance
-        transform gives, per pixel, how far the nearest drawn pixel is and which node it came from.
-        """
-        from skimage.draw import line
-
-        node_of_pixel = np.full(shape, -1, dtype=np.int64)
-        uv = (self.uv + 0.5) / factor - 0.5
-        rows_max, cols_max = shape[0] - 1, shape[1] - 1
-        for a, b in self.edges:
-            (ua, va), (ub, vb) = uv[a], uv[b]
-            if not np.all(np.isfinite([ua, va, ub, vb])):
-                continue
-            rr, cc = line(int(round(va)), int(round(ua)), int(round(vb)), int(round(ub)))
-            inside = (rr >= 0) & (rr <= rows_max) & (cc >= 0) & (cc <= cols_max)
-            half = len(rr) // 2
-            nodes = np.where(np.arange(len(rr)) < half, a, b)
-            node_of_pixel[rr[inside], cc[inside]] = nodes[inside]
-        if not (node_of_pixel >= 0).any():
-            return np.full(shape, np.inf, dtype=np.float32), np.zeros(shape + (2,), dtype=np.int64) - 1
-        distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
-        return distance.astype(np.float32), node_of_pixel[ri, ci]
-
-
 def _frames(image: np.ndarray) -> list[np.ndarray]:
     """The frames of a run: a (n, rows, cols) stack, or one 2D (or RGB) frame."""
     image = np.asarray(image)
@@ -1457,7 +1375,8 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
     vessel = _vessel_region(oriented, response, float(sigmas[-1]), high, low, contrast_fraction) & band
     vessel &= _within_expected_width(vessel, radius)
-    vessel = ndi.binary_opening(vessel, structure=np.ones((2, 2), dtype=bool)) | (vessel & (radius < 1.5))
+    thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
+    vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
     vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
     soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
