@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from . import baselines, deformation, evaluation, export, graph, matching, planning, skeleton
+from . import baselines, deformation, evaluation, export, graph, matching, planning, quality, skeleton
 from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
 from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
@@ -101,6 +101,7 @@ class PlanResult:
     timings: dict
     errors: dict | None = None
     inputs: dict = field(default_factory=dict)
+    qc: quality.QCData | None = None
 
     def to_dict(self) -> dict:
         extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs}
@@ -308,13 +309,13 @@ def _read_ground_truth(case: Case) -> Centerline | None:
         raise InputError(f"{path}: unreadable ground truth ({exc})") from None
 
 
-def _vessel_mask(case: Case, progress=None) -> np.ndarray:
+def _vessel_mask(case: Case, progress=None, prior=None) -> np.ndarray:
     if case.fluoro_mask is not None:
         return case.fluoro_mask
     from . import segmentation
 
     _report(progress, 0.4, "segmenting vessels in the frame")
-    return segmentation.segment_fluoro(case.fluoro.image)
+    return segmentation.segment_fluoro(case.fluoro.image, prior)
 
 
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
@@ -328,8 +329,12 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     _report(progress, 0.0, "pre-operative skeleton graph")
     preop = prepare_preop(case, progress, segmenter)
     timings = dict(preop.timings)
+    prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
+    qc = quality.QCData(case.ct, case.aorta_mask, case.fluoro.image, None, prior)
+    quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
     with _timed(timings, "segmentation2d"):
-        mask2d = _vessel_mask(case, progress)
+        qc.mask2d = mask2d = _vessel_mask(case, progress, prior)
+    quality.check_frame_mask(mask2d, prior, qc)
     _report(progress, 0.5, f"registering ({method})")
     frame = register_frame(preop, mask2d, case.P, method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
     timings.update(frame.timings)
@@ -344,7 +349,7 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     _report(progress, 1.0, "done")
     return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
                       sk_edges, case.fluoro.image, timings, errors,
-                      {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence})
+                      {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence}, qc)
 
 
 def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
@@ -355,8 +360,14 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     """
     load_keys = {"ct", "aorta_mask", "skeleton3d", "fluoro", "fluoro_mask", "geometry", "frame"}
     case = load_case(case_dir, **{k: v for k, v in overrides.items() if k in load_keys and v is not None})
-    result = run_case(case, method=method, progress=progress,
-                      **{k: v for k, v in overrides.items() if k not in load_keys})
+    try:
+        result = run_case(case, method=method, progress=progress,
+                          **{k: v for k, v in overrides.items() if k not in load_keys})
+    except quality.QualityError as failure:    # the QC picture first, so the user sees why
+        if out_dir is not None and failure.qc is not None:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            quality.write_segmentation_qc(Path(out_dir) / "segmentation_qc.png", failure.qc, str(failure))
+        raise
     if out_dir is not None:
         write_outputs(result, out_dir)
     return result
@@ -377,6 +388,8 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
     ]
     export.render_overlay(paths["overlay.png"], result.fluoro_image, skeleton2d=result.skeleton2d_points,
                           layers=layers)
+    if result.qc is not None:
+        quality.write_segmentation_qc(out_dir / "segmentation_qc.png", result.qc)
     # result.json last: its presence means every other output is complete
     export.write_result_json(paths["result.json"], result.to_dict())
     return paths

@@ -34,6 +34,7 @@ from vtk.util import numpy_support
 
 from . import io
 from .io import InputError, Volume, atomic_path
+from .quality import DEFORMATION_MARGIN_MM, TYPICAL_RADIUS_MM, FluoroPrior
 
 __all__ = [
     "UNet",
@@ -48,7 +49,14 @@ __all__ = [
     "mask_surface",
     "write_surface_vtp",
     "segment_fluoro",
+    "FluoroPrior",
+    "select_frame",
+    "frame_contrast_in_prior",
     "vesselness",
+    "segment_ct_classical",
+    "find_aorta_in_slices",
+    "trace_aorta",
+    "grow_branches",
     "dice",
     "read_case",
 ]
@@ -793,7 +801,8 @@ def _local_contrast(image: np.ndarray, radius: int) -> np.ndarray:
     return image - ndi.grey_dilation(ndi.grey_erosion(image, size=(size, size)), size=(size, size))
 
 
-def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str | None = None,
+def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, vessels: str = "auto",
+                   photometric: str | None = None,
                    sigmas=(1.0, 2.0, 3.0, 4.5), work_size: int = 256, high: float = 0.25, low: float = 0.08,
                    contrast_fraction: float = 0.35, min_area_fraction: float = 0.002) -> np.ndarray:
     """Binary vessel mask of a fluoroscopy / DSA frame on the frame's pixel grid.
@@ -806,24 +815,41 @@ def segment_fluoro(image: np.ndarray, *, vessels: str = "auto", photometric: str
     contrast), objects smaller than ``min_area_fraction`` of the frame are dropped, and the
     slightly smoothed result is upsampled bilinearly to the input grid and cut at 0.5.
 
+    With a ``prior`` (the pre-operative tree projected through P, :class:`FluoroPrior`) the
+    search is confined to a band around the projected tree, widened by the expected
+    deformation (:data:`DEFORMATION_MARGIN_MM`); the polarity is read off the frame (inside
+    the projected tree darker or brighter than around it, so subtracted and plain frames of
+    either polarity work); the Frangi scales follow the projected radii; a white top-hat
+    removes bone, soft tissue, table and collimator edges (broad or step-like structures);
+    long, straight components thinner than the vessel expected there (wires, catheters,
+    sheaths) are dropped. A (n, rows, cols) run is reduced to its frame with the most
+    contrast inside the projected tree (:func:`select_frame`).
+
     Parameters
     ----------
     image : numpy.ndarray
-        2D frame (any numeric dtype; RGB is averaged).
+        2D frame (any numeric dtype; RGB is averaged) or a (n, rows, cols) run.
+    prior : FluoroPrior, optional
+        Where the vessels must be; None keeps the prior-free behaviour.
     vessels : {'dark', 'bright', 'auto'}
         Vessel polarity after the photometric correction; ``'auto'`` picks the one with the
-        stronger tubular response.
+        stronger tubular response (without a prior) or the one the prior sees (with it).
     photometric : str, optional
         DICOM Photometric Interpretation; ``'MONOCHROME1'`` inverts the grey scale.
 
     Returns
     -------
     numpy.ndarray of bool
-        Vessel mask, same shape as ``image``.
+        Vessel mask, same shape as (one frame of) ``image``.
     """
     if vessels not in ("dark", "bright", "auto"):
         raise ValueError(f"vessels must be 'dark', 'bright' or 'auto', got {vessels!r}")
+    frames = _frames(image)
+    image = frames[select_frame(image, prior, photometric=photometric)] if len(frames) > 1 else image
     frame = _grey_frame(image, photometric)
+    if prior is not None:
+        return _segment_fluoro_with_prior(frame, prior, vessels, work_size, high, low, contrast_fraction,
+                                          min_area_fraction)
     factor = max(1, int(round(max(frame.shape) / work_size)))
     small = _normalise(_downsample(frame, factor))
     responses = vesselness(small, sigmas, polarities=("bright", "dark") if vessels == "auto" else (vessels,))
@@ -865,6 +891,493 @@ def dice(a, b) -> float:
     return 1.0 if total == 0 else float(2.0 * np.logical_and(a, b).sum() / total)
 
 
+
 # ----------------------------------------------------------------------------------------
-# Command line: train the shipped weights, segment a CT
+# CT without learning: trace the aorta slice by slice, grow the lumen, follow the branches
 # ----------------------------------------------------------------------------------------
+
+#: Lumen radii (mm) a traced aorta may have, and the HU window of contrast-filled blood used
+#: to find it before the seed's own statistics are known.
+AORTA_RADIUS_MM = (7.0, 22.0)
+CONTRAST_HU = (150.0, 600.0)
+#: Cortical bone: denser than any contrast lumen.
+BONE_HU = 700.0
+#: Soft tissue around the vessels; the lumen edge is taken half way between it and the lumen.
+SOFT_TISSUE_HU = 40.0
+#: Smallest radius (mm) of a traced common iliac, and the scales (mm) of the branch vesselness.
+ILIAC_MIN_RADIUS_MM = 2.5
+BRANCH_SIGMAS_MM = (1.5, 2.5, 4.0)
+#: How far (mm along the branch) a branch may reach from the aorta or iliacs.
+BRANCH_REACH_MM = 70.0
+
+
+def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
+    """In-plane spacing (row = j, column = i) in mm."""
+    return float(ct.spacing[1]), float(ct.spacing[0])
+
+
+def _superior_step(ct: Volume) -> int:
+    """+1 when increasing k goes superior (towards +z in LPS), else -1."""
+    return 1 if (ct.direction @ np.array([0.0, 0.0, 1.0]))[2] >= 0 else -1
+
+
+def _posterior_sign_j(ct: Volume) -> float:
+    """+1 when increasing j goes posterior (towards +y in LPS), else -1 (or 0 if oblique)."""
+    return float(np.sign(ct.direction[1, 1]))
+
+
+def _round_blobs(hu_slice: np.ndarray, spacing_ji, hu_window, radius_mm) -> list[dict]:
+    """Round bright blobs of one axial slice: centre (j, i), inscribed radius (mm), circle score.
+
+    The circle score is the area of the inscribed disc over the blob's area (1 for a disc,
+    small for an elongated or branched blob) times the blob's solidity.
+    """
+    lo, hi = hu_window
+    smooth = ndi.gaussian_filter(hu_slice.astype(np.float32), 0.7 / np.asarray(spacing_ji))
+    inside = ndi.binary_opening((smooth >= lo) & (smooth <= hi), iterations=1)
+    labels, n = ndi.label(inside)
+    if n == 0:
+        return []
+    pixel_mm2 = spacing_ji[0] * spacing_ji[1]
+    min_px = math.pi * radius_mm[0] ** 2 / pixel_mm2
+    max_px = 4.0 * math.pi * radius_mm[1] ** 2 / pixel_mm2
+    blobs = []
+    for region in measure.regionprops(labels, intensity_image=smooth):
+        if not min_px <= region.area <= max_px:
+            continue
+        r0, c0, r1, c1 = region.bbox
+        edt = ndi.distance_transform_edt(np.pad(region.image, 1), sampling=spacing_ji)[1:-1, 1:-1]
+        radius = float(edt.max())
+        if not radius_mm[0] <= radius <= radius_mm[1]:
+            continue
+        peak = np.unravel_index(np.argmax(edt), edt.shape)
+        disc_fraction = math.pi * radius ** 2 / (region.area * pixel_mm2)
+        blobs.append({"centre": np.array([r0 + peak[0], c0 + peak[1]], dtype=float), "radius": radius,
+                      "score": min(disc_fraction, 1.0) * region.solidity, "hu": float(region.intensity_mean)})
+    return blobs
+
+
+def _spine_behind(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, posterior: float,
+                  reach_mm: float = 45.0, half_width_mm: float = 12.0) -> bool:
+    """True if cortical bone lies within ``reach_mm`` posterior of a blob's edge (a vertebra)."""
+    if posterior == 0:
+        return True
+    j0, i0 = centre_ji
+    start = j0 + posterior * radius_mm / spacing_ji[0]
+    stop = start + posterior * reach_mm / spacing_ji[0]
+    rows = slice(int(max(min(start, stop), 0)), int(min(max(start, stop) + 1, hu_slice.shape[0])))
+    half = int(round(half_width_mm / spacing_ji[1]))
+    cols = slice(int(max(i0 - half, 0)), int(min(i0 + half + 1, hu_slice.shape[1])))
+    strip = hu_slice[rows, cols]
+    return strip.size > 0 and bool((strip > BONE_HU).sum() >= 3)
+
+
+def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, step_mm: float = 5.0):
+    """The best aorta cross-section of the CT: a bright round blob in front of the spine.
+
+    Axial slices every ``step_mm`` are searched for round blobs inside ``hu_window`` with an
+    inscribed radius in ``radius_mm`` and cortical bone behind them (the vertebral body);
+    the blob with the best circle score (times a preference for the middle of the range)
+    wins.
+
+    Returns
+    -------
+    (k, centre_ji, radius_mm, score) or None
+    """
+    spacing_ji = _slice_axes_mm(ct)
+    posterior = _posterior_sign_j(ct)
+    step = max(1, int(round(step_mm / ct.spacing[2])))
+    best = None
+    for k in range(step // 2, ct.shape[0], step):
+        hu_slice = np.asarray(ct.array[k])
+        for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
+            if not _spine_behind(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior):
+                continue
+            if best is None or blob["score"] > best[3]:
+                best = (k, blob["centre"], blob["radius"], blob["score"])
+    return best
+
+
+class _Trace:
+    """One vessel followed through the axial slices: centre (j, i) and radius (mm) per slice."""
+
+    def __init__(self, name: str, k: int, centre, radius: float, step: int, min_radius: float):
+        self.name, self.step, self.min_radius = name, step, min_radius
+        self.centres = {k: np.asarray(centre, dtype=float)}
+        self.radii = {k: float(radius)}
+        self.k, self.centre, self.radius = k, np.asarray(centre, dtype=float), float(radius)
+
+
+def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
+                    max_growth: float = 1.45):
+    """The lumen cross-section continuing a trace into the next slice.
+
+    Pixels within ``lumen_hu`` (after a light smoothing) in a window around the predicted
+    ``centre`` are labelled; the components touching the predicted core (a disc of 0.6
+    ``radius``) form the candidate, clipped to ``max_growth`` ``radius`` + 2 mm. Its inscribed
+    radius and the position of that maximum give the new radius and centre.
+
+    Returns
+    -------
+    (mask, offset, centre, radius, split) or None
+        ``mask`` is the cross-section in a window starting at ``offset`` (row, col);
+        ``split`` lists (centre, radius) of the blobs the lumen split into when it is
+        much narrower than before (the bifurcation).
+    """
+    reach = radius * max_growth + 12.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    lo_ji = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi_ji = np.minimum(np.floor(centre).astype(int) + half + 1, hu_slice.shape)
+    window = hu_slice[lo_ji[0]:hi_ji[0], lo_ji[1]:hi_ji[1]].astype(np.float32)
+    if min(window.shape) < 3:
+        return None
+    smooth = ndi.gaussian_filter(window, 0.6 / np.asarray(spacing_ji))
+    inside = (smooth >= lumen_hu[0]) & (smooth <= lumen_hu[1])
+    rows, cols = np.ogrid[:window.shape[0], :window.shape[1]]
+    local = centre - lo_ji
+    dist = np.hypot((rows - local[0]) * spacing_ji[0], (cols - local[1]) * spacing_ji[1])
+    labels, _ = ndi.label(inside)
+    touching = np.unique(labels[(dist <= 0.6 * radius) & inside])
+    touching = touching[touching > 0]
+    if len(touching) == 0:
+        return None
+    candidate = np.isin(labels, touching) & (dist <= max_growth * radius + 2.0)
+    edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
+    new_radius = float(edt.max())
+    if new_radius < min_radius:
+        return None
+    if new_radius < 0.6 * radius:
+        return None, lo_ji, None, new_radius, _split_blobs(candidate, edt, lo_ji, spacing_ji, min_radius)
+    peak = np.array(np.unravel_index(np.argmax(edt), edt.shape), dtype=float)
+    new_dist = np.hypot((rows - peak[0]) * spacing_ji[0], (cols - peak[1]) * spacing_ji[1])
+    mask = candidate & (new_dist <= 1.25 * new_radius + 1.5)
+    return mask, lo_ji, peak + lo_ji, new_radius, []
+
+
+def _split_blobs(candidate, edt, offset, spacing_ji, min_radius: float) -> list:
+    """(centre, radius) of the separate round parts of ``candidate`` at least ``min_radius`` wide."""
+    labels, n = ndi.label(candidate)
+    blobs = []
+    for label in range(1, n + 1):
+        inside = np.where(labels == label, edt, 0.0)
+        radius = float(inside.max())
+        if radius >= min_radius:
+            peak = np.array(np.unravel_index(np.argmax(inside), inside.shape), dtype=float)
+            blobs.append((peak + offset, radius))
+    return sorted(blobs, key=lambda blob: -blob[1])[:2]
+
+
+def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, progress=None) -> list:
+    """Extend ``trace`` slice by slice until the lumen ends; paint it into ``out``.
+
+    Radius continuity (the new radius between 0.6 and ``max_growth`` times the last one,
+    smoothed) keeps the trace out of the heart, the arch's far side and side branches.
+    Returns the blobs the lumen split into where it stopped (for the iliacs), else [].
+    """
+    spacing_ji = _slice_axes_mm(ct)
+    k = trace.k + trace.step
+    while 0 <= k < ct.shape[0]:
+        found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
+                                trace.min_radius)
+        if found is None:
+            return []
+        mask, offset, centre, radius, split = found
+        if mask is None:
+            return [(k, c, r) for c, r in split]
+        view = out[k, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]]
+        view[mask & (view == 0)] = label
+        trace.centres[k], trace.radii[k] = centre, radius
+        trace.centre = centre
+        trace.radius = 0.7 * trace.radius + 0.3 * radius
+        trace.k = k
+        if progress is not None:
+            progress()
+        k += trace.step
+    return []
+
+
+def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, progress=None):
+    """Find the aorta and follow it up and down the CT, then the common iliacs below it.
+
+    Returns
+    -------
+    labels : numpy.ndarray of uint8
+        1 = aorta lumen, 2 = iliac lumen, per slice (no side branches yet).
+    traces : list of _Trace
+    lumen_hu : (float, float)
+        The lumen intensity range taken from the seed's statistics.
+    """
+    found = find_aorta_in_slices(ct, hu_window=hu_window, radius_mm=radius_mm)
+    if found is None:
+        raise InputError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
+                         f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice")
+    k0, centre, radius, _ = found
+    lumen_hu = _lumen_range(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct))
+    labels = np.zeros(ct.shape, dtype=np.uint8)
+    first = _lumen_in_slice(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct), lumen_hu, radius_mm[0])
+    if first is None or first[0] is None:
+        raise InputError(f"no aorta found: the blob in slice {k0} does not hold the lumen intensity {lumen_hu}")
+    mask, offset, centre, radius, _ = first
+    labels[k0, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]][mask] = 1
+    counter = _SliceCounter(ct.shape[0], progress)
+    up = _superior_step(ct)
+    traces = []
+    for step in (up, -up):
+        trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
+        traces.append(trace)
+        split = _follow(trace, ct, lumen_hu, labels, 1, counter)
+        if step == -up:
+            for k, c, r in split:
+                iliac = _Trace("iliac", k - step, c, r, step, ILIAC_MIN_RADIUS_MM)
+                traces.append(iliac)
+                _follow(iliac, ct, lumen_hu, labels, 2, counter)
+    return labels, traces, lumen_hu
+
+
+class _SliceCounter:
+    """Calls ``progress(done, total)`` once per traced slice (capped at ``total``)."""
+
+    def __init__(self, total: int, progress):
+        self.total, self.progress, self.done = total, progress, 0
+
+    def __call__(self):
+        self.done = min(self.done + 1, self.total)
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
+def _lumen_range(hu_slice: np.ndarray, centre, radius: float, spacing_ji) -> tuple[float, float]:
+    """Lumen HU range from the seed disc: from half way to soft tissue up to below bone."""
+    rows, cols = np.ogrid[:hu_slice.shape[0], :hu_slice.shape[1]]
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= 0.6 * radius
+    values = hu_slice[disc].astype(np.float64)
+    mean, std = float(np.median(values)), float(np.std(values))
+    lo = 0.5 * (mean + SOFT_TISSUE_HU)
+    hi = min(mean + max(4.0 * std, 250.0), BONE_HU + 200.0)
+    return lo, hi
+
+
+def _coarse_factor(ct: Volume, target_mm: float) -> np.ndarray:
+    """Integer (k, j, i) block sizes bringing the voxels near ``target_mm``."""
+    spacing_kji = np.asarray(ct.spacing, dtype=float)[::-1]
+    return np.maximum(1, np.round(target_mm / spacing_kji)).astype(int)
+
+
+def _block_reduce(array: np.ndarray, factor, func) -> np.ndarray:
+    """``func`` (np.mean / np.max) over ``factor`` blocks, the array cropped to whole blocks."""
+    factor = tuple(int(f) for f in factor)
+    shape = tuple(s // f for s, f in zip(array.shape, factor))
+    cropped = array[:shape[0] * factor[0], :shape[1] * factor[1], :shape[2] * factor[2]]
+    blocks = cropped.reshape(shape[0], factor[0], shape[1], factor[1], shape[2], factor[2])
+    return func(blocks, axis=(1, 3, 5))
+
+
+def _trunk_box(labels: np.ndarray, ct: Volume, margin_mm: float) -> tuple[slice, ...]:
+    """Index box of the traced lumen grown by ``margin_mm`` in plane and along z."""
+    box = _bounding_box(labels > 0)
+    margins = np.ceil(margin_mm / np.asarray(ct.spacing)[::-1]).astype(int)
+    return tuple(slice(max(b.start - m, 0), min(b.stop + m, n)) for b, m, n in zip(box, margins, labels.shape))
+
+
+def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_SIGMAS_MM,
+                  reach_mm: float = BRANCH_REACH_MM, voxel_mm: float = 1.5, min_vesselness: float = 0.04):
+    """Side branches (renal, visceral, iliac continuations) connected to the traced trunk.
+
+    On a copy reduced to about ``voxel_mm`` voxels around the trunk, bright tubular voxels
+    (Sato vesselness over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
+    ``lumen_hu``, away from cortical bone) are kept if they connect to the trunk within
+    ``reach_mm`` (geodesic steps through the candidates); round blobs (kidneys, heart, bowel)
+    respond weakly to the tubular filter and stay out. The result is brought back to the CT
+    grid and intersected with the lumen intensity range.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        Branch voxels on the CT grid (not including ``trunk``).
+    """
+    from skimage.filters import sato
+
+    box = _trunk_box(trunk, ct, reach_mm)
+    factor = _coarse_factor(ct, voxel_mm)
+    hu = np.asarray(ct.array[box], dtype=np.float32)
+    coarse = _block_reduce(hu, factor, np.mean)
+    coarse_trunk = _block_reduce(trunk[box] > 0, factor, np.max)
+    bone = ndi.binary_dilation(_block_reduce(hu > BONE_HU, factor, np.max), iterations=1)
+    coarse_mm = np.asarray(ct.spacing, dtype=float)[::-1] * factor
+    sigmas = [s / float(coarse_mm.mean()) for s in sigmas_mm]
+    contrast = float(lumen_hu[0] * 2 - SOFT_TISSUE_HU) - SOFT_TISSUE_HU
+    tubular = sato(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas=sigmas, black_ridges=False,
+                   mode="nearest") > min_vesselness * contrast
+    candidate = tubular & (coarse >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (coarse <= lumen_hu[1]) & ~bone
+    seeds = ndi.binary_dilation(coarse_trunk, iterations=1) & candidate
+    steps = int(math.ceil(reach_mm / float(coarse_mm.min())))
+    reached = ndi.binary_dilation(seeds, iterations=steps, mask=candidate | coarse_trunk) & ~coarse_trunk
+    full = np.zeros(trunk.shape, dtype=bool)
+    if reached.any():
+        grown = ndi.binary_dilation(reached, iterations=1)
+        upsampled = np.repeat(np.repeat(np.repeat(grown, factor[0], 0), factor[1], 1), factor[2], 2)
+        region = tuple(slice(b.start, b.start + n) for b, n in zip(box, upsampled.shape))
+        smooth = ndi.gaussian_filter(np.asarray(ct.array[region], dtype=np.float32),
+                                     0.6 / np.asarray(ct.spacing)[::-1])
+        full[region] = upsampled & (smooth >= lumen_hu[0]) & (smooth <= lumen_hu[1])
+    return full & (trunk == 0)
+
+
+def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, branches: bool = True,
+                         progress=None, postprocess: bool = True, return_labels: bool = False):
+    """Lumen mask of the aorta tree without any training (the fallback that always works).
+
+    1. :func:`find_aorta_in_slices`: the roundest bright blob in front of the spine.
+    2. :func:`trace_aorta`: follow it up and down slice by slice (overlap with the predicted
+       core, radius continuity), then the two common iliacs below the bifurcation; the
+       lumen range comes from the seed's own statistics.
+    3. :func:`grow_branches`: tubular bright voxels connected to the trunk (renals, visceral
+       arteries, iliac continuations); heart, kidneys, bowel and bone are not tubes.
+
+    Parameters
+    ----------
+    ct : Volume
+        Contrast CT in HU (any spacing, slice thickness and field of view).
+    progress : callable, optional
+        ``progress(done_slices, total_slices)`` while tracing.
+    return_labels : bool
+        Also return a label Volume: 1 aorta, 2 iliacs, 3 side branches.
+
+    Returns
+    -------
+    Volume (and the label Volume)
+        Boolean lumen mask on the CT grid.
+    """
+    _check_ct(ct)
+    labels, _, lumen_hu = trace_aorta(ct, hu_window=hu_window, radius_mm=radius_mm, progress=progress)
+    if branches:
+        labels[grow_branches(ct, labels, lumen_hu)] = 3
+    mask = ct.with_array(labels > 0)
+    if postprocess:
+        mask = postprocess_mask(mask)
+    if progress is not None:
+        progress(ct.shape[0], ct.shape[0])
+    if return_labels:
+        return mask, ct.with_array(np.where(mask.array, labels, 0).astype(np.uint8))
+    return mask
+
+
+# ----------------------------------------------------------------------------------------
+# Fluoroscopy with the pre-operative tree as a prior
+# ----------------------------------------------------------------------------------------
+
+def _frames(image: np.ndarray) -> list[np.ndarray]:
+    """The frames of a run: a (n, rows, cols) stack, or one 2D (or RGB) frame."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[-1] not in (3, 4):
+        return [image[n] for n in range(image.shape[0])]
+    return [image]
+
+
+def _polarity_by_prior(small: np.ndarray, distance: np.ndarray, nearest: np.ndarray, prior: FluoroPrior,
+                       factor: int) -> str:
+    """'dark' or 'bright': the sign of (inside the projected tree) - (a ring just outside it)."""
+    radius = prior.radii_px[nearest] / factor
+    core = distance <= np.maximum(0.5 * radius, 1.0)
+    ring = (distance > radius + 2.0) & (distance <= 2.0 * radius + 6.0)
+    if not core.any() or not ring.any():
+        return "dark"
+    return "dark" if np.median(small[core]) < np.median(small[ring]) else "bright"
+
+
+def frame_contrast_in_prior(frame: np.ndarray, prior: FluoroPrior, *, photometric=None, work_size: int = 256) -> float:
+    """|median inside the projected tree - median of a ring around it| over the frame's spread."""
+    grey = _grey_frame(frame, photometric)
+    factor = max(1, int(round(max(grey.shape) / work_size)))
+    small = _downsample(grey, factor)
+    spread = float(np.subtract(*np.percentile(small, [99.5, 0.5])))
+    if spread <= 0:
+        return 0.0
+    distance, nearest = prior.rasterise(small.shape, factor)
+    radius = prior.radii_px[np.maximum(nearest, 0)] / factor
+    core = distance <= np.maximum(0.5 * radius, 1.0)
+    ring = (distance > radius + 2.0) & (distance <= 2.0 * radius + 6.0)
+    if not core.any() or not ring.any():
+        return 0.0
+    return abs(float(np.median(small[core]) - np.median(small[ring]))) / spread
+
+
+def select_frame(image: np.ndarray, prior: FluoroPrior | None = None, *, photometric=None) -> int:
+    """Index of the frame of a run with the most contrast inside the projected tree.
+
+    Without a prior: the frame with the strongest top-hat contrast (the fullest vessels).
+    """
+    frames = _frames(image)
+    if len(frames) == 1:
+        return 0
+    if prior is not None:
+        scores = [frame_contrast_in_prior(f, prior, photometric=photometric) for f in frames]
+    else:
+        scores = []
+        for f in frames:
+            small = _downsample(_grey_frame(f, photometric), max(1, int(round(max(f.shape[:2]) / 128))))
+            lo, hi = np.percentile(small, [0.5, 99.5])
+            scores.append(0.0 if hi <= lo else float(np.percentile(_local_contrast(-(small - lo) / (hi - lo), 4), 99)))
+    return int(np.argmax(scores))
+
+
+def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, straightness: float = 0.08,
+                           width_ratio: float = 0.55, min_length: float = 20.0) -> np.ndarray:
+    """Components that look like a wire, catheter or sheath: long, very straight and thinner than
+    the vessel expected where they lie. Returns the mask of those components."""
+    labels, n = ndi.label(mask)
+    devices = np.zeros_like(mask)
+    for index, region in enumerate(ndi.find_objects(labels), start=1):
+        if region is None:
+            continue
+        component = labels[region] == index
+        coords = np.argwhere(component).astype(float)
+        if len(coords) < 3:
+            continue
+        centred = coords - coords.mean(axis=0)
+        eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(coords)), 0.0))
+        length = 2.0 * math.sqrt(3.0) * eigen[1]
+        width = len(coords) / max(length, 1.0)
+        expected = float(np.median(expected_width[region][component]))
+        if length >= min_length and eigen[0] / max(eigen[1], 1e-9) <= straightness and width < width_ratio * expected:
+            devices[region] |= component
+    return devices
+
+
+def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4) -> np.ndarray:
+    """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
+    (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
+    bowel loop touching it can."""
+    from skimage.morphology import skeletonize
+
+    if not vessel.any():
+        return vessel
+    spine = skeletonize(vessel)
+    distance, (ri, ci) = ndi.distance_transform_edt(~spine, return_indices=True)
+    return distance <= slack * radius[ri, ci] + 1.0
+
+
+def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: str, work_size: int,
+                               high: float, low: float, contrast_fraction: float, min_area_fraction: float):
+    """Vessel mask of one grey frame, looking only in the band around the projected tree."""
+    factor = max(1, int(round(max(frame.shape) / work_size)))
+    small = _normalise(_downsample(frame, factor))
+    distance, nearest = prior.rasterise(small.shape, factor)
+    nearest = np.maximum(nearest, 0)
+    if vessels == "auto":
+        vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
+    oriented = small if vessels == "bright" else 1.0 - small
+    radius = prior.radii_px[nearest] / factor
+    band = distance <= radius + prior.margin_px[nearest] / factor
+    r_min = max(float(np.percentile(prior.radii_px, 5)) / factor, 0.8)
+    r_max = max(float(np.percentile(prior.radii_px, 99)) / factor, r_min)
+    sigmas = np.geomspace(max(0.6 * r_min, 0.8), max(0.6 * r_max, 1.0), 4)
+    response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
+    vessel = _vessel_region(oriented, response, float(sigmas[-1]), high, low, contrast_fraction) & band
+    vessel &= _within_expected_width(vessel, radius)
+    thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
+    vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
+    vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
+    vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
+    soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
+    return _upsample(soft, factor, frame.shape) > 0.5

