@@ -241,7 +241,7 @@ def test_end_to_end_phantom_case_in_the_worker_thread(window, tmp_path, qapp):
     assert (result.path.start_label, result.path.target_label) == ("iliac_right", "renal_left")
     assert window.outcome.surface is not None and window.outcome.surface.GetNumberOfPolys() > 1000
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == \
-        ["deformed_centerline.vtp", "overlay.png", "path.mrk.json", "result.json"]
+        ["deformed_centerline.vtp", "overlay.png", "path.mrk.json", "result.json", "segmentation_qc.png"]
     assert json.loads((tmp_path / "out" / "result.json").read_text())["method"] == "proposed"
     assert window.widget("resultsTableWidget").rowCount() == len(summary_rows(result))
     truth = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["intraop_centerline"])
