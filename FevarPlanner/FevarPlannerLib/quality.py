@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage as ndi
 
+from .conventions import PALETTE
 from .io import InputError, Volume, atomic_path
 
 __all__ = ["FluoroPrior", "TYPICAL_RADIUS_MM", "DEFORMATION_MARGIN_MM", "MAIN_VESSELS", "LENGTH_RANGE_MM", "RADIUS_RANGE_MM", "QualityError", "QCData", "check_preop_tree",
@@ -338,7 +339,7 @@ def _frame_panel(ax, frame: np.ndarray, mask2d, prior) -> None:
         ax.contour(np.asarray(mask2d) > 0, [0.5], colors="red", linewidths=0.6)
     if prior is not None:
         for a, b in prior.edges:
-            ax.plot(prior.uv[[a, b], 0], prior.uv[[a, b], 1], color="orange", linewidth=0.8)
+            ax.plot(prior.uv[[a, b], 0], prior.uv[[a, b], 1], color=PALETTE["preop"], linewidth=0.8)
     ax.set_xlim(0, grey.shape[1])
     ax.set_ylim(grey.shape[0], 0)
     ax.set_title("frame: mask red, projected pre-op tree orange", fontsize=8)

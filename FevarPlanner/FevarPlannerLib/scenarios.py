@@ -19,7 +19,7 @@ writers (:mod:`io`) and the projection (:mod:`projection`) are common. A scenari
   tree lacks (distal iliac forks, lumbar stubs), misaligned given poses, angulated views
   and two-view cases.
 
-Case folders follow DESIGN.md section 4: ``aorta_mask.nrrd`` (the pre-operative lumen on a
+Case folders follow docs/DESIGN.md section 4: ``aorta_mask.nrrd`` (the pre-operative lumen on a
 1 mm CT grid), ``fluoro_mask.png`` + ``geometry.json`` (the main view, given ``P``),
 ``views/<name>/fluoro_mask.png`` + ``geometry.json`` for a second view, ``gt.json`` (the
 intra- and pre-operative centrelines of the CT's tubes, node ``n`` of one is node ``n`` of
@@ -735,7 +735,7 @@ def mask_end_points(mask: np.ndarray) -> np.ndarray:
 
 
 def write_scenario(case: ScenarioCase | Scenario, folder) -> Path:
-    """Write a scenario as a case folder (DESIGN.md section 4), atomically; returns the folder.
+    """Write a scenario as a case folder (docs/DESIGN.md section 4), atomically; returns the folder.
 
     ``aorta_mask.nrrd``, ``fluoro_mask.png`` + ``geometry.json`` (the first view, given
     ``P``; ``true_projection_matrix`` beside it), ``views/<name>/`` for any further view,
