@@ -54,9 +54,14 @@ __all__ = [
     "ras_to_lps",
     "module_resource_path",
     "centerline_polydata_ras",
+    "model_node_to_centerline",
     "centerline_to_model_node",
     "path_to_curve_node",
     "fluoro_to_volume_node",
+    "volume_to_node",
+    "node_to_volume",
+    "mask_to_segmentation_node",
+    "segmentation_node_to_mask",
     "result_nodes",
     "remove_result_nodes",
     "FevarPlannerLogic",
@@ -129,18 +134,124 @@ def _vtk_points(points: np.ndarray) -> vtk.vtkPoints:
 def centerline_polydata_ras(centerline: Centerline) -> vtk.vtkPolyData:
     """The centreline as export's vtkPolyData (line per edge, label arrays) with RAS points.
 
-    The field data ``coordinateSystem`` says ``RAS``, so
-    :func:`FevarPlannerLib.export.polydata_to_centerline` reads it back to LPS.
+    It carries no coordinate-system tag: a model node's data is RAS by definition, and
+    Slicer's model storage converts it and writes its own ``SPACE`` tag when it saves it.
     """
     # imported here, not at the top: export pulls in the readers (pydicom, Pillow), which a
     # fresh Slicer may lack until the widget has offered to install them
     from FevarPlannerLib import export
 
-    polydata = export.centerline_to_polydata(centerline)
-    polydata.SetPoints(_vtk_points(lps_to_ras(centerline.points)))
-    system = polydata.GetFieldData().GetAbstractArray("coordinateSystem")
-    system.SetValue(0, "RAS")
-    return polydata
+    return export.centerline_to_polydata(centerline, space=None)
+
+
+def model_node_to_centerline(node) -> Centerline:
+    """The centreline a model node shows, back in LPS mm (the node's points are RAS)."""
+    from FevarPlannerLib import export
+
+    return export.polydata_to_centerline(node.GetPolyData(), "RAS")
+
+
+#: Homogeneous LPS <-> RAS (its own inverse).
+LPS_TO_RAS_4X4 = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def _vtk_matrix(array: np.ndarray) -> vtk.vtkMatrix4x4:
+    matrix = vtk.vtkMatrix4x4()
+    for row in range(4):
+        for col in range(4):
+            matrix.SetElement(row, col, float(array[row, col]))
+    return matrix
+
+
+def _numpy_matrix(matrix: vtk.vtkMatrix4x4) -> np.ndarray:
+    return np.array([[matrix.GetElement(row, col) for col in range(4)] for row in range(4)])
+
+
+def volume_to_node(scene, volume, name: str, role: str | None = None,
+                   node_class: str = "vtkMRMLScalarVolumeNode"):
+    """Add a core :class:`FevarPlannerLib.io.Volume` (LPS) to ``scene`` as a volume node (RAS).
+
+    The voxel array keeps its ``(k, j, i)`` layout; the node's IJK-to-RAS matrix is the
+    volume's index-to-LPS matrix with x and y negated.
+    """
+    array = np.ascontiguousarray(volume.array)
+    if array.dtype == bool:
+        array = array.astype(np.uint8)
+    data = vtk.vtkImageData()
+    data.SetDimensions(array.shape[2], array.shape[1], array.shape[0])  # i, j, k
+    data.GetPointData().SetScalars(numpy_support.numpy_to_vtk(array.ravel(), deep=True,
+                                                              array_type=numpy_support.get_vtk_array_type(array.dtype)))
+    node = scene.AddNewNodeByClass(node_class)
+    node.SetName(name)
+    if role:
+        node.SetAttribute(ROLE_ATTRIBUTE, role)
+    node.SetIJKToRASMatrix(_vtk_matrix(LPS_TO_RAS_4X4 @ volume.index_to_lps_matrix))
+    node.SetAndObserveImageData(data)
+    return node
+
+
+def node_to_volume(node):
+    """A volume node (a CT loaded from DICOM, a labelmap) as a core ``Volume`` in LPS mm."""
+    from FevarPlannerLib.io import Volume
+
+    data = node.GetImageData()
+    if data is None or data.GetNumberOfPoints() == 0:
+        raise ValueError(f"volume node {node.GetName()!r} holds no image data")
+    matrix = vtk.vtkMatrix4x4()
+    node.GetIJKToRASMatrix(matrix)
+    index_to_lps = LPS_TO_RAS_4X4 @ _numpy_matrix(matrix)
+    columns = index_to_lps[:3, :3]
+    spacing = np.linalg.norm(columns, axis=0)
+    dims = data.GetDimensions()
+    array = numpy_support.vtk_to_numpy(data.GetPointData().GetScalars()).reshape(dims[2], dims[1], dims[0])
+    return Volume(array.copy(), spacing, index_to_lps[:3, 3], columns / spacing)
+
+
+def mask_to_segmentation_node(scene, mask, reference_node, name: str = "FevarPlanner aorta",
+                              segment_name: str = "aorta", color=(0.85, 0.32, 0.30)):
+    """The binary lumen mask (core ``Volume``, LPS) as a segmentation node, editable in Segment Editor.
+
+    The segmentation's reference geometry is ``reference_node`` (the CT), so Segment Editor
+    paints on the CT's grid and :func:`segmentation_node_to_mask` reads it back on that grid.
+    """
+    labelmap = volume_to_node(scene, mask.with_array(np.asarray(mask.array) > 0), "FevarPlanner lumen labelmap",
+                              node_class="vtkMRMLLabelMapVolumeNode")
+    segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode")
+    segmentation.SetName(name)
+    segmentation.SetAttribute(ROLE_ATTRIBUTE, "aorta")
+    segmentation.SetReferenceImageGeometryParameterFromVolumeNode(reference_node)
+    ok = slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation)
+    scene.RemoveNode(labelmap)
+    if not ok or segmentation.GetSegmentation().GetNumberOfSegments() != 1:
+        raise RuntimeError("could not turn the lumen mask into a segmentation")
+    segment = segmentation.GetSegmentation().GetNthSegment(0)
+    segment.SetName(segment_name)
+    segment.SetColor(*color)
+    return segmentation
+
+
+def segmentation_node_to_mask(segmentation, reference_node, segment_name: str | None = None):
+    """A segmentation node (as edited in Segment Editor) as a binary core ``Volume`` on the CT grid.
+
+    ``segment_name`` picks one segment (default: every segment, merged).
+    """
+    ids = vtk.vtkStringArray()
+    segments = segmentation.GetSegmentation()
+    for index in range(segments.GetNumberOfSegments()):
+        if segment_name is None or segments.GetNthSegment(index).GetName() == segment_name:
+            ids.InsertNextValue(segments.GetNthSegmentID(index))
+    if ids.GetNumberOfValues() == 0:
+        raise ValueError(f"segmentation {segmentation.GetName()!r} has no segment {segment_name!r}")
+    scene = segmentation.GetScene()
+    labelmap = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode")
+    try:
+        if not slicer.vtkSlicerSegmentationsModuleLogic.ExportSegmentsToLabelmapNode(segmentation, ids, labelmap,
+                                                                                     reference_node):
+            raise RuntimeError(f"could not export segmentation {segmentation.GetName()!r} to a labelmap")
+        volume = node_to_volume(labelmap)
+    finally:
+        scene.RemoveNode(labelmap)
+    return volume.with_array(volume.array > 0)
 
 
 def _tag(node, role: str, name: str) -> None:

@@ -147,7 +147,7 @@ def test_vtp_round_trip_keeps_points_edges_labels_and_arrays(tmp_path, tree):
     reader.Update()
     polydata = reader.GetOutput()
     assert polydata.GetNumberOfLines() == len(tree.edges)
-    assert polydata.GetFieldData().GetAbstractArray("coordinateSystem").GetValue(0) == "LPS"
+    assert polydata.GetFieldData().GetAbstractArray("SPACE").GetValue(0) == "LPS"
     codes = [int(polydata.GetPointData().GetArray("label").GetValue(i)) for i in range(len(tree))]
     assert [ANATOMY_LABELS[c] for c in codes] == tree.labels
     stored = polydata.GetPointData().GetArray("error_mm")

@@ -97,7 +97,7 @@ def test_centerline_model_node_holds_ras_lines_and_reads_back_as_lps(scene, anat
     assert polydata.GetNumberOfLines() == len(preop.edges)
     first = np.array(polydata.GetPoint(0))
     np.testing.assert_allclose(first, preop.points[0] * [-1.0, -1.0, 1.0])
-    back = export.polydata_to_centerline(polydata)
+    back = fp.model_node_to_centerline(node)
     np.testing.assert_allclose(back.points, preop.points, atol=1e-9)
     assert back.labels == preop.labels
     assert node.GetAttribute(fp.ROLE_ATTRIBUTE) == "preop"

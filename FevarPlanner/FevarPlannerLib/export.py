@@ -7,8 +7,11 @@ file, and an existing file is only replaced by a complete, validated one.
 * ``result.json`` (:data:`RESULT_VERSION` 1) follows docs/DESIGN.md section 4;
   :func:`validate_result` is its schema, written out by hand.
 * ``*.vtp``: the centreline graph as vtkPolyData, one line cell per edge, point data
-  ``label`` (index into :data:`ANATOMY_LABELS`) and ``label_name``, field data
-  ``coordinateSystem`` = ``"LPS"``.
+  ``label`` (index into :data:`ANATOMY_LABELS`) and ``label_name``, and the coordinate
+  system the way 3D Slicer's model storage writes and reads it: field data ``SPACE`` =
+  ``"LPS"`` (a legacy ``.vtk`` says ``SPACE=LPS`` in its header line instead). Slicer
+  removes ``SPACE`` when it loads a file and writes its own when it saves one, so that tag
+  is never stale; the older ``coordinateSystem`` array is read only when ``SPACE`` is absent.
 * ``*.mrk.json``: a Slicer markups curve (schema v1.0.3) with an explicit coordinate system.
 * ``overlay.png``: the fluoroscopic frame with projected centrelines, pixel for pixel.
 * a 3D picture of centrelines (and optionally the aorta surface), rendered offscreen.
@@ -28,6 +31,7 @@ from vtkmodules.util import numpy_support
 from vtkmodules.vtkCommonCore import (vtkLogger, vtkOutputWindow, vtkPoints, vtkStringArray,
                                       vtkStringOutputWindow)
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkIOLegacy import vtkPolyDataReader
 from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 
 from .centerline import Centerline
@@ -44,6 +48,7 @@ __all__ = [
     "read_result_json",
     "centerline_to_polydata",
     "polydata_to_centerline",
+    "coordinate_system_of",
     "write_centerline_vtp",
     "read_centerline_vtp",
     "write_path_markups",
@@ -66,6 +71,12 @@ REQUIRED_TIMINGS = ("total", "registration")
 IDENTITY_ORIENTATION = {"LPS": [-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0],
                         "RAS": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]}
 LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
+#: Slicer's model files name their coordinate system with this field-data array (.vtp) or
+#: ``SPACE=LPS`` / ``SPACE=RAS`` in the header line (legacy .vtk), after the NRRD key.
+SPACE_TAG = "SPACE"
+#: The tag this project wrote before it followed Slicer; read only when ``SPACE`` is absent.
+LEGACY_SPACE_TAG = "coordinateSystem"
+COORDINATE_SYSTEMS = ("LPS", "RAS")
 
 
 # ----------------------------------------------------------------------------- result.json
@@ -299,19 +310,29 @@ def read_result_json(path) -> dict:
 
 # ----------------------------------------------------------------------------- .vtp
 
-def centerline_to_polydata(centerline: Centerline, arrays: dict | None = None) -> vtkPolyData:
-    """vtkPolyData of a centreline: LPS points, one line per edge, label arrays, extra arrays.
+def centerline_to_polydata(centerline: Centerline, arrays: dict | None = None, *,
+                           space: str | None = "LPS") -> vtkPolyData:
+    """vtkPolyData of a centreline: points, one line per edge, label arrays, extra arrays.
 
     Parameters
     ----------
     centerline : Centerline
+        Points in LPS mm.
     arrays : dict of str -> array_like, optional
         Extra point data, each of shape (n,) or (n, k) (e.g. a per-node error in mm).
+    space : {"LPS", "RAS", None}
+        The points are written in this system and the field data ``SPACE`` names it, as
+        Slicer's model storage does. ``None``: RAS points and no tag, which is what a Slicer
+        model node holds in memory (its scene is RAS; a tag there would go stale when Slicer
+        saves the model in LPS).
     """
+    if space not in COORDINATE_SYSTEMS + (None,):
+        raise ValueError(f"space must be 'LPS', 'RAS' or None, got {space!r}")
     n = len(centerline)
     polydata = vtkPolyData()
     points = vtkPoints()
-    points.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(centerline.points, dtype=float), deep=True))
+    xyz = centerline.points if space == "LPS" else centerline.points * LPS_TO_RAS
+    points.SetData(numpy_support.numpy_to_vtk(np.ascontiguousarray(xyz, dtype=float), deep=True))
     polydata.SetPoints(points)
     lines = vtkCellArray()
     offsets = np.arange(0, 2 * len(centerline.edges) + 1, 2, dtype=np.int64)
@@ -331,10 +352,11 @@ def centerline_to_polydata(centerline: Centerline, arrays: dict | None = None) -
     for name, values in (arrays or {}).items():
         polydata.GetPointData().AddArray(_point_array(name, values, n))
 
-    system = vtkStringArray()
-    system.SetName("coordinateSystem")
-    system.InsertNextValue("LPS")
-    polydata.GetFieldData().AddArray(system)
+    if space is not None:
+        system = vtkStringArray()
+        system.SetName(SPACE_TAG)
+        system.InsertNextValue(space)
+        polydata.GetFieldData().AddArray(system)
     return polydata
 
 
@@ -375,22 +397,57 @@ def _point_labels(polydata: vtkPolyData, count: int) -> list:
     return [ANATOMY_LABELS[code] for code in codes]
 
 
-def _coordinate_system(polydata: vtkPolyData) -> str:
-    system = polydata.GetFieldData().GetAbstractArray("coordinateSystem")
-    if system is None or system.GetNumberOfValues() == 0:
-        return "LPS"
-    value = str(system.GetVariantValue(0).ToString()).upper()
-    if value not in ("LPS", "RAS"):
-        raise ValueError(f"unknown coordinateSystem {value!r} (expected LPS or RAS)")
+def _space_value(text: str, where: str) -> str:
+    value = str(text).strip().upper()
+    if value not in COORDINATE_SYSTEMS:
+        raise ValueError(f"unknown {where} {text!r} (expected LPS or RAS)")
     return value
 
 
-def polydata_to_centerline(polydata: vtkPolyData) -> Centerline:
-    """The :class:`Centerline` held by a vtkPolyData (points in LPS, whatever it was written in)."""
+def _field_string(polydata: vtkPolyData, name: str) -> str | None:
+    array = polydata.GetFieldData().GetAbstractArray(name)
+    if array is None or array.GetNumberOfValues() == 0:
+        return None
+    return str(array.GetVariantValue(0).ToString())
+
+
+def coordinate_system_of(polydata: vtkPolyData, header: str | None = None, default: str = "LPS") -> str:
+    """The coordinate system a model file's points are in, decided the way Slicer decides it.
+
+    Slicer's ``vtkMRMLModelStorageNode`` reads ``SPACE=RAS`` / ``SPACE=LPS`` from a legacy
+    .vtk header line, or the field-data string ``SPACE`` of a .vtp, and assumes LPS when the
+    file says nothing. Here ``SPACE`` (or the header) wins; this project's older
+    ``coordinateSystem`` field array is used only when neither is present, since Slicer keeps
+    that array unchanged (and so stale) when it re-saves a model in another system.
+    """
+    if header:
+        for system in COORDINATE_SYSTEMS:
+            if f"{SPACE_TAG}={system}" in header:
+                return system
+    for name in (SPACE_TAG, LEGACY_SPACE_TAG):
+        value = _field_string(polydata, name)
+        if value is not None:
+            return _space_value(value, name)
+    return default
+
+
+def polydata_to_centerline(polydata: vtkPolyData, coordinate_system: str | None = None) -> Centerline:
+    """The :class:`Centerline` held by a vtkPolyData, points returned in LPS.
+
+    Parameters
+    ----------
+    polydata : vtkPolyData
+    coordinate_system : {"LPS", "RAS", None}
+        The system of the points; None reads it from the field data
+        (:func:`coordinate_system_of`). A Slicer model node's polydata is RAS whatever its
+        arrays say: pass ``"RAS"`` for it.
+    """
     if polydata.GetPoints() is None or polydata.GetNumberOfPoints() == 0:
         raise ValueError("the polydata has no points")
+    system = coordinate_system_of(polydata) if coordinate_system is None else _space_value(coordinate_system,
+                                                                                          "coordinate system")
     points = numpy_support.vtk_to_numpy(polydata.GetPoints().GetData()).astype(float)
-    if _coordinate_system(polydata) == "RAS":
+    if system == "RAS":
         points = points * LPS_TO_RAS
     return Centerline(points, _line_edges(polydata), _point_labels(polydata, len(points)))
 
@@ -420,9 +477,10 @@ def _vtk_error_line(window: vtkStringOutputWindow) -> str:
 
 
 def write_centerline_vtp(path, centerline: Centerline, *, arrays: dict | None = None) -> None:
-    """Write a centreline as a VTK XML PolyData file (.vtp), atomically.
+    """Write a centreline as a VTK XML PolyData file (.vtp) in LPS, atomically.
 
-    See :func:`centerline_to_polydata` for the content; ``arrays`` adds point data.
+    See :func:`centerline_to_polydata` for the content; ``arrays`` adds point data. The
+    field data ``SPACE`` = ``LPS`` makes Slicer load it in the right place.
     """
     path = Path(path)
     polydata = centerline_to_polydata(centerline, arrays)
@@ -434,19 +492,32 @@ def write_centerline_vtp(path, centerline: Centerline, *, arrays: dict | None = 
             raise OSError(f"{path}: cannot write VTK polydata ({_vtk_error_line(errors) or 'write failed'})")
 
 
-def read_centerline_vtp(path) -> Centerline:
-    """Read a centreline .vtp (as :func:`write_centerline_vtp` writes) into LPS mm."""
-    path = Path(path)
-    check_readable(path)
+def _read_model_file(path: Path):
+    """(polydata, legacy header or None) of a .vtp or legacy .vtk file."""
+    legacy = path.suffix.lower() == ".vtk"
+    reader = vtkPolyDataReader() if legacy else vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    if legacy:
+        reader.ReadAllFieldsOn()
     with _vtk_errors_captured() as errors:
-        reader = vtkXMLPolyDataReader()
-        reader.SetFileName(str(path))
         reader.Update()
     message = _vtk_error_line(errors)
-    if message:
-        raise InputError(f"{path}: cannot read VTK polydata ({message})")
+    if message or (legacy and not reader.IsFilePolyData()):
+        raise InputError(f"{path}: cannot read VTK polydata ({message or 'not polydata'})")
+    return reader.GetOutput(), (reader.GetHeader() if legacy else None)
+
+
+def read_centerline_vtp(path) -> Centerline:
+    """Read a centreline model file (.vtp, or a legacy .vtk as Slicer saves by default) into LPS mm.
+
+    The points' coordinate system is read as Slicer reads it (:func:`coordinate_system_of`),
+    so a model that Slicer saved (LPS points, ``SPACE`` = ``LPS``) comes back unchanged.
+    """
+    path = Path(path)
+    check_readable(path)
+    polydata, header = _read_model_file(path)
     try:
-        return polydata_to_centerline(reader.GetOutput())
+        return polydata_to_centerline(polydata, coordinate_system_of(polydata, header))
     except ValueError as exc:
         raise InputError(f"{path}: {exc}") from None
 
