@@ -8,7 +8,7 @@ from FevarPlannerLib.cli import ProgressBar, build_parser, main
 
 def test_progress_bar_draws_fraction_and_ends_the_line():
     stream = io.StringIO()
-    bar = ProgressBar(stream=stream, width=10)
+    bar = ProgressBar(stream=stream, width=10, tty=True)
     bar(0.5, "halfway")
     bar.count(4, 4, "done")
     text = stream.getvalue()
@@ -17,6 +17,20 @@ def test_progress_bar_draws_fraction_and_ends_the_line():
     silent = io.StringIO()
     ProgressBar(stream=silent, enabled=False)(0.3, "x")
     assert silent.getvalue() == ""
+
+
+def test_progress_without_a_terminal_is_one_line_per_step_or_tenth():
+    stream = io.StringIO()
+    bar = ProgressBar(stream=stream)  # a StringIO is not a TTY
+    for done in range(41):
+        bar(0.05 + 0.1 * done / 40, f"segmenting the aorta: slice {done}/40")
+    bar(0.25, "3D skeleton graph")
+    bar(1.0, "done")
+    lines = stream.getvalue().splitlines()
+    assert "\r" not in stream.getvalue()
+    assert len(lines) == 4  # the step at 5 %, its 10 % decile, the next step, done
+    assert lines[0].startswith("[  5%]") and "slice 0/40" in lines[0]
+    assert lines[-1].startswith("[100%]") and lines[-1].endswith("done")
 
 
 class _Reached(Exception):
@@ -37,6 +51,8 @@ _WIRING = {
     "benchmark": (["benchmark", "--out", "o", "--seed", "5"], "FevarPlannerLib.benchmark.run_benchmark", 5),
     "train-unet": (["train-unet", "c", "--out", "w.pt", "--iterations", "9"], "FevarPlannerLib.segmentation.train_unet", 9),
     "segment": (["segment", "ct.nrrd", "--out", "m.nrrd"], "FevarPlannerLib.io.read_ct", "ct.nrrd"),
+    "track": (["track", "case_dir", "--out", "o", "--count", "7"], "FevarPlannerLib.tracking.track_case", 7),
+    "geometry": (["geometry", "case_dir", "--shift", "1", "2"], "FevarPlannerLib.io.find_case_file", "case_dir"),
 }
 
 

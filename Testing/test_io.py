@@ -404,9 +404,14 @@ def test_load_case_with_dicom_ct_folder(tmp_path):
     volume = ct_volume(OBLIQUE)
     io.write_ct_dicom_series(volume, case / "ct")
     io.write_fluoro_dicom(case / "fluoro.dcm", fluoro_frames(), CARM)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         loaded = io.load_case(case)
+    # the one warning says what P from the tags assumed
+    assert [w.category.__name__ for w in caught] == ["GeometryAssumptionWarning"]
+    assert "isocentre lies at the centre of the CT volume" in str(caught[0].message)
+    assert "table position" in str(caught[0].message)
+    assert loaded.geometry.kind == "dicom-tags" and loaded.geometry.tags["PositionerPrimaryAngle"] == CARM.primary_angle
     assert loaded.stage_3d == "ct"
     np.testing.assert_array_equal(loaded.ct.array, volume.array)
     np.testing.assert_allclose(loaded.P, projection_matrix_from_carm(CARM, volume.center_lps()), atol=1e-8)

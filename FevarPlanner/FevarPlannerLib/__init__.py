@@ -9,3 +9,8 @@ baselines (ICP-TPS, rigid), evaluation (the paper's metrics) and cli beside them
 """
 
 __version__ = "0.1.0"
+
+#: Said by the CLI (--help, --version), the Slicer module's help and the README.
+RESEARCH_USE_STATEMENT = (
+    "FevarPlanner is research software. It is not a medical device, has not been cleared or approved "
+    "by any regulator, and must not be used for diagnosis, treatment or any clinical decision.")

@@ -28,7 +28,8 @@ from pydicom.uid import (CTImageStorage, ExplicitVRLittleEndian, PYDICOM_IMPLEME
                          XRayAngiographicImageStorage, generate_uid)
 from pydicom.valuerep import format_number_as_ds
 
-from .projection import CArmGeometry, projection_matrix_from_carm, read_geometry_json
+from .projection import (CArmGeometry, GeometryAssumptionWarning, GeometrySource, apply_in_plane_correction,
+                         projection_matrix_from_carm, read_geometry_file)
 
 __all__ = [
     "InputError",
@@ -826,6 +827,7 @@ class Case:
     P: np.ndarray
     paths: dict[str, Path] = field(default_factory=dict)
     available: dict[str, Path] = field(default_factory=dict)
+    geometry: GeometrySource | None = None
 
     @property
     def stage_3d(self) -> str:
@@ -899,21 +901,37 @@ def _require_inputs(case_dir: Path | None, available: dict[str, Path]) -> None:
 
 
 def _projection_for_case(case_dir: Path | None, available: dict[str, Path], fluoro: Fluoro,
-                         reference: Volume) -> tuple[np.ndarray, Path]:
-    """P from geometry.json, else from the frame's C-arm tags with the isocentre at the volume centre."""
+                         reference: Volume) -> tuple[np.ndarray, Path, GeometrySource]:
+    """P from geometry.json, else from the frame's C-arm tags with the isocentre at the volume centre.
+
+    A geometry.json holding only an ``in_plane_correction`` corrects the P of the tags. When
+    P comes from the tags, a :class:`GeometryAssumptionWarning` says what was assumed.
+    """
+    P, correction = None, None
     if "geometry" in available:
         try:
-            return read_geometry_json(available["geometry"]), available["geometry"]
+            P, correction = read_geometry_file(available["geometry"])
         except ValueError as exc:
             raise InputError(str(exc)) from None
-    if fluoro.carm is None:
+    if P is not None:
+        source = GeometrySource("geometry.json", str(available["geometry"]))
+        path = available["geometry"]
+    elif fluoro.carm is None:
         where = case_dir if case_dir is not None else fluoro.path
-        raise InputError(f"{where}: geometry.json is missing and {fluoro.path} has no C-arm tags "
-                         f"(lacks {', '.join(fluoro.missing_tags)})")
-    try:
-        return projection_matrix_from_carm(fluoro.carm, reference.center_lps()), fluoro.path
-    except ValueError as exc:
-        raise InputError(f"{fluoro.path}: {exc}") from None
+        raise InputError(f"{where}: geometry.json is missing (or holds no projection_matrix) and {fluoro.path} "
+                         f"has no C-arm tags (lacks {', '.join(fluoro.missing_tags)})")
+    else:
+        try:
+            P = projection_matrix_from_carm(fluoro.carm, reference.center_lps())
+        except ValueError as exc:
+            raise InputError(f"{fluoro.path}: {exc}") from None
+        source, path = GeometrySource.from_carm(fluoro.carm, fluoro.path, reference.center_lps()), fluoro.path
+    if correction:
+        source.in_plane_correction = dict(correction, file=str(available["geometry"]))
+        P = apply_in_plane_correction(P, correction, fluoro.shape)
+    if source.assumptions:
+        warnings.warn(source.describe(), GeometryAssumptionWarning, stacklevel=3)
+    return P, path, source
 
 
 def frame_from_mask(mask: np.ndarray, path=None) -> Fluoro:
@@ -971,7 +989,7 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
         paths["fluoro_mask"] = available["fluoro_mask"]
         if "fluoro" not in available:
             frame_2d = frame_from_mask(mask_2d, available["fluoro_mask"])
-    P, paths["geometry"] = _projection_for_case(case_dir, available, frame_2d, volumes[stage])
+    P, paths["geometry"], source = _projection_for_case(case_dir, available, frame_2d, volumes[stage])
     return Case(case_dir=case_dir, ct=volumes["ct"], aorta_mask=volumes["aorta_mask"],
                 skeleton3d=volumes["skeleton3d"], fluoro=frame_2d, fluoro_mask=mask_2d, P=P,
-                paths=paths, available=available)
+                paths=paths, available=available, geometry=source)

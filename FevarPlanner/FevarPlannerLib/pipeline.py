@@ -32,7 +32,7 @@ from .io import Case, InputError, load_case
 from .projection import image_directions, project
 
 __all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "preop_from_lumen",
-           "prepare_preop", "register_frame", "run_case", "plan_case", "write_outputs"]
+           "build_preop", "prepare_preop", "register_frame", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
 #: Laplacian smoothing passes over both skeletons (graph.smooth_positions), which takes out
@@ -102,11 +102,15 @@ class PlanResult:
     errors: dict | None = None
     inputs: dict = field(default_factory=dict)
     qc: quality.QCData | None = None
+    geometry: dict | None = None
+    drr: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs}
         if self.errors is not None:
             extra["errors"] = self.errors
+        if self.geometry is not None:
+            extra["geometry"] = self.geometry
         return export.build_result_dict(self.method, self.preop, self.deformed, self.path, self.timings, **extra)
 
 
@@ -127,7 +131,10 @@ def _skeleton3d_and_lumen(case: Case, progress=None, segmenter: str = "unet"):
         from . import segmentation
 
         _report(progress, 0.05, "segmenting the aorta in the CT")
-        mask = segmentation.segment_ct(case.ct, segmenter)
+        # the UNet reports slice by slice: move the bar from 5 to 15 %
+        kwargs = {"progress": lambda done, total: _report(progress, 0.05 + 0.1 * done / max(total, 1),
+                                                          f"segmenting the aorta: slice {done}/{total}")}
+        mask = segmentation.segment_ct(case.ct, segmenter, **(kwargs if segmenter == "unet" else {}))
     _report(progress, 0.15, "thinning the 3D lumen")
     return skeleton.skeletonize_3d(mask), mask
 
@@ -160,15 +167,28 @@ def preop_from_lumen(lumen, timings: dict | None = None) -> Preoperative:
     return preop_from_skeleton(skeleton.skeletonize_3d(lumen), timings, lumen)
 
 
-def prepare_preop(case: Case, progress=None, segmenter: str = "unet") -> Preoperative:
-    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1), centred and labelled.
-
-    A case holding only a CT is segmented first with ``segmenter`` ("unet" or "threshold").
-    """
+def build_preop(case: Case, progress=None, segmenter: str = "unet"):
+    """(:class:`Preoperative`, lumen mask or None) of a case, computed (see :func:`prepare_preop`)."""
     timings = {}
     with _timed(timings, "preop_skeleton3d"):
         skeleton_volume, lumen = _skeleton3d_and_lumen(case, progress, segmenter)
-    return preop_from_skeleton(skeleton_volume, timings, lumen)
+    _report(progress, 0.25, "3D skeleton graph and Algorithm 1")
+    return preop_from_skeleton(skeleton_volume, timings, lumen), lumen
+
+
+def prepare_preop(case: Case, progress=None, segmenter: str = "unet", cache=False) -> Preoperative:
+    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1), centred and labelled.
+
+    A case holding only a CT is segmented first with ``segmenter`` ("unet" or "threshold").
+    ``cache``: True (the default cache folder) or a folder keeps the result on disk and
+    reuses it for the same inputs (:mod:`cache`); False computes it.
+    """
+    if cache is False or cache is None:
+        return build_preop(case, progress, segmenter)[0]
+    from . import cache as preop_cache
+
+    folder = None if cache is True else cache
+    return preop_cache.preop_model(case, segmenter=segmenter, progress=progress, cache_dir=folder).preop
 
 
 def _pixels_per_mm(P: np.ndarray, at: np.ndarray) -> float:
@@ -318,16 +338,31 @@ def _vessel_mask(case: Case, progress=None, prior=None) -> np.ndarray:
     return segmentation.segment_fluoro(case.fluoro.image, prior)
 
 
+def _drr_volume(case: Case):
+    """The volume a DRR is rendered from: the CT, else the lumen mask (an angiogram), else None."""
+    return case.ct if case.ct is not None else case.aorta_mask
+
+
+def _preop_of(case: Case, preop, progress, segmenter, cache) -> Preoperative:
+    if preop is None:
+        return prepare_preop(case, progress, segmenter, cache)
+    return getattr(preop, "preop", preop)  # a cache.PreopModel or a Preoperative
+
+
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
              target: str = "renal_left", refine_pose: bool = False, alpha: float = 500.0,
-             beta: float = 10.0, segmenter: str = "unet") -> PlanResult:
+             beta: float = 10.0, segmenter: str = "unet", preop=None, cache=False, drr="auto") -> PlanResult:
     """Run the whole job on a loaded case: pre-op graph, frame registration, path, errors.
 
-    ``segmenter`` ("unet" or "threshold") segments a case that holds only a CT.
+    ``segmenter`` ("unet" or "threshold") segments a case that holds only a CT. ``preop``
+    (a :class:`Preoperative` or a :class:`cache.PreopModel`) skips the pre-operative work;
+    ``cache`` keeps it on disk (:func:`prepare_preop`). ``drr``: render the geometry check
+    (:mod:`drr`) always (True), never (False) or when ``P`` came from C-arm tags ("auto").
     """
+    planning.check_labels(start, target)
     t0 = time.perf_counter()
     _report(progress, 0.0, "pre-operative skeleton graph")
-    preop = prepare_preop(case, progress, segmenter)
+    preop = _preop_of(case, preop, progress, segmenter, cache)
     timings = dict(preop.timings)
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
     qc = quality.QCData(case.ct, case.aorta_mask, case.fluoro.image, None, prior)
@@ -345,11 +380,20 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     sk_edges = frame.skeleton2d.edges()
     gt = _read_ground_truth(case)
     errors = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions, sk_edges)
+    geometry = case.geometry.to_dict() if case.geometry is not None else None
+    drr_image = None
+    if (drr is True or (drr == "auto" and geometry and geometry["source"] == "dicom-tags")) and _drr_volume(case) is not None:
+        from . import drr as drr_module
+
+        _report(progress, 0.9, "rendering the DRR geometry check")
+        with _timed(timings, "drr"):
+            drr_image = drr_module.render_drr(_drr_volume(case), case.P, case.fluoro.shape)
     timings["total"] = time.perf_counter() - t0
     _report(progress, 1.0, "done")
     return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
                       sk_edges, case.fluoro.image, timings, errors,
-                      {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence}, qc)
+                      {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
+                      qc=qc, geometry=geometry, drr=drr_image)
 
 
 def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
@@ -390,6 +434,13 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
                           layers=layers)
     if result.qc is not None:
         quality.write_segmentation_qc(out_dir / "segmentation_qc.png", result.qc)
+    if result.drr is not None:
+        from . import drr
+
+        paths["drr_check.png"] = out_dir / "drr_check.png"
+        notes = (result.geometry or {}).get("assumptions", [])
+        drr.write_drr_check(paths["drr_check.png"], result.fluoro_image, result.drr,
+                            title=f"geometry check: {(result.geometry or {}).get('source', 'P')}", notes=notes)
     # result.json last: its presence means every other output is complete
     export.write_result_json(paths["result.json"], result.to_dict())
     return paths

@@ -19,7 +19,7 @@ from scipy.sparse import csgraph
 
 from .centerline import ANATOMY_LABELS, Centerline
 
-__all__ = ["CatheterPath", "plan_path", "path_length", "resample_path", "smooth_path"]
+__all__ = ["CatheterPath", "VESSEL_LABELS", "check_labels", "plan_path", "path_length", "resample_path", "smooth_path"]
 
 TARGET_POINTS = ("ostium", "end")
 
@@ -115,6 +115,17 @@ def _trace(predecessors: np.ndarray, source: int, target: int) -> np.ndarray:
     return np.array(nodes[::-1], dtype=np.int64)
 
 
+#: The vessels a path may start or end in (every anatomy label but the aorta).
+VESSEL_LABELS = tuple(name for name in ANATOMY_LABELS if name != "aorta")
+
+
+def check_labels(start: str, target: str) -> None:
+    """Raise ``ValueError`` unless ``start`` and ``target`` are vessel labels (before any work starts)."""
+    for role, label in (("start", start), ("target", target)):
+        if label not in VESSEL_LABELS:
+            raise ValueError(f"{role} vessel must be one of {list(VESSEL_LABELS)}, got {label!r}")
+
+
 def plan_path(centerline: Centerline, *, start: str = "iliac_right", target: str = "renal_left",
               to: str = "ostium") -> CatheterPath:
     """Shortest path along the centreline graph from the access point to the target.
@@ -142,10 +153,7 @@ def plan_path(centerline: Centerline, *, start: str = "iliac_right", target: str
     ValueError
         A label is unknown or absent, or the vessels are not connected.
     """
-    for role, label in (("start", start), ("target", target)):
-        if label not in ANATOMY_LABELS or label == "aorta":
-            choices = [name for name in ANATOMY_LABELS if name != "aorta"]
-            raise ValueError(f"{role} vessel must be one of {choices}, got {label!r}")
+    check_labels(start, target)
     if to not in TARGET_POINTS:
         raise ValueError(f"'to' must be one of {list(TARGET_POINTS)}, got {to!r}")
     aorta = _label_nodes(centerline, "aorta")

@@ -35,7 +35,7 @@ the CT volume, which is where the phantoms put it).
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +59,10 @@ __all__ = [
     "in_plane_transform",
     "principal_point",
     "patient_motion",
+    "GeometrySource",
+    "GeometryAssumptionWarning",
+    "read_geometry_file",
+    "apply_in_plane_correction",
 ]
 
 
@@ -287,3 +291,116 @@ def write_geometry_json(path, P: np.ndarray, **extra) -> None:
     P = validate_projection_matrix(P)
     payload = {"projection_matrix": P.tolist(), **extra}
     write_text_atomic(path, json.dumps(payload, indent=2))
+
+
+# ----------------------------------------------------------------------------- provenance
+
+class GeometryAssumptionWarning(UserWarning):
+    """``P`` rests on an assumption the input files do not state (e.g. where the isocentre is)."""
+
+
+#: The geometry.json key of the user's in-plane correction (a drag / rotate of the overlay).
+CORRECTION_KEY = "in_plane_correction"
+
+
+@dataclass
+class GeometrySource:
+    """Where a case's ``P`` came from and what it assumed; written into result.json as ``geometry``.
+
+    Attributes
+    ----------
+    kind : {"geometry.json", "dicom-tags"}
+        A calibrated matrix, or one built from the frame's C-arm tags.
+    file : str
+        The file ``P`` was read or built from.
+    tags : dict
+        The C-arm tag values used (``dicom-tags`` only).
+    isocenter_lps : list of float or None
+        Where the isocentre was placed (``dicom-tags`` only).
+    assumptions : list of str
+        Plain statements of what the files did not say and was assumed.
+    in_plane_correction : dict or None
+        ``{"translation_px": [du, dv], "rotation_deg": r, "file": ...}`` applied on top.
+    """
+
+    kind: str
+    file: str
+    tags: dict = field(default_factory=dict)
+    isocenter_lps: list | None = None
+    assumptions: list = field(default_factory=list)
+    in_plane_correction: dict | None = None
+
+    @classmethod
+    def from_carm(cls, carm: CArmGeometry, file, isocenter) -> "GeometrySource":
+        """The note for ``P`` built by :func:`projection_matrix_from_carm` with the isocentre at ``isocenter``."""
+        isocenter = [round(float(c), 3) for c in isocenter]
+        tags = {"DistanceSourceToDetector": carm.sid, "DistanceSourceToPatient": carm.sod,
+                "ImagerPixelSpacing": list(carm.pixel_spacing), "PositionerPrimaryAngle": carm.primary_angle,
+                "PositionerSecondaryAngle": carm.secondary_angle, "Rows": carm.rows, "Columns": carm.cols}
+        assumptions = [f"the C-arm isocentre lies at the centre of the CT volume, LPS {isocenter} mm",
+                       "the table position (the patient's offset from the isocentre) is unknown and taken as zero",
+                       "the patient lies supine, head first, as in the CT"]
+        return cls("dicom-tags", str(file), tags, isocenter, assumptions)
+
+    def view_name(self) -> str | None:
+        """``"LAO 30 / CRA 15"`` from the tags, or None when ``P`` did not come from tags."""
+        if "PositionerPrimaryAngle" not in self.tags:
+            return None
+        a, b = self.tags["PositionerPrimaryAngle"], self.tags["PositionerSecondaryAngle"]
+        return f"{'LAO' if a >= 0 else 'RAO'} {abs(a):.0f} / {'CRA' if b >= 0 else 'CAU'} {abs(b):.0f}"
+
+    def describe(self) -> str:
+        """One line for stderr: which geometry, and what it assumed."""
+        text = f"geometry from {self.kind} ({self.file})"
+        if self.assumptions:
+            text += ": assumed " + "; ".join(self.assumptions)
+            text += ". Check drr_check.png; correct with `fevar-planner geometry CASE --shift DU DV --rotate R`"
+        if self.in_plane_correction:
+            c = self.in_plane_correction
+            text += (f"; in-plane correction {c['translation_px']} px, {c['rotation_deg']} deg applied")
+        return text
+
+    def to_dict(self) -> dict:
+        return {"source": self.kind, "file": self.file, "tags": dict(self.tags), "isocenter_lps": self.isocenter_lps,
+                "assumptions": list(self.assumptions), "in_plane_correction": self.in_plane_correction}
+
+
+def _correction(data: dict, path: Path) -> dict | None:
+    correction = data.get(CORRECTION_KEY)
+    if correction is None:
+        return None
+    try:
+        translation = [float(x) for x in correction.get("translation_px", (0.0, 0.0))]
+        rotation = float(correction.get("rotation_deg", 0.0))
+    except (AttributeError, TypeError, ValueError):
+        raise ValueError(f"{path}: {CORRECTION_KEY} must be {{'translation_px': [du, dv], 'rotation_deg': r}}") from None
+    if len(translation) != 2 or not np.all(np.isfinite(translation + [rotation])):
+        raise ValueError(f"{path}: {CORRECTION_KEY} needs two finite translation_px values and a finite rotation_deg")
+    return {"translation_px": translation, "rotation_deg": rotation}
+
+
+def read_geometry_file(path) -> tuple[np.ndarray | None, dict | None]:
+    """Read geometry.json: ``(P or None, in-plane correction or None)``.
+
+    The file holds ``projection_matrix`` (a calibrated ``P``), ``in_plane_correction``
+    (``{"translation_px": [du, dv], "rotation_deg": r}``, the user's fix of ``P`` from the
+    C-arm tags, or of a calibrated one), or both. It must hold at least one of them.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read geometry JSON ({exc})") from None
+    if not isinstance(data, dict) or not ({"projection_matrix", CORRECTION_KEY} & set(data)):
+        raise ValueError(f"{path}: neither a 'projection_matrix' nor an '{CORRECTION_KEY}' key")
+    P = validate_projection_matrix(data["projection_matrix"], name=str(path)) if "projection_matrix" in data else None
+    return P, _correction(data, path)
+
+
+def apply_in_plane_correction(P: np.ndarray, correction: dict | None, image_shape) -> np.ndarray:
+    """``P`` with the user's in-plane correction: a rotation about the image centre, then a shift."""
+    if not correction:
+        return np.asarray(P, dtype=float)
+    rows, cols = image_shape
+    return in_plane_transform(P, correction["translation_px"], correction["rotation_deg"],
+                              center=((cols - 1) / 2.0, (rows - 1) / 2.0))

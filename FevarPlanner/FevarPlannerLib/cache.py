@@ -1,0 +1,181 @@
+"""The pre-operative model of a patient, computed once and kept on disk.
+
+Segmenting the CT (tens of seconds) and thinning, classifying and centring its skeleton
+(seconds) depend only on the CT side of a case. :func:`preop_model` does that work once
+and stores the result (lumen mask, skeleton graph with its classification, the labelled
+centreline, and the lumen surface on demand) under a key made of
+
+* the bytes and grid of the 3D input actually used (CT, given lumen mask or skeleton),
+* the segmenter and, for the UNet, the bytes of its weights (only when the CT is segmented),
+* the code version: the bytes of every module of this package.
+
+Any change to one of them gives a new key, so a stale entry is never used. Entries are
+pickles in :func:`default_cache_dir` (``$FEVAR_PLANNER_CACHE``, else
+``$XDG_CACHE_HOME/fevar-planner``, else ``~/.cache/fevar-planner``), written through a
+temporary file and a rename; an unreadable entry is recomputed and replaced.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import pickle
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .io import Case, Volume, write_bytes_atomic
+
+__all__ = ["CACHE_FORMAT", "PreopModel", "default_cache_dir", "volume_digest", "code_digest", "preop_key",
+           "preop_model", "clear_cache"]
+
+#: Bumped when the layout of a cache entry changes (the code digest covers the rest).
+CACHE_FORMAT = 1
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+@dataclass
+class PreopModel:
+    """Everything pre-operative about one patient, as :func:`preop_model` returns it.
+
+    Attributes
+    ----------
+    preop : pipeline.Preoperative
+        The classified, centred, labelled 3D skeleton graph (paper Algorithm 2 rows 1-2).
+    lumen : Volume or None
+        The lumen mask (bool) it came from; None when the case gave only a skeleton.
+    key : str
+        The cache key (hex).
+    timings : dict
+        Seconds of the work as it was first done, plus ``preop_cache_load`` on a hit.
+    from_cache : bool
+        True when it was read from disk.
+    """
+
+    preop: object
+    lumen: Volume | None
+    key: str
+    timings: dict = field(default_factory=dict)
+    from_cache: bool = False
+    _surface: object = field(default=None, repr=False)
+
+    def surface(self):
+        """The lumen surface (vtkPolyData, LPS mm), made once per model; None without a lumen."""
+        if self._surface is None and self.lumen is not None:
+            from .segmentation import mask_surface
+
+            self._surface = mask_surface(self.lumen, smooth_sigma_vox=1.0)
+        return self._surface
+
+
+def default_cache_dir() -> Path:
+    """``$FEVAR_PLANNER_CACHE``, else ``$XDG_CACHE_HOME/fevar-planner``, else ``~/.cache/fevar-planner``."""
+    if os.environ.get("FEVAR_PLANNER_CACHE"):
+        return Path(os.environ["FEVAR_PLANNER_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "fevar-planner"
+
+
+def volume_digest(volume: Volume) -> str:
+    """SHA-256 of a volume's voxels (with their type and shape) and its LPS grid."""
+    digest = hashlib.sha256()
+    array = np.ascontiguousarray(volume.array)
+    digest.update(f"{array.dtype.str}{array.shape}".encode())
+    digest.update(memoryview(array).cast("B"))
+    for values in (volume.spacing, volume.origin, volume.direction):
+        digest.update(np.round(np.asarray(values, dtype=float), 6).tobytes())
+    return digest.hexdigest()
+
+
+def code_digest() -> str:
+    """SHA-256 of every module of this package: any code change invalidates the cache."""
+    digest = hashlib.sha256(f"format {CACHE_FORMAT}".encode())
+    for path in sorted(PACKAGE_DIR.glob("*.py")):
+        digest.update(path.name.encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def preop_key(case: Case, segmenter: str = "unet") -> str:
+    """The cache key of a case's pre-operative model (see the module docstring)."""
+    stage = case.stage_3d
+    parts = [f"stage {stage}", volume_digest(case.reference_volume), code_digest()]
+    if stage == "ct":
+        parts.append(f"segmenter {segmenter}")
+        if segmenter == "unet":
+            from .segmentation import default_model_path
+
+            weights = default_model_path()
+            parts.append(_file_digest(weights) if weights.is_file() else "no weights")
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def _entry_path(cache_dir: Path, key: str) -> Path:
+    return Path(cache_dir) / f"preop-{key[:32]}.pkl"
+
+
+def _load_entry(path: Path, key: str):
+    try:
+        with open(path, "rb") as handle:
+            entry = pickle.load(handle)
+    except FileNotFoundError:
+        return None
+    except Exception:  # a truncated or foreign file is recomputed and replaced, never trusted
+        return None
+    return entry if isinstance(entry, dict) and entry.get("key") == key else None
+
+
+def preop_model(case: Case, *, segmenter: str = "unet", progress=None, cache_dir=None,
+                use_cache: bool = True) -> PreopModel:
+    """The case's pre-operative model: from the cache when the same inputs were seen, else computed.
+
+    Parameters
+    ----------
+    case : Case
+    segmenter : {"unet", "threshold"}
+        CT segmentation for a case holding only a CT.
+    progress : callable, optional
+        ``progress(fraction, message)``.
+    cache_dir : path, optional
+        Default :func:`default_cache_dir`.
+    use_cache : bool
+        False: compute, and neither read nor write the cache.
+    """
+    from .pipeline import build_preop
+
+    key = preop_key(case, segmenter) if use_cache else ""
+    path = _entry_path(cache_dir or default_cache_dir(), key) if use_cache else None
+    if path is not None:
+        start = time.perf_counter()
+        entry = _load_entry(path, key)
+        if entry is not None:
+            timings = dict(entry["timings"], preop_cache_load=time.perf_counter() - start)
+            if progress is not None:
+                progress(0.3, f"pre-operative model from the cache ({path.name})")
+            return PreopModel(entry["preop"], entry["lumen"], key, timings, from_cache=True)
+    preop, lumen = build_preop(case, progress, segmenter)
+    model = PreopModel(preop, lumen, key, dict(preop.timings))
+    if path is not None:
+        payload = {"key": key, "preop": preop, "lumen": lumen, "timings": model.timings}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL))
+    return model
+
+
+def clear_cache(cache_dir=None) -> int:
+    """Delete every cache entry in ``cache_dir``; returns how many were deleted."""
+    folder = Path(cache_dir or default_cache_dir())
+    entries = list(folder.glob("preop-*.pkl")) if folder.is_dir() else []
+    for entry in entries:
+        entry.unlink()
+    return len(entries)

@@ -1,0 +1,195 @@
+"""``fevar-planner track``: every frame of a fluoroscopic run registered against one pre-operative model.
+
+The pre-operative model is built (or read from the cache, :mod:`cache`) once; each frame
+of the multi-frame ``fluoro.dcm`` (NumberOfFrames) is then segmented (vesselness), and
+registered (:func:`pipeline.register_frame`), and its path planned. Per frame it records
+the times and the fit of the recovered centreline to that frame's own 2D skeleton (the
+2D distance of eq. 6's data term; a fit, not an error: a run has no ground truth).
+
+Outputs in ``OUT``: ``track.csv`` (one row per frame), ``track.json`` (per-frame times,
+their median / 95th percentile / maximum, the pre-operative time and whether it came from
+the cache) and the last frame's ``result.json`` and pictures (:func:`pipeline.write_outputs`).
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _stringio
+import json
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import evaluation, planning
+from .io import InputError, load_case, read_fluoro, write_text_atomic
+
+__all__ = ["FrameRecord", "TrackResult", "track_case", "write_track_outputs", "CSV_COLUMNS"]
+
+CSV_COLUMNS = ("frame", "fit_2d_px", "path_length_mm", "read_ms", "segmentation_ms", "registration_ms",
+               "planning_ms", "total_ms", "warnings")
+
+
+@dataclass
+class FrameRecord:
+    """One frame's outcome: the fit to its own skeleton, the path length, times (s), warnings."""
+
+    frame: int
+    fit_2d_px: float | None
+    path_length_mm: float | None
+    times: dict
+    warnings: list = field(default_factory=list)
+
+    def row(self) -> dict:
+        ms = {f"{key}_ms": round(1000.0 * self.times.get(key, 0.0), 2)
+              for key in ("read", "segmentation", "registration", "planning", "total")}
+        return {"frame": self.frame,
+                "fit_2d_px": "" if self.fit_2d_px is None else round(self.fit_2d_px, 4),
+                "path_length_mm": "" if self.path_length_mm is None else round(self.path_length_mm, 2),
+                **ms, "warnings": " | ".join(self.warnings)}
+
+
+@dataclass
+class TrackResult:
+    """All frames of a run, the pre-operative summary and the last frame's full result."""
+
+    records: list
+    preop_seconds: float
+    preop_from_cache: bool
+    method: str
+    last: object = None
+
+    def summary(self) -> dict:
+        """Per-frame time statistics (ms) and the fit, for ``track.json`` (the benchmark record)."""
+        totals = np.array([r.times["total"] for r in self.records]) * 1000.0
+        registration = np.array([r.times.get("registration", 0.0) for r in self.records]) * 1000.0
+        fits = np.array([r.fit_2d_px for r in self.records if r.fit_2d_px is not None])
+
+        def stats(values):
+            if not len(values):
+                return None
+            return {"median": float(np.median(values)), "p95": float(np.percentile(values, 95)),
+                    "max": float(values.max()), "mean": float(values.mean())}
+
+        return {"method": self.method, "n_frames": len(self.records),
+                "failed_frames": [r.frame for r in self.records if r.fit_2d_px is None],
+                "preop_s": self.preop_seconds, "preop_from_cache": self.preop_from_cache,
+                "per_frame_total_ms": stats(totals), "per_frame_registration_ms": stats(registration),
+                "fit_2d_px": stats(fits),
+                "frames": [{"frame": r.frame, "total_ms": 1000.0 * r.times["total"],
+                            "registration_ms": 1000.0 * r.times.get("registration", 0.0),
+                            "fit_2d_px": r.fit_2d_px} for r in self.records]}
+
+
+def _frame_range(n_frames: int, first: int, count: int | None, path) -> range:
+    if not 0 <= first < n_frames:
+        raise InputError(f"{path}: first frame {first} out of range (the file has {n_frames} frames)")
+    last = n_frames if count is None else min(n_frames, first + count)
+    return range(first, last)
+
+
+def _register_one(preop, fluoro, P, method, start, target, segment) -> tuple:
+    """(FrameResult, path, fit) of one frame, timed by stage."""
+    from .pipeline import register_frame
+
+    times = {}
+    t = time.perf_counter()
+    mask = segment(fluoro.image)
+    times["segmentation"] = time.perf_counter() - t
+    t = time.perf_counter()
+    frame = register_frame(preop, mask, P, method=method)
+    times["registration"] = time.perf_counter() - t
+    t = time.perf_counter()
+    path = planning.plan_path(frame.deformed, start=start, target=target)
+    times["planning"] = time.perf_counter() - t
+    fit = evaluation.evaluate(frame.deformed, None, frame.P, frame.skeleton2d.positions, frame.skeleton2d.edges())
+    return frame, path, fit, times
+
+
+def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
+               first: int = 0, count: int | None = None, segmenter: str = "unet", cache=True,
+               progress=None, **case_files) -> TrackResult:
+    """Register every frame of the case's multi-frame run (see the module docstring).
+
+    Parameters
+    ----------
+    case_dir : path
+        A case folder (DESIGN.md section 4) whose frame file holds several frames.
+    method : {"proposed", "icp-tps", "rigid"}
+    start, target : str
+        The path's vessels, checked before any work starts.
+    first, count : int
+        The frames to register (default all from ``first``).
+    segmenter : {"unet", "threshold"}
+    cache : bool or path
+        Keep the pre-operative model on disk (:mod:`cache`).
+    progress : callable, optional
+        ``progress(fraction, message)``.
+    **case_files
+        Overrides of the folder's files (``ct``, ``aorta_mask``, ... as :func:`io.load_case`).
+    """
+    from . import cache as preop_cache
+    from .pipeline import METHODS, PlanResult
+    from .segmentation import segment_fluoro
+
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    planning.check_labels(start, target)
+    case = load_case(case_dir, frame=first, **case_files)
+    if case.fluoro.path is None or "fluoro" not in case.paths:
+        raise InputError(f"{case_dir}: no fluoroscopy run to track (only a vessel mask)")
+    frames = _frame_range(case.fluoro.n_frames, first, count, case.fluoro.path)
+    t0 = time.perf_counter()
+    model = preop_cache.preop_model(case, segmenter=segmenter, progress=progress,
+                                    cache_dir=None if cache in (True, False, None) else cache,
+                                    use_cache=cache not in (False, None))
+    preop, preop_seconds = model.preop, time.perf_counter() - t0
+    records, last = [], None
+    for done, index in enumerate(frames):
+        if progress is not None:
+            progress(0.3 + 0.7 * done / len(frames), f"frame {index} ({done + 1}/{len(frames)})")
+        t = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fluoro = case.fluoro if index == first else read_fluoro(case.fluoro.path, frame=index)
+            read = time.perf_counter() - t
+            try:
+                frame, path, fit, times = _register_one(preop, fluoro, case.P, method, start, target,
+                                                        segment_fluoro)
+            except (ValueError, RuntimeError) as exc:
+                records.append(FrameRecord(index, None, None, {"read": read, "total": time.perf_counter() - t},
+                                           [str(exc).splitlines()[0]]))
+                continue
+        times["read"] = read
+        times["total"] = time.perf_counter() - t
+        records.append(FrameRecord(index, fit["2d_px"]["mean"], path.length_mm, times,
+                                   sorted({str(w.message).splitlines()[0] for w in caught})))
+        last = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
+                          frame.skeleton2d.edges(), fluoro.image,
+                          {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
+                          {"fluoro": str(case.fluoro.path), "frame": index},
+                          case.geometry.to_dict() if case.geometry is not None else None)
+    if progress is not None:
+        progress(1.0, f"{len(records)} frames")
+    return TrackResult(records, preop_seconds, model.from_cache, method, last)
+
+
+def write_track_outputs(result: TrackResult, out_dir) -> dict:
+    """Write ``track.csv``, ``track.json`` and the last frame's outputs into ``out_dir``."""
+    from .pipeline import write_outputs
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    buffer = _stringio.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for record in result.records:
+        writer.writerow(record.row())
+    paths = {"track.csv": out_dir / "track.csv", "track.json": out_dir / "track.json"}
+    write_text_atomic(paths["track.csv"], buffer.getvalue())
+    write_text_atomic(paths["track.json"], json.dumps(result.summary(), indent=2) + "\n")
+    if result.last is not None:
+        paths.update(write_outputs(result.last, out_dir))
+    return paths

@@ -1,0 +1,129 @@
+"""Pre-operative cache, the `track` route, the geometry note and correction, through the CLI."""
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import cache, cli, io, phantom
+from FevarPlannerLib.projection import apply_in_plane_correction, projection_matrix_from_carm
+from FevarPlannerLib.tracking import CSV_COLUMNS, track_case, write_track_outputs
+
+N_FRAMES = 4
+
+
+@pytest.fixture(scope="module")
+def run_case_dir(tmp_path_factory):
+    """A mask-level phantom case whose fluoro.dcm is a run of N_FRAMES noisy frames with C-arm tags."""
+    generated = phantom.generate_case(phantom.random_params(np.random.default_rng(4), misalign_shift_px=(0.0, 0.0),
+                                                            misalign_rotation_deg=0.0), name="run")
+    folder = phantom.write_case(generated, tmp_path_factory.mktemp("run") / "case", mask_only=True)
+    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                    np.random.default_rng(seed))[0] for seed in range(N_FRAMES)]
+    io.write_fluoro_dicom(folder / "fluoro.dcm", np.stack(frames), generated.carm)
+    (folder / "fluoro_mask.png").unlink()
+    return folder, generated
+
+
+@pytest.fixture()
+def cache_dir(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(folder))
+    return folder
+
+
+def test_the_cache_returns_the_same_model_and_notices_changed_inputs(run_case_dir, cache_dir):
+    case = io.load_case(run_case_dir[0])
+    first = cache.preop_model(case)
+    second = cache.preop_model(case)
+    assert (first.from_cache, second.from_cache) == (False, True)
+    assert len(list(cache_dir.glob("preop-*.pkl"))) == 1
+    np.testing.assert_array_equal(second.preop.centerline.points, first.preop.centerline.points)
+    assert second.preop.centerline.labels == first.preop.centerline.labels
+    np.testing.assert_array_equal(second.lumen.array, first.lumen.array)
+    assert "preop_cache_load" in second.timings
+
+    changed = io.load_case(run_case_dir[0])
+    flipped = changed.aorta_mask.array.copy()
+    flipped[tuple(np.argwhere(flipped)[0])] = False
+    changed.aorta_mask = changed.aorta_mask.with_array(flipped)
+    assert cache.preop_key(changed) != cache.preop_key(case)
+    assert cache.preop_key(case, "threshold") == cache.preop_key(case)  # a given mask is not segmented
+
+    entry = next(cache_dir.glob("preop-*.pkl"))
+    entry.write_bytes(b"truncated")
+    again = cache.preop_model(case)
+    assert not again.from_cache and cache.preop_model(case).from_cache
+    assert cache.clear_cache() == 1
+
+
+def test_track_registers_every_frame_and_writes_csv_and_json(run_case_dir, cache_dir, tmp_path):
+    folder, _ = run_case_dir
+    result = track_case(folder, target="renal_right")
+    assert [r.frame for r in result.records] == list(range(N_FRAMES))
+    assert all(r.fit_2d_px is not None and r.fit_2d_px < 6.0 for r in result.records)
+    assert all(r.times["registration"] > 0 for r in result.records)
+    paths = write_track_outputs(result, tmp_path / "out")
+    rows = list(csv.DictReader(paths["track.csv"].open()))
+    assert tuple(rows[0]) == CSV_COLUMNS and len(rows) == N_FRAMES
+    assert [int(r["frame"]) for r in rows] == list(range(N_FRAMES))
+    summary = json.loads(paths["track.json"].read_text())
+    assert summary["n_frames"] == N_FRAMES and summary["per_frame_total_ms"]["median"] > 0
+    assert json.loads((tmp_path / "out" / "result.json").read_text())["path"]["to"] == "renal_right"
+    # the second run finds the pre-operative model in the cache
+    assert track_case(folder, count=1).preop_from_cache
+
+
+def test_bad_option_values_fail_before_any_work(run_case_dir, cache_dir, tmp_path, capsys):
+    with pytest.raises(ValueError, match="target vessel must be one of"):
+        track_case(run_case_dir[0], target="sma")
+    assert not cache_dir.exists()
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["track", str(run_case_dir[0]), "--out", str(tmp_path / "o"), "--target", "sma"])
+    assert exit_info.value.code == 2 and "invalid choice: 'sma'" in capsys.readouterr().err
+
+
+def test_version_and_help_say_research_use_only(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["--version"])
+    assert "not a medical device" in capsys.readouterr().out
+    for command in ("plan", "track", "geometry", "demo", "segment", "phantoms", "benchmark", "train-unet"):
+        with pytest.raises(SystemExit):
+            cli.main([command, "--help"])
+        text = capsys.readouterr().out
+        assert "not a medical device" in " ".join(text.split()), command
+    parser = cli.build_parser()
+    for action in parser._subparsers._group_actions[0].choices.values():
+        for option in action._actions:
+            assert option.help, f"{action.prog} {option.option_strings or option.dest} has no help"
+
+
+def test_tags_only_geometry_is_announced_recorded_checked_and_correctable(run_case_dir, cache_dir, tmp_path, capsys):
+    folder = tmp_path / "case"
+    shutil.copytree(run_case_dir[0], folder)
+    (folder / "geometry.json").unlink()
+    generated = run_case_dir[1]
+    assert cli.main(["-q", "plan", str(folder), "--out", str(tmp_path / "out"), "--method", "rigid"]) == 0
+    captured = capsys.readouterr()
+    assert "fevar-planner: note: geometry from dicom-tags" in captured.err
+    assert "isocentre lies at the centre of the CT volume" in captured.err and "table position" in captured.err
+    result = json.loads((tmp_path / "out" / "result.json").read_text())
+    assert result["geometry"]["source"] == "dicom-tags"
+    assert result["geometry"]["tags"]["PositionerPrimaryAngle"] == pytest.approx(generated.carm.primary_angle, abs=1e-9)
+    assert (tmp_path / "out" / "drr_check.png").stat().st_size > 1000
+    loaded = io.load_case(folder)
+    P_tags = loaded.P
+    np.testing.assert_allclose(P_tags, projection_matrix_from_carm(loaded.fluoro.carm, loaded.aorta_mask.center_lps()))
+    np.testing.assert_allclose(result["projection_matrix"], P_tags)
+
+    assert cli.main(["geometry", str(folder), "--shift", "5", "-3", "--rotate", "2"]) == 0
+    stored = json.loads((folder / "geometry.json").read_text())
+    assert stored == {"in_plane_correction": {"translation_px": [5.0, -3.0], "rotation_deg": 2.0}}
+    corrected = io.load_case(folder)
+    shape = corrected.fluoro.shape
+    np.testing.assert_allclose(corrected.P, apply_in_plane_correction(P_tags, stored["in_plane_correction"], shape))
+    assert corrected.geometry.in_plane_correction["translation_px"] == [5.0, -3.0]
+    assert cli.main(["geometry", str(folder), "--reset"]) == 0
+    assert not (folder / "geometry.json").exists()
