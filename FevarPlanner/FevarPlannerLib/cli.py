@@ -21,9 +21,12 @@ class ProgressBar:
     """Progress on stderr, callable as ``progress(fraction, message)``.
 
     On a terminal: one bar redrawn in place. Elsewhere (a log file, a pipe): plain lines,
-    one when the message changes or another tenth of the work is done, never a carriage
-    return, so a log reads step by step.
+    one when the step changes, another tenth of the work is done or :attr:`HEARTBEAT_S`
+    seconds have passed within a long step; never a carriage return, so a log reads step
+    by step.
     """
+
+    HEARTBEAT_S = 10.0
 
     def __init__(self, stream=None, width: int = 30, enabled: bool = True, tty: bool | None = None):
         self.stream = stream if stream is not None else sys.stderr
@@ -31,6 +34,7 @@ class ProgressBar:
         self.tty = self.stream.isatty() if tty is None and hasattr(self.stream, "isatty") else bool(tty)
         self.start = time.perf_counter()
         self._last = (None, -1)
+        self._last_time = 0.0
 
     def __call__(self, fraction: float, message: str = "") -> None:
         if not self.enabled:
@@ -50,9 +54,9 @@ class ProgressBar:
     def _line(self, fraction: float, message: str, elapsed: float) -> None:
         decile = int(fraction * 10)
         step = message.split(":")[0]  # "segmenting the aorta: slice 3/40" is one step
-        if step == self._last[0] and decile <= self._last[1]:
+        if step == self._last[0] and decile <= self._last[1] and elapsed - self._last_time < self.HEARTBEAT_S:
             return
-        self._last = (step, decile)
+        self._last, self._last_time = (step, decile), elapsed
         self.stream.write(f"[{fraction * 100:3.0f}%] {elapsed:6.1f}s {message}\n")
         self.stream.flush()
 
@@ -272,7 +276,7 @@ def _cmd_geometry(args) -> int:
         volume = case.ct if case.ct is not None else case.aorta_mask
         if volume is None:
             raise ValueError(f"{args.case}: no CT or aorta mask to render a DRR from")
-        drr.write_drr_check(args.drr, case.fluoro.image, drr.render_drr(volume, case.P, case.fluoro.shape),
+        drr.write_drr_check(args.drr, case.fluoro.image, drr.check_drr(volume, case.P, case.fluoro.shape),
                             title=f"geometry check: {case.geometry.kind}", notes=case.geometry.assumptions)
         print(f"DRR check written to {args.drr}")
     return 0

@@ -20,26 +20,33 @@ from scipy import ndimage
 from .io import Volume, atomic_path
 from .projection import depth, source_position
 
-__all__ = ["DEFAULT_SIZE", "attenuation", "drr_grid", "render_drr", "write_drr_check"]
+__all__ = ["DEFAULT_SIZE", "CHECK_HU_FLOOR", "attenuation", "drr_grid", "render_drr", "check_drr", "resample_frame",
+           "write_drr_check"]
 
 #: Longest side of the rendered DRR, pixels (the frame is resampled to the same grid).
 DEFAULT_SIZE = 256
 #: Water's attenuation is 1 in these units; air (-1000 HU) 0.
 HU_WATER, HU_AIR = 0.0, -1000.0
+#: For the check picture only what is denser than soft tissue is summed (contrast-filled
+#: lumen and bone), as digital subtraction shows the frame: the body's outline would
+#: otherwise dominate the DRR and its edges.
+CHECK_HU_FLOOR = 150.0
 #: Rays are processed in blocks of this many (bounds the memory of the sample array).
 RAYS_PER_BLOCK = 2048
 
 
-def attenuation(volume: Volume) -> np.ndarray:
+def attenuation(volume: Volume, hu_floor: float = HU_AIR) -> np.ndarray:
     """Linear attenuation relative to water, float32 ``(k, j, i)``.
 
-    A CT in Hounsfield units gives ``max(0, (HU + 1000) / 1000)``; a binary mask (bool, or
-    integers 0 / 1) gives 1 inside and 0 outside, so a lumen mask renders as an angiogram.
+    A CT in Hounsfield units gives ``max(0, (HU - hu_floor) / 1000)``: with the default floor
+    (air) that is the attenuation relative to water; a higher floor keeps only what is denser
+    (:data:`CHECK_HU_FLOOR`). A binary mask (bool, or integers 0 / 1) gives 1 inside and 0
+    outside, so a lumen mask renders as an angiogram.
     """
     array = np.asarray(volume.array)
     if array.dtype == bool or (array.dtype.kind in "iu" and array.size and array.max() <= 1 and array.min() >= 0):
         return array.astype(np.float32)
-    return np.clip((array.astype(np.float32) - HU_AIR) / (HU_WATER - HU_AIR), 0.0, None)
+    return np.clip((array.astype(np.float32) - hu_floor) / (HU_WATER - HU_AIR), 0.0, None)
 
 
 def drr_grid(image_shape, size: int = DEFAULT_SIZE) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +69,7 @@ def _corner_points(volume: Volume) -> np.ndarray:
 
 
 def render_drr(volume: Volume, P: np.ndarray, image_shape, *, size: int = DEFAULT_SIZE,
-               step_mm: float | None = None) -> np.ndarray:
+               step_mm: float | None = None, hu_floor: float = HU_AIR) -> np.ndarray:
     """Render the DRR of ``volume`` seen through ``P`` on a ``size``-pixel grid over the frame.
 
     Parameters
@@ -77,6 +84,9 @@ def render_drr(volume: Volume, P: np.ndarray, image_shape, *, size: int = DEFAUL
         Longest side of the DRR, pixels.
     step_mm : float, optional
         Sampling step along each ray; default the smallest voxel spacing.
+    hu_floor : float
+        HU below which nothing attenuates (:func:`attenuation`); :data:`CHECK_HU_FLOOR`
+        for the check picture.
 
     Returns
     -------
@@ -84,7 +94,7 @@ def render_drr(volume: Volume, P: np.ndarray, image_shape, *, size: int = DEFAUL
         Line integral of :func:`attenuation` (mm of water equivalent): bigger = more attenuating.
     """
     P = np.asarray(P, dtype=float)
-    mu = attenuation(volume)
+    mu = attenuation(volume, hu_floor)
     step = float(step_mm or volume.spacing.min())
     u, v = drr_grid(image_shape, size)
     directions = np.linalg.solve(P[:, :3], np.stack([u.ravel(), v.ravel(), np.ones(u.size)])).T  # (n, 3)
@@ -104,6 +114,11 @@ def render_drr(volume: Volume, P: np.ndarray, image_shape, *, size: int = DEFAUL
         step_along = (t_far - t_near) / (n_samples - 1) * lengths[start:start + RAYS_PER_BLOCK]
         total[start:start + len(block)] = samples.reshape(len(block), n_samples).sum(axis=1) * step_along
     return total.reshape(u.shape)
+
+
+def check_drr(volume: Volume, P: np.ndarray, image_shape, size: int = DEFAULT_SIZE) -> np.ndarray:
+    """The DRR of the check picture: only what is denser than soft tissue (:data:`CHECK_HU_FLOOR`)."""
+    return render_drr(volume, P, image_shape, size=size, hu_floor=CHECK_HU_FLOOR)
 
 
 def _normalised(image: np.ndarray) -> np.ndarray:
@@ -160,7 +175,8 @@ def write_drr_check(path, frame: np.ndarray, drr: np.ndarray, *, title: str = ""
         rgb = np.repeat(_normalised(image)[..., None], 3, axis=2)
         rgb[edges] = color
         axes.imshow(rgb, interpolation="nearest")
-        axes.text(4, 12, name, color="white", fontsize=8)
+        axes.text(4, 12, name, color="white", fontsize=8, bbox={"facecolor": "black", "alpha": 0.6, "pad": 1.5,
+                                                                   "edgecolor": "none"})
     lines = [title, *notes] if title else list(notes)
     for row, line in enumerate(lines):
         figure.text(0.005, 1.0 - (h + 14 + 16 * row) / (h + caption_px), line, color="white", fontsize=7)

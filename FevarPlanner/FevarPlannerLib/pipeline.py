@@ -387,7 +387,7 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
 
         _report(progress, 0.9, "rendering the DRR geometry check")
         with _timed(timings, "drr"):
-            drr_image = drr_module.render_drr(_drr_volume(case), case.P, case.fluoro.shape)
+            drr_image = drr_module.check_drr(_drr_volume(case), case.P, case.fluoro.shape)
     timings["total"] = time.perf_counter() - t0
     _report(progress, 1.0, "done")
     return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
