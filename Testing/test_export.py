@@ -294,3 +294,42 @@ def test_3d_render_is_an_anterior_head_up_picture(tmp_path, tree):
     assert yellow.sum() > 30
     with pytest.raises(ValueError, match="nothing to render"):
         render_centerlines_3d(target, [])
+
+
+@pytest.mark.parametrize("primary, secondary", [(30.0, 15.0), (-25.0, -10.0), (0.0, 0.0)])
+def test_view_name_reads_the_c_arm_angles_back_from_P(primary, secondary):
+    from FevarPlannerLib.export import view_name
+    from FevarPlannerLib.projection import view_label
+
+    P = projection_matrix_from_carm(CArmGeometry(1100, 750, (0.5, 0.5), primary, secondary, 200, 160), [5, -3, 40])
+    assert view_name(P, [5, -3, 40]) == view_label(primary, secondary)
+    assert view_name(-P, [5, -3, 40]) == view_label(primary, secondary)  # P's overall sign is free
+    assert view_label(30, -10) == "LAO 30 / CAU 10"
+
+
+def test_overlay_marks_right_and_left_where_the_patient_lies(tmp_path, tree):
+    """AP view, radiological display: the patient's right is on the image's left."""
+    from matplotlib.figure import Figure
+    from FevarPlannerLib.export import _orientation_marks
+
+    P = projection_matrix_from_carm(CArmGeometry(1100, 750, (0.5, 0.5), 0, 0, 200, 160), [0, 0, 40])
+    figure = Figure()
+    axes = figure.add_subplot(1, 1, 1)
+    _orientation_marks(axes, P, [0.0, 0.0, 40.0], 200, 160)
+    marks = {text.get_text(): text.get_position() for text in axes.texts}
+    assert marks["R"][0] < 80 < marks["L"][0]
+    scale = next(text for text in axes.texts if text.get_text().endswith(" mm"))
+    bar = axes.lines[0].get_xdata()
+    pixels_per_mm = np.linalg.norm(project(P, [1.0, 0, 40]) - project(P, [0.0, 0, 40]))
+    assert (bar[1] - bar[0]) == pytest.approx(float(scale.get_text().split()[0]) * pixels_per_mm)
+    render_overlay(tmp_path / "o.png", np.zeros((200, 160)), layers=[centerline_layer("c", P, tree, "cyan")],
+                   title="proposed | AP", P=P, anchor=[0.0, 0.0, 40.0])
+    assert (tmp_path / "o.png").stat().st_size > 0
+
+
+def test_path_markups_take_the_path_colour(tmp_path, tree):
+    from FevarPlannerLib.export import PALETTE
+
+    write_path_markups(tmp_path / "p.mrk.json", tree.points[:4])
+    display = json.loads((tmp_path / "p.mrk.json").read_text())["markups"][0]["display"]
+    assert display["color"] == list(PALETTE["path"]) and display["selectedColor"] == list(PALETTE["path"])

@@ -37,10 +37,12 @@ from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 from .centerline import Centerline
 from .conventions import ANATOMY_LABELS, PALETTE
 from .io import InputError, check_readable, atomic_path, write_text_atomic
-from .projection import project, validate_projection_matrix
+from .projection import depth, image_directions, project, validate_projection_matrix, view_label
 
 __all__ = [
     "RESULT_VERSION",
+    "PALETTE",
+    "ROLE_NAMES",
     "MARKUPS_SCHEMA",
     "build_result_dict",
     "validate_result",
@@ -57,6 +59,7 @@ __all__ = [
     "centerline_layer",
     "path_layer",
     "render_overlay",
+    "view_name",
     "render_centerlines_3d",
     "tube_actor",
     "polydata_actor",
@@ -77,6 +80,10 @@ SPACE_TAG = "SPACE"
 #: The tag this project wrote before it followed Slicer; read only when ``SPACE`` is absent.
 LEGACY_SPACE_TAG = "coordinateSystem"
 COORDINATE_SYSTEMS = ("LPS", "RAS")
+#: What the display calls each role ("recovered", not "deformed": the result.json key
+#: ``deformed_centerline`` stays, as the contract says).
+ROLE_NAMES = {"preop": "pre-operative", "recovered": "recovered", "deformed": "recovered", "path": "catheter path",
+              "skeleton2d": "2D skeleton", "truth": "intra-operative truth"}
 
 
 # ----------------------------------------------------------------------------- result.json
@@ -525,7 +532,7 @@ def read_centerline_vtp(path) -> Centerline:
 # ----------------------------------------------------------------------------- Slicer markups
 
 def write_path_markups(path, points, *, name: str = "CatheterPath", coordinate_system: str = "LPS",
-                       color=(1.0, 0.5, 0.0)) -> None:
+                       color=PALETTE["path"]) -> None:
     """Write a path as a Slicer markups curve (``.mrk.json``, schema v1.0.3), atomically.
 
     Parameters
@@ -539,7 +546,11 @@ def write_path_markups(path, points, *, name: str = "CatheterPath", coordinate_s
     coordinate_system : {"LPS", "RAS"}
         System the file is written in (stated in the file; Slicer reads both).
     color : color
-        Curve colour (matplotlib colour name or RGB in 0..1).
+        Curve colour (matplotlib colour name or RGB in 0..1); default the path colour.
+
+    A ``.mrk.json`` cannot say a curve is linear (Slicer keeps the curve type in the scene
+    file), so Slicer draws the loaded path as a spline through these points: the points are
+    dense and smooth, so its length stays within 0.5 % of ``path.length_mm``.
     """
     if coordinate_system not in IDENTITY_ORIENTATION:
         raise ValueError(f"coordinate_system must be 'LPS' or 'RAS', got {coordinate_system!r}")
@@ -665,9 +676,52 @@ def _layer_artist(layer: OverlayLayer, line_width_pt: float, dot_px: float):
     return PolyCollection(_squares(layer.dots(), dot_px), facecolors=[_rgb(layer.color)], edgecolors="none")
 
 
+def view_name(P: np.ndarray, at) -> str:
+    """The C-arm view of ``P`` seen from ``at`` (LPS), e.g. ``"LAO 30 / CRA 15"``.
+
+    The angles follow projection.py's convention: the viewing direction (source to
+    detector) is ``(sin a cos b, -cos a cos b, sin b)`` with ``a`` LAO positive and ``b``
+    cranial positive. ``P``'s overall sign is fixed so that ``at`` lies in front of the source.
+    """
+    P = np.asarray(P, dtype=float)
+    direction = P[2, :3] * np.sign(depth(P, np.asarray(at, dtype=float)))
+    direction = direction / np.linalg.norm(direction)
+    return view_label(np.degrees(np.arctan2(direction[0], -direction[1])),
+                      np.degrees(np.arcsin(np.clip(direction[2], -1.0, 1.0))))
+
+
+def _scale_bar_mm(pixels_per_mm: float, cols: int) -> float:
+    """A round length (mm) whose bar is at most a quarter of the image width."""
+    for length in (200.0, 100.0, 50.0, 20.0, 10.0, 5.0, 2.0, 1.0):
+        if length * pixels_per_mm <= cols / 4.0:
+            return length
+    return 1.0
+
+
+def _orientation_marks(axes, P, at, rows: int, cols: int) -> None:
+    """R / L letters on the image edges where the patient's right and left project, and a mm scale bar."""
+    left, _ = image_directions(P, at)
+    centre = np.array([(cols - 1) / 2.0, (rows - 1) / 2.0])
+    reach = 0.45 * min(rows, cols)
+    style = {"color": "white", "fontsize": 11, "fontweight": "bold", "ha": "center", "va": "center",
+             "bbox": {"facecolor": "black", "alpha": 0.5, "pad": 1.5, "edgecolor": "none"}}
+    for letter, sign in (("L", 1.0), ("R", -1.0)):
+        u, v = centre + sign * reach * left
+        axes.text(u, v, letter, **style)
+    at = np.asarray(at, dtype=float)
+    pixels_per_mm = float(np.linalg.norm(project(P, at + [1.0, 0.0, 0.0]) - project(P, at)))
+    length = _scale_bar_mm(pixels_per_mm, cols)
+    x1, y = cols - 0.04 * cols, rows - 0.05 * rows
+    x0 = x1 - length * pixels_per_mm
+    axes.plot([x0, x1], [y, y], color="white", linewidth=3, solid_capstyle="butt")
+    axes.text((x0 + x1) / 2.0, y - 0.015 * rows, f"{length:g} mm", color="white", fontsize=8, ha="center",
+              va="bottom")
+
+
 def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = None,
                    layers=(), line_px: float = 2.0, dot_px: float = 3.0, legend_height_px: int = 28,
-                   min_width_px: int = 480) -> None:
+                   min_width_px: int = 480, title: str | None = None, P: np.ndarray | None = None,
+                   anchor=None, skeleton_color=PALETTE["skeleton2d"]) -> None:
     """Draw the frame in grey with coloured layers on top and save it as a PNG (atomically).
 
     The frame fills the top-left ``rows x cols`` pixels of the PNG at 1:1, so the layer
@@ -687,6 +741,13 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
     line_px, dot_px : float
         Line width and dot size in PNG pixels (antialiased, not snapped to the pixel grid,
         so a line or dot is centred exactly on its ``(u, v)``).
+    title : str, optional
+        Drawn at the top left (e.g. the method, the view and the 2D fit).
+    P, anchor : (3, 4) and (3,), optional
+        With both: R and L where the patient's right and left project (through ``anchor``,
+        LPS, e.g. the anatomy's centre) and a millimetre scale bar at ``anchor``'s depth.
+    skeleton_color : color
+        Colour of the 2D skeleton dots.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -699,7 +760,7 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
         raise ValueError("overlay image contains NaN or infinite values")
     layers = list(layers)
     if skeleton2d is not None:
-        layers.insert(0, OverlayLayer("2D skeleton", skeleton2d, PALETTE["skeleton2d"]))
+        layers.insert(0, OverlayLayer("2D skeleton", skeleton2d, skeleton_color))
 
     rows, cols = image.shape
     width, height = max(cols, min_width_px), rows + legend_height_px
@@ -716,6 +777,11 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
     for layer in layers:
         axes.add_collection(_layer_artist(layer, line_px * points_per_px, dot_px))
         handles.append(Line2D([], [], color=_rgb(layer.color), linewidth=3, label=layer.name))
+    if P is not None and anchor is not None:
+        _orientation_marks(axes, P, anchor, rows, cols)
+    if title:
+        axes.text(0.01 * cols, 0.01 * rows, title, color="white", fontsize=9, ha="left", va="top",
+                  bbox={"facecolor": "black", "alpha": 0.55, "pad": 2.0, "edgecolor": "none"})
     axes.set_xlim(-0.5, cols - 0.5)
     axes.set_ylim(rows - 0.5, -0.5)
     if handles:

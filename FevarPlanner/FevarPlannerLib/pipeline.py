@@ -29,10 +29,10 @@ from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
 from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
 from .io import Case, InputError, load_case
-from .projection import image_directions, project
+from .projection import image_directions, project, view_label
 
 __all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "preop_from_lumen",
-           "build_preop", "prepare_preop", "register_frame", "run_case", "plan_case", "write_outputs"]
+           "build_preop", "prepare_preop", "picture_title", "register_frame", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
 #: Laplacian smoothing passes over both skeletons (graph.smooth_positions), which takes out
@@ -417,6 +417,27 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     return result
 
 
+def picture_title(result: PlanResult) -> str:
+    """The caption of the pictures: method, view angles, and the 2D number named for what it is.
+
+    Without ground truth the 2D number is the fit to the frame's own skeleton, not an error.
+    """
+    tags = (result.geometry or {}).get("tags", {})
+    if "PositionerPrimaryAngle" in tags:
+        view = f"{view_label(tags['PositionerPrimaryAngle'], tags['PositionerSecondaryAngle'])} (tags)"
+    else:
+        view = f"{export.view_name(result.P, result.deformed.points.mean(axis=0))} (from P)"
+    errors = result.errors or {}
+    text = f"{result.method} | {view}"
+    if errors.get("2d_px"):
+        mean = errors["2d_px"]["mean"]
+        if errors.get("3d_mm"):
+            text += f" | 2D error {mean:.2f} px, 3D error {errors['3d_mm']['mean']:.2f} mm (vs. truth)"
+        else:
+            text += f" | fit to the frame's own skeleton {mean:.2f} px"
+    return text
+
+
 def write_outputs(result: PlanResult, out_dir) -> dict:
     """Write result.json, deformed_centerline.vtp, path.mrk.json and overlay.png into ``out_dir``."""
     out_dir = Path(out_dir)
@@ -425,13 +446,15 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
              ("deformed_centerline.vtp", "path.mrk.json", "overlay.png", "result.json")}
     export.write_centerline_vtp(paths["deformed_centerline.vtp"], result.deformed)
     export.write_path_markups(paths["path.mrk.json"], result.path.points)
+    colors, names = PALETTE, export.ROLE_NAMES
     layers = [
-        export.centerline_layer("pre-operative (projected)", result.P, result.preop, PALETTE["preop"]),
-        export.centerline_layer("deformed (projected)", result.P, result.deformed, PALETTE["recovered"]),
-        export.path_layer("catheter path", result.P, result.path.points, PALETTE["path"]),
+        export.centerline_layer(f"{names['preop']} (projected)", result.P, result.preop, colors["preop"]),
+        export.centerline_layer(f"{names['recovered']} (projected)", result.P, result.deformed, colors["recovered"]),
+        export.path_layer(names["path"], result.P, result.path.points, colors["path"]),
     ]
     export.render_overlay(paths["overlay.png"], result.fluoro_image, skeleton2d=result.skeleton2d_points,
-                          layers=layers)
+                          layers=layers, title=picture_title(result), P=result.P,
+                          anchor=result.deformed.points.mean(axis=0))
     if result.qc is not None:
         quality.write_segmentation_qc(out_dir / "segmentation_qc.png", result.qc)
     if result.drr is not None:
@@ -440,7 +463,7 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
         paths["drr_check.png"] = out_dir / "drr_check.png"
         notes = (result.geometry or {}).get("assumptions", [])
         drr.write_drr_check(paths["drr_check.png"], result.fluoro_image, result.drr,
-                            title=f"geometry check: {(result.geometry or {}).get('source', 'P')}", notes=notes)
+                            title=f"geometry check, {picture_title(result)}", notes=notes)
     # result.json last: its presence means every other output is complete
     export.write_result_json(paths["result.json"], result.to_dict())
     return paths

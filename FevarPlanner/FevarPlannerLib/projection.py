@@ -60,6 +60,7 @@ __all__ = [
     "principal_point",
     "patient_motion",
     "GeometrySource",
+    "view_label",
     "GeometryAssumptionWarning",
     "read_geometry_file",
     "apply_in_plane_correction",
@@ -295,6 +296,12 @@ def write_geometry_json(path, P: np.ndarray, **extra) -> None:
 
 # ----------------------------------------------------------------------------- provenance
 
+def view_label(primary_deg: float, secondary_deg: float) -> str:
+    """The clinical name of a C-arm view: ``view_label(30, -10) == "LAO 30 / CAU 10"``."""
+    return (f"{'LAO' if primary_deg >= 0 else 'RAO'} {abs(primary_deg):.0f} / "
+            f"{'CRA' if secondary_deg >= 0 else 'CAU'} {abs(secondary_deg):.0f}")
+
+
 class GeometryAssumptionWarning(UserWarning):
     """``P`` rests on an assumption the input files do not state (e.g. where the isocentre is)."""
 
@@ -346,8 +353,7 @@ class GeometrySource:
         """``"LAO 30 / CRA 15"`` from the tags, or None when ``P`` did not come from tags."""
         if "PositionerPrimaryAngle" not in self.tags:
             return None
-        a, b = self.tags["PositionerPrimaryAngle"], self.tags["PositionerSecondaryAngle"]
-        return f"{'LAO' if a >= 0 else 'RAO'} {abs(a):.0f} / {'CRA' if b >= 0 else 'CAU'} {abs(b):.0f}"
+        return view_label(self.tags["PositionerPrimaryAngle"], self.tags["PositionerSecondaryAngle"])
 
     def describe(self) -> str:
         """One line for stderr: which geometry, and what it assumed."""
