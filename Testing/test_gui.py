@@ -250,3 +250,28 @@ def test_end_to_end_phantom_case_in_the_worker_thread(window, tmp_path, qapp):
     qapp.processEvents()
     for view in (window.view3d, window.fluoro_view):
         assert _green_mask(view.pixels()).sum() > 200
+
+
+def test_changing_the_target_replans_on_the_shown_result_without_a_worker(window, plan_result, qapp):
+    import copy
+
+    result = copy.deepcopy(plan_result)
+    window.show_result(result)
+    registered = result.deformed
+    window.widget("targetComboBox").setCurrentText("renal_right")
+    qapp.processEvents()
+    assert window._thread is None  # nothing was re-registered
+    assert window.outcome.result.deformed is registered
+    assert window.outcome.result.path.target_label == "renal_right"
+    expected = planning.plan_path(registered, start="iliac_right", target="renal_right")
+    np.testing.assert_allclose(window.outcome.result.path.points, expected.points)
+    rows = dict(summary_rows(window.outcome.result))
+    assert rows["Path"] == "iliac_right \u2192 renal_right"
+    assert window.replan() is False  # already planned for these vessels
+
+
+def test_views_use_the_one_palette():
+    from FevarPlannerLib.export import PALETTE
+
+    for layer in ("preop", "deformed", "path", "skeleton2d"):
+        assert COLORS[layer] == PALETTE[layer]

@@ -1,7 +1,7 @@
 """FevarPlanner workstation: a standalone Qt + VTK front end for people without 3D Slicer.
 
 It shows the same control panel as the Slicer module (``Resources/UI/FevarPlanner.ui``)
-beside a 3D view (pre-operative and deformed centrelines, the planned path, the aorta
+beside a 3D view (pre-operative and recovered centrelines, the planned path, the aorta
 surface) and a 2D view (the fluoroscopic frame with its skeleton and the projected
 centrelines), and runs :func:`FevarPlannerLib.pipeline.plan_case` in a worker thread.
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from numbers import Real
 
-__all__ = ["METRIC_NAMES", "format_metric", "summary_rows"]
+__all__ = ["METRIC_NAMES", "FIT_NAMES", "format_metric", "summary_rows"]
 
 #: Readable names of the metrics that :func:`FevarPlannerLib.evaluation.evaluate` returns.
 METRIC_NAMES = {
@@ -17,6 +17,12 @@ METRIC_NAMES = {
     "3d_mm": "3D error: result \u2192 truth (mm)",
     "3d_reverse_mm": "3D error: truth \u2192 result (mm)",
     "3d_symmetric_mm": "3D error: symmetric (mm)",
+}
+#: Without ground truth the 2D distances measure how well the result fits the frame's own
+#: skeleton; they are not errors and are not called so.
+FIT_NAMES = {
+    "2d_px": "2D fit to the frame's skeleton: result \u2192 skeleton (px)",
+    "2d_reverse_px": "2D fit to the frame's skeleton: skeleton \u2192 result (px)",
 }
 
 
@@ -49,11 +55,17 @@ def summary_rows(result) -> list[tuple[str, str]]:
         ("Path", f"{path.start_label} → {path.target_label}"),
         ("Path length (mm)", f"{path.length_mm:.1f}"),
         ("Path points", str(len(path.points))),
-        ("Nodes (pre-op / deformed)", f"{len(result.preop)} / {len(result.deformed)}"),
+        ("Nodes (pre-op / recovered)", f"{len(result.preop)} / {len(result.deformed)}"),
         ("2D skeleton nodes", str(len(result.skeleton2d_points))),
     ]
-    for key, value in (result.errors or {}).items():
-        rows.append((METRIC_NAMES.get(key, key.replace("_", " ")), format_metric(value)))
+    geometry = getattr(result, "geometry", None)
+    if geometry:
+        rows.append(("Geometry", geometry["source"] + (" (assumed isocentre, see notes)"
+                                                        if geometry.get("assumptions") else "")))
+    errors = result.errors or {}
+    names = METRIC_NAMES if errors.get("3d_mm") is not None else {**METRIC_NAMES, **FIT_NAMES}
+    for key, value in errors.items():
+        rows.append((names.get(key, key.replace("_", " ")), format_metric(value)))
     timings = sorted(result.timings.items(), key=lambda item: (item[0] != "total", -item[1]))
     rows += [(f"Time: {name} (s)", f"{seconds:.3f}") for name, seconds in timings]
     return rows

@@ -4,8 +4,8 @@ Both are :class:`QVTKRenderWindowInteractor` widgets. The scene is rebuilt from 
 :class:`FevarPlannerLib.pipeline.PlanResult` (plus an optional surface) by
 :meth:`set_result`; layers are switched on and off by name with :meth:`set_layer_visible`.
 
-Colours follow the overlay PNG that :func:`FevarPlannerLib.pipeline.write_outputs` writes:
-pre-operative orange, deformed cyan, catheter path green, 2D skeleton red.
+Colours and names are the overlay PNG's (:data:`FevarPlannerLib.export.PALETTE` and
+``ROLE_NAMES``): pre-operative orange, recovered cyan, catheter path green, 2D skeleton yellow.
 """
 
 from __future__ import annotations
@@ -30,20 +30,15 @@ from vtkmodules.vtkRenderingCore import (vtkActor, vtkBillboardTextActor3D, vtkI
                                          vtkImageSliceMapper, vtkRenderer, vtkTextActor,
                                          vtkWindowToImageFilter)
 
-from FevarPlannerLib.export import centerline_to_polydata, polydata_actor, tube_actor  # noqa: E402
+from FevarPlannerLib.export import (PALETTE, ROLE_NAMES, centerline_to_polydata, polydata_actor,  # noqa: E402
+                                    tube_actor)
 from FevarPlannerLib.projection import project  # noqa: E402
 
 __all__ = ["COLORS", "polyline_polydata", "segments_polydata", "View3D", "FluoroView", "render_to_array"]
 
 #: RGB (0..1) of each layer, shared by both views and the legend.
-COLORS = {
-    "preop": (1.0, 0.50, 0.05),
-    "deformed": (0.09, 0.75, 0.81),
-    "path": (0.25, 1.0, 0.25),
-    "skeleton2d": (0.95, 0.20, 0.25),
-    "surface": (0.93, 0.72, 0.66),
-    "text": (0.90, 0.92, 0.95),
-}
+COLORS = {**{layer: PALETTE[layer] for layer in ("preop", "deformed", "path", "skeleton2d", "surface")},
+          "text": (0.90, 0.92, 0.95)}
 BACKGROUND_TOP = (0.16, 0.18, 0.24)
 BACKGROUND_BOTTOM = (0.05, 0.06, 0.08)
 
@@ -185,7 +180,7 @@ class _LayeredView(QVTKRenderWindowInteractor):
 
 
 class View3D(_LayeredView):
-    """Pre-operative and deformed centrelines as tubes, the path highlighted, an optional surface.
+    """Pre-operative and recovered centrelines as tubes, the path highlighted, an optional surface.
 
     Seen from the front (anterior), head up: the patient's left on the screen's right, as
     on an AP fluoroscopic frame. An orientation cube names the LPS directions.
@@ -236,8 +231,8 @@ class View3D(_LayeredView):
             self.add_to_layer("path", _label_3d(text, point, COLORS["text"]))
         if surface is not None and surface.GetNumberOfPoints():
             self.add_to_layer("surface", self._surface_actor(surface))
-        self._legend([("preop", "pre-operative centreline", COLORS["preop"]),
-                      ("deformed", f"deformed centreline ({result.method})", COLORS["deformed"]),
+        self._legend([("preop", f"{ROLE_NAMES['preop']} centreline", COLORS["preop"]),
+                      ("deformed", f"{ROLE_NAMES['recovered']} centreline ({result.method})", COLORS["deformed"]),
                       ("path", f"catheter path {result.path.length_mm:.0f} mm", COLORS["path"])])
         self.reset_camera()
 
@@ -313,9 +308,9 @@ class FluoroView(_LayeredView):
         path_uv = project(result.P, result.path.points)
         path = polyline_polydata(np.column_stack([path_uv, np.full(len(path_uv), -4.0)]))
         self.add_to_layer("path", _line_actor(path, COLORS["path"], 4.0))
-        self._legend([("skeleton2d", "2D vessel skeleton", COLORS["skeleton2d"]),
-                      ("preop", "pre-operative, projected", COLORS["preop"]),
-                      ("deformed", "deformed, projected", COLORS["deformed"]),
+        self._legend([("skeleton2d", ROLE_NAMES["skeleton2d"], COLORS["skeleton2d"]),
+                      ("preop", f"{ROLE_NAMES['preop']}, projected", COLORS["preop"]),
+                      ("deformed", f"{ROLE_NAMES['recovered']}, projected", COLORS["deformed"]),
                       ("path", "catheter path, projected", COLORS["path"])])
         self.reset_camera()
 

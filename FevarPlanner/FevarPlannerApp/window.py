@@ -153,6 +153,8 @@ class MainWindow(QMainWindow):
             self.widget(f"{key}BrowseButton").clicked.connect(lambda _=False, e=edit: self._browse_file(e))
         self.widget("caseDirLineEdit").textChanged.connect(self._update_run_button)
         self.widget("runButton").clicked.connect(self.run_plan)
+        for combo in ("startComboBox", "targetComboBox"):
+            self.widget(combo).currentTextChanged.connect(lambda _text: self.replan())
         for box, layer in DISPLAY.items():
             self.widget(box).toggled.connect(lambda visible, name=layer: self._set_layer_visible(name, visible))
 
@@ -210,6 +212,28 @@ class MainWindow(QMainWindow):
         self.widget("progressBar").setValue(0)
         self._thread.start()
         self._update_run_button()
+
+    def replan(self) -> bool:
+        """Re-plan the path for the panel's access and target vessels on the shown result.
+
+        Only the path search runs (on the recovered centreline already there): no
+        registration, no segmentation. Returns whether the path changed.
+        """
+        from FevarPlannerLib.planning import plan_path
+
+        if self.outcome is None or self._thread is not None:
+            return False
+        result = self.outcome.result
+        start, target = self.widget("startComboBox").currentText(), self.widget("targetComboBox").currentText()
+        if (result.path.start_label, result.path.target_label) == (start, target):
+            return False
+        try:
+            result.path = plan_path(result.deformed, start=start, target=target)
+        except ValueError as exc:
+            self._on_failed(str(exc).splitlines()[0])
+            return False
+        self.show_outcome(self.outcome)
+        return True
 
     def is_running(self) -> bool:
         """Whether a plan is being computed."""

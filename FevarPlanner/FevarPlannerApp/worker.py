@@ -1,9 +1,10 @@
 """Running the pipeline off the GUI thread.
 
-:class:`PlanWorker` lives in a :class:`QThread`; it calls
-:func:`FevarPlannerLib.pipeline.plan_case` (the one logic entry point) and reports
-progress, the outcome or a one-line error through Qt signals, which Qt delivers on the
-GUI thread.
+:class:`PlanWorker` lives in a :class:`QThread`; it loads the case, takes the
+pre-operative model from the cache (:func:`FevarPlannerLib.cache.preop_model`: the CT is
+segmented once per patient, not on every click), runs
+:func:`FevarPlannerLib.pipeline.run_case` (the one logic entry point) and reports progress,
+the outcome or a one-line error through Qt signals, which Qt delivers on the GUI thread.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ class PlanRequest:
     out_dir: Path | None = None
     overrides: dict = field(default_factory=dict)
     with_surface: bool = True
+    use_cache: bool = True
 
 
 @dataclass
@@ -36,6 +38,7 @@ class PlanOutcome:
     result: object
     surface: object = None
     written: dict = field(default_factory=dict)
+    model: object = None
 
 
 def aorta_surface(case_dir, aorta_mask=None):
@@ -65,20 +68,24 @@ class PlanWorker(QObject):
 
     @Slot()
     def run(self) -> None:
-        from FevarPlannerLib.pipeline import plan_case, write_outputs
+        from FevarPlannerLib import cache
+        from FevarPlannerLib.io import load_case
+        from FevarPlannerLib.pipeline import run_case, write_outputs
 
         request = self.request
+        progress = lambda fraction, message: self.progress.emit(float(fraction), str(message))  # noqa: E731
         try:
-            result = plan_case(request.case_dir, method=request.method, start=request.start, target=request.target,
-                               progress=lambda fraction, message: self.progress.emit(float(fraction), str(message)),
-                               **{key: value for key, value in request.overrides.items() if value})
-            outcome = PlanOutcome(result)
+            case = load_case(request.case_dir, **{key: value for key, value in request.overrides.items() if value})
+            model = cache.preop_model(case, progress=progress, use_cache=request.use_cache)
+            result = run_case(case, method=request.method, start=request.start, target=request.target,
+                              preop=model, progress=progress)
+            outcome = PlanOutcome(result, model=model)
             if request.out_dir is not None:
                 self.progress.emit(1.0, f"writing the outputs to {request.out_dir}")
                 outcome.written = write_outputs(result, request.out_dir)
             if request.with_surface:
                 self.progress.emit(1.0, "extracting the aorta surface")
-                outcome.surface = aorta_surface(request.case_dir, request.overrides.get("aorta_mask"))
+                outcome.surface = model.surface() or aorta_surface(request.case_dir, request.overrides.get("aorta_mask"))
             self.succeeded.emit(outcome)
         except Exception as exc:  # the GUI shows any failure as one line and stays usable
             self.failed.emit(f"{type(exc).__name__}: {exc}".splitlines()[0])
