@@ -328,7 +328,7 @@ def test_overlay_marks_right_and_left_where_the_patient_lies(tmp_path, tree):
 
 
 def test_path_markups_take_the_path_colour(tmp_path, tree):
-    from FevarPlannerLib.export import PALETTE
+    from FevarPlannerLib.conventions import PALETTE
 
     write_path_markups(tmp_path / "p.mrk.json", tree.points[:4])
     display = json.loads((tmp_path / "p.mrk.json").read_text())["markups"][0]["display"]

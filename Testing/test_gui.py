@@ -271,7 +271,7 @@ def test_changing_the_target_replans_on_the_shown_result_without_a_worker(window
 
 
 def test_views_use_the_one_palette():
-    from FevarPlannerLib.export import PALETTE
+    from FevarPlannerLib.conventions import PALETTE
 
     for layer in ("preop", "deformed", "path", "skeleton2d"):
         assert COLORS[layer] == PALETTE[layer]

@@ -4,8 +4,8 @@ Both are :class:`QVTKRenderWindowInteractor` widgets. The scene is rebuilt from 
 :class:`FevarPlannerLib.pipeline.PlanResult` (plus an optional surface) by
 :meth:`set_result`; layers are switched on and off by name with :meth:`set_layer_visible`.
 
-Colours and names are the overlay PNG's (:data:`FevarPlannerLib.export.PALETTE` and
-``ROLE_NAMES``): pre-operative orange, recovered cyan, catheter path green, 2D skeleton yellow.
+Colours and names are the overlay PNG's (:data:`FevarPlannerLib.conventions.PALETTE` and
+``FevarPlannerLib.export.ROLE_NAMES``): pre-operative orange, recovered cyan, catheter path green, 2D skeleton yellow.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from vtkmodules.vtkRenderingCore import (vtkActor, vtkBillboardTextActor3D, vtkI
                                          vtkImageSliceMapper, vtkRenderer, vtkTextActor,
                                          vtkWindowToImageFilter)
 
-from FevarPlannerLib.export import (PALETTE, ROLE_NAMES, centerline_to_polydata, polydata_actor,  # noqa: E402
-                                    tube_actor)
+from FevarPlannerLib.conventions import PALETTE  # noqa: E402
+from FevarPlannerLib.export import ROLE_NAMES, centerline_to_polydata, polydata_actor, tube_actor  # noqa: E402
 from FevarPlannerLib.projection import project  # noqa: E402
 
 __all__ = ["COLORS", "polyline_polydata", "segments_polydata", "View3D", "FluoroView", "render_to_array"]

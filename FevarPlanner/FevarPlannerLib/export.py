@@ -41,7 +41,6 @@ from .projection import depth, image_directions, project, validate_projection_ma
 
 __all__ = [
     "RESULT_VERSION",
-    "PALETTE",
     "ROLE_NAMES",
     "MARKUPS_SCHEMA",
     "build_result_dict",

@@ -170,7 +170,7 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
                           frame.skeleton2d.edges(), fluoro.image,
                           {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
                           {"fluoro": str(case.fluoro.path), "frame": index},
-                          case.geometry.to_dict() if case.geometry is not None else None)
+                          geometry=case.geometry.to_dict() if case.geometry is not None else None)
     if progress is not None:
         progress(1.0, f"{len(records)} frames")
     return TrackResult(records, preop_seconds, model.from_cache, method, last)
