@@ -11,7 +11,7 @@ from FevarPlannerLib import cache, cli, io, phantom
 from FevarPlannerLib.projection import apply_in_plane_correction, projection_matrix_from_carm
 from FevarPlannerLib.tracking import CSV_COLUMNS, track_case, write_track_outputs
 
-N_FRAMES = 4
+N_FRAMES = 3
 
 
 @pytest.fixture(scope="module")
@@ -27,14 +27,21 @@ def run_case_dir(tmp_path_factory):
     return folder, generated
 
 
+@pytest.fixture(scope="module")
+def shared_cache(tmp_path_factory):
+    """One cache for the module: the pre-operative model is computed once, then read."""
+    return tmp_path_factory.mktemp("shared") / "cache"
+
+
 @pytest.fixture()
-def cache_dir(tmp_path, monkeypatch):
-    folder = tmp_path / "cache"
-    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(folder))
-    return folder
+def cache_dir(shared_cache, monkeypatch):
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(shared_cache))
+    return shared_cache
 
 
-def test_the_cache_returns_the_same_model_and_notices_changed_inputs(run_case_dir, cache_dir):
+def test_the_cache_returns_the_same_model_and_notices_changed_inputs(run_case_dir, tmp_path, monkeypatch):
+    cache_dir = tmp_path / "own-cache"
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(cache_dir))
     case = io.load_case(run_case_dir[0])
     first = cache.preop_model(case)
     second = cache.preop_model(case)
@@ -72,14 +79,16 @@ def test_track_registers_every_frame_and_writes_csv_and_json(run_case_dir, cache
     summary = json.loads(paths["track.json"].read_text())
     assert summary["n_frames"] == N_FRAMES and summary["per_frame_total_ms"]["median"] > 0
     assert json.loads((tmp_path / "out" / "result.json").read_text())["path"]["to"] == "renal_right"
-    # the second run finds the pre-operative model in the cache
-    assert track_case(folder, count=1).preop_from_cache
+    # a second run finds the pre-operative model in the cache
+    again = track_case(folder, count=1)
+    assert again.preop_from_cache and len(again.records) == 1
 
 
-def test_bad_option_values_fail_before_any_work(run_case_dir, cache_dir, tmp_path, capsys):
+def test_bad_option_values_fail_before_any_work(run_case_dir, tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "untouched"))
     with pytest.raises(ValueError, match="target vessel must be one of"):
         track_case(run_case_dir[0], target="sma")
-    assert not cache_dir.exists()
+    assert not (tmp_path / "untouched").exists()
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["track", str(run_case_dir[0]), "--out", str(tmp_path / "o"), "--target", "sma"])
     assert exit_info.value.code == 2 and "invalid choice: 'sma'" in capsys.readouterr().err
