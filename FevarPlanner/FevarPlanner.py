@@ -3,14 +3,22 @@
 The only file of the project that imports ``slicer`` (and, inside the Slicer application,
 ``qt``). It is a thin adapter around the pure core:
 
-* module-level functions turn a :class:`FevarPlannerLib.pipeline.PlanResult` into MRML
-  nodes (centrelines as model nodes, the catheter path as a markups curve, the frame as a
-  scalar volume). They need nothing but the MRML classes, so they run under the
-  ``slicer-core`` wheel (pip) as well as in Slicer, and the pytest suite checks them there;
-* :class:`FevarPlannerLogic` runs :func:`FevarPlannerLib.pipeline.plan_case` (the same entry
-  point as the CLI and the workstation) and adds the result to a scene;
+* module-level functions move data between the core and MRML nodes: volumes (a CT loaded
+  from DICOM, labelmaps) and segmentations both ways, centrelines as model nodes with a
+  ``Radius`` array (as SlicerVMTK's Extract Centerline gives them), the catheter path as a
+  locked linear markups curve, the frame in its own slice view with the projected tree as
+  an overlay that only that view shows. They need nothing but the MRML classes, so they run
+  under the ``slicer-core`` wheel (pip) as well as in Slicer, and the pytest suite checks
+  them there;
+* :class:`FevarPlannerParameters`: the module's parameter node (inputs and results as node
+  references, options as parameters), saved with the scene. Inside Slicer the widget binds
+  the same fields through ``parameterNodeWrapper``;
+* :class:`FevarPlannerLogic` builds a case from loaded nodes (or reads a case folder), runs
+  :func:`FevarPlannerLib.pipeline.run_case` (the same entry point as the CLI and the
+  workstation) on the cached pre-operative model, and puts the result into the scene;
 * inside the Slicer application only: the module description, the widget (the shared
-  ``Resources/UI/FevarPlanner.ui`` panel) and the self-test.
+  ``Resources/UI/FevarPlanner.ui`` panel plus node selectors), with enter / exit / cleanup
+  handlers, and the self-test.
 
 Coordinates: the core works in DICOM LPS millimetres; Slicer's scene is RAS. The conversion
 ``RAS = (-x, -y, z)`` happens here and nowhere else.
@@ -30,11 +38,14 @@ import vtk
 from vtk.util import numpy_support
 
 from FevarPlannerApp.summary import summary_rows
+from FevarPlannerLib import RESEARCH_USE_STATEMENT
 from FevarPlannerLib.centerline import Centerline
+from FevarPlannerLib.conventions import PALETTE
 
 try:
     from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,
                                                ScriptedLoadableModuleTest, ScriptedLoadableModuleWidget)
+    import ctk
     import qt
 
     SLICER_APPLICATION = True
@@ -44,6 +55,11 @@ except ImportError:
     # application and are not defined.
     ScriptedLoadableModuleLogic = object
     SLICER_APPLICATION = False
+
+try:
+    from slicer.parameterNodeWrapper import parameterNodeWrapper
+except ImportError:  # slicer-core, or a Slicer older than 5.2
+    parameterNodeWrapper = None
 
 __all__ = [
     "ROLE_ATTRIBUTE",
@@ -62,21 +78,32 @@ __all__ = [
     "node_to_volume",
     "mask_to_segmentation_node",
     "segmentation_node_to_mask",
+    "lumen_radii",
+    "frame_view_nodes",
+    "show_frame",
+    "overlay_to_model_node",
     "result_nodes",
     "remove_result_nodes",
+    "FevarPlannerParameters",
     "FevarPlannerLogic",
     "run_phantom_check",
+    "run_node_check",
 ]
 
 #: Node attribute naming what a node shows; nodes carrying it belong to this module.
 ROLE_ATTRIBUTE = "FevarPlanner.role"
 
-#: Display colour (RGB 0..1) and line width per role; the same colours as the overlay PNG.
+#: Display colour (RGB 0..1, the project's one palette) and line width per role.
 STYLE = {
-    "preop": ((1.0, 0.50, 0.05), 2.0),
-    "deformed": ((0.09, 0.75, 0.81), 3.0),
-    "path": ((0.20, 0.95, 0.20), 4.0),
+    "preop": (PALETTE["preop"], 2.0),
+    "deformed": (PALETTE["recovered"], 3.0),
+    "path": (PALETTE["path"], 4.0),
+    "skeleton2d": (PALETTE["skeleton2d"], 2.0),
 }
+#: Roles whose nodes a new run keeps: the aorta segmentation may have been edited by hand.
+KEPT_ROLES = ("aorta",)
+#: Layout name of the slice view that shows the frame (never the CT's views).
+FRAME_VIEW = "FevarFrame"
 
 LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
 
@@ -131,17 +158,30 @@ def _vtk_points(points: np.ndarray) -> vtk.vtkPoints:
     return result
 
 
-def centerline_polydata_ras(centerline: Centerline) -> vtk.vtkPolyData:
+def centerline_polydata_ras(centerline: Centerline, radius=None) -> vtk.vtkPolyData:
     """The centreline as export's vtkPolyData (line per edge, label arrays) with RAS points.
 
     It carries no coordinate-system tag: a model node's data is RAS by definition, and
     Slicer's model storage converts it and writes its own ``SPACE`` tag when it saves it.
+    ``radius`` (mm per node) becomes the point array ``Radius``, as SlicerVMTK names it.
     """
     # imported here, not at the top: export pulls in the readers (pydicom, Pillow), which a
     # fresh Slicer may lack until the widget has offered to install them
     from FevarPlannerLib import export
 
-    return export.centerline_to_polydata(centerline, space=None)
+    arrays = {"Radius": np.asarray(radius, dtype=float)} if radius is not None else None
+    return export.centerline_to_polydata(centerline, arrays, space=None)
+
+
+def lumen_radii(lumen, points_lps) -> np.ndarray:
+    """Lumen radius (mm) at each point: the distance from its voxel to the nearest background voxel."""
+    from scipy import ndimage
+
+    inside = np.asarray(lumen.array) > 0
+    distance = ndimage.distance_transform_edt(inside, sampling=lumen.spacing[::-1])
+    index = np.rint(lumen.lps_to_index(np.asarray(points_lps, dtype=float))).astype(int)
+    index = np.clip(index, 0, np.array(inside.shape) - 1)
+    return distance[tuple(index.T)]
 
 
 def model_node_to_centerline(node) -> Centerline:
@@ -259,7 +299,7 @@ def _tag(node, role: str, name: str) -> None:
     node.SetAttribute(ROLE_ATTRIBUTE, role)
 
 
-def centerline_to_model_node(scene, centerline: Centerline, name: str, role: str = "deformed"):
+def centerline_to_model_node(scene, centerline: Centerline, name: str, role: str = "deformed", radius=None):
     """Add a centreline to ``scene`` as a vtkMRMLModelNode of lines (RAS), with a display node.
 
     Parameters
@@ -271,12 +311,14 @@ def centerline_to_model_node(scene, centerline: Centerline, name: str, role: str
         Node name shown in Slicer.
     role : {"preop", "deformed"}
         Sets the colour and line width (:data:`STYLE`) and the :data:`ROLE_ATTRIBUTE`.
+    radius : array_like, optional
+        Lumen radius (mm) per node, stored as the point array ``Radius``.
     """
     if role not in STYLE:
         raise ValueError(f"unknown display role {role!r}; expected one of {sorted(STYLE)}")
     node = scene.AddNewNodeByClass("vtkMRMLModelNode")
     _tag(node, role, name)
-    node.SetAndObservePolyData(centerline_polydata_ras(centerline))
+    node.SetAndObservePolyData(centerline_polydata_ras(centerline, radius))
     node.CreateDefaultDisplayNodes()
     color, width = STYLE[role]
     display = node.GetDisplayNode()
@@ -338,8 +380,92 @@ def fluoro_to_volume_node(scene, image: np.ndarray, name: str = "FevarPlanner fl
     return node
 
 
+def frame_view_nodes(scene):
+    """The slice node and slice composite node of the frame's own view (layout name :data:`FRAME_VIEW`).
+
+    Created on first use. Inside Slicer the widget adds a view with this layout name to the
+    layout, so the frame appears there and the CT keeps the Red / Yellow / Green views.
+    """
+    slice_node = next((node for node in _nodes_of_class(scene, "vtkMRMLSliceNode")
+                       if node.GetLayoutName() == FRAME_VIEW), None)
+    if slice_node is None:
+        slice_node = scene.AddNewNodeByClass("vtkMRMLSliceNode")
+        slice_node.SetName("FevarPlanner frame view")
+        slice_node.SetLayoutName(FRAME_VIEW)
+        slice_node.SetSingletonTag(FRAME_VIEW)
+    composite = next((node for node in _nodes_of_class(scene, "vtkMRMLSliceCompositeNode")
+                      if node.GetLayoutName() == FRAME_VIEW), None)
+    if composite is None:
+        composite = scene.AddNewNodeByClass("vtkMRMLSliceCompositeNode")
+        composite.SetLayoutName(FRAME_VIEW)
+        composite.SetSingletonTag(FRAME_VIEW)
+    return slice_node, composite
+
+
+def _nodes_of_class(scene, class_name: str) -> list:
+    return [scene.GetNthNodeByClass(i, class_name) for i in range(scene.GetNumberOfNodesByClass(class_name))]
+
+
+def _frame_ijk_to_ras(frame_node) -> np.ndarray:
+    matrix = vtk.vtkMatrix4x4()
+    frame_node.GetIJKToRASMatrix(matrix)
+    return _numpy_matrix(matrix)
+
+
+def show_frame(scene, frame_node):
+    """Show the frame volume in its own view, facing it as the C-arm monitor does (u right, v down).
+
+    Only the frame view's composite node is changed: the views showing the CT keep it.
+    Returns the frame view's slice node.
+    """
+    slice_node, composite = frame_view_nodes(scene)
+    composite.SetBackgroundVolumeID(frame_node.GetID())
+    ijk_to_ras = _frame_ijk_to_ras(frame_node)
+    cols, rows, _ = frame_node.GetImageData().GetDimensions()
+    u_axis, v_axis = ijk_to_ras[:3, 0], ijk_to_ras[:3, 1]
+    normal = np.cross(u_axis, -v_axis)  # screen x = +u, screen y = -v (rows run down the screen)
+    centre = (ijk_to_ras @ [(cols - 1) / 2.0, (rows - 1) / 2.0, 0.0, 1.0])[:3]
+    slice_node.SetSliceToRASByNTP(*(normal / np.linalg.norm(normal)), *(u_axis / np.linalg.norm(u_axis)), *centre, 0)
+    spacing = np.linalg.norm(ijk_to_ras[:3, :2], axis=0)
+    slice_node.SetFieldOfView(cols * spacing[0], rows * spacing[1], 1.0)
+    return slice_node
+
+
+def overlay_to_model_node(scene, frame_node, points_uv, edges, name: str, role: str, view_node=None):
+    """Lines drawn on the frame (image points ``(u, v)``) as a model node in the frame's plane.
+
+    Shown in 2D only, projected onto the slice, and only in ``view_node`` (the frame view)
+    when given: never over the CT's slice views or in 3D.
+    """
+    uv = np.asarray(points_uv, dtype=float).reshape(-1, 2)
+    ijk = np.column_stack([uv, np.zeros(len(uv)), np.ones(len(uv))])
+    ras = (ijk @ _frame_ijk_to_ras(frame_node).T)[:, :3]
+    polydata = vtk.vtkPolyData()
+    polydata.SetPoints(_vtk_points(ras))
+    lines = vtk.vtkCellArray()
+    for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
+        lines.InsertNextCell(2)
+        lines.InsertCellPoint(int(a))
+        lines.InsertCellPoint(int(b))
+    polydata.SetLines(lines)
+    node = scene.AddNewNodeByClass("vtkMRMLModelNode")
+    _tag(node, role, name)
+    node.SetAndObservePolyData(polydata)
+    node.CreateDefaultDisplayNodes()
+    display = node.GetDisplayNode()
+    color, width = STYLE[role.replace("overlay_", "")]
+    display.SetColor(*color)
+    display.SetLineWidth(width)
+    display.SetVisibility3D(False)
+    display.SetVisibility2D(True)
+    display.SetSliceDisplayModeToProjection()
+    if view_node is not None:
+        display.SetViewNodeIDs([view_node.GetID()])
+    return node
+
+
 def result_nodes(scene) -> dict:
-    """This module's nodes in ``scene`` by role (``preop``, ``deformed``, ``path``, ``fluoro``)."""
+    """This module's nodes in ``scene`` by role (``preop``, ``deformed``, ``path``, ``fluoro``, ...)."""
     nodes = {}
     for index in range(scene.GetNumberOfNodes()):
         node = scene.GetNthNode(index)
@@ -350,18 +476,71 @@ def result_nodes(scene) -> dict:
 
 
 def remove_result_nodes(scene) -> int:
-    """Remove the nodes of an earlier run from ``scene``; returns how many were removed."""
-    nodes = list(result_nodes(scene).values())
+    """Remove the nodes of an earlier run from ``scene`` (not the aorta segmentation); returns how many."""
+    nodes = [node for role, node in result_nodes(scene).items() if role not in KEPT_ROLES]
     for node in nodes:
         scene.RemoveNode(node)
     return len(nodes)
 
 
+class FevarPlannerParameters:
+    """The module's parameter node: a ``vtkMRMLScriptedModuleNode`` saved with the scene.
+
+    Node-valued fields are node references named after the field, the others are string
+    parameters, which is how ``parameterNodeWrapper`` stores them too; inside Slicer the
+    widget binds the same fields through it, here (slicer-core) this class reads and writes
+    them. Inputs: ``ctVolume``, ``aortaSegmentation`` (optional: used instead of segmenting
+    the CT, and the segmentation a run creates is put here, so an edit in Segment Editor is
+    used on the next run), ``fluoroVolume`` (the frame), ``geometryFile`` /
+    ``fluoroFile`` (geometry.json, or the XA file whose C-arm tags give ``P``). Results:
+    ``preopModel``, ``recoveredModel``, ``pathCurve``.
+    """
+
+    NODE_FIELDS = ("ctVolume", "aortaSegmentation", "fluoroVolume", "preopModel", "recoveredModel", "pathCurve")
+    VALUE_FIELDS = {"method": "proposed", "start": "iliac_right", "target": "renal_left", "geometryFile": "",
+                    "fluoroFile": ""}
+    MODULE_NAME = "FevarPlanner"
+
+    def __init__(self, node):
+        object.__setattr__(self, "node", node)
+
+    @classmethod
+    def of_scene(cls, scene) -> "FevarPlannerParameters":
+        """The scene's FevarPlanner parameter node (created with the defaults on first use)."""
+        for node in _nodes_of_class(scene, "vtkMRMLScriptedModuleNode"):
+            if node.GetAttribute("ModuleName") == cls.MODULE_NAME:
+                return cls(node)
+        node = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode")
+        node.SetName("FevarPlanner parameters")
+        node.SetAttribute("ModuleName", cls.MODULE_NAME)
+        for key, value in cls.VALUE_FIELDS.items():
+            node.SetParameter(key, value)
+        return cls(node)
+
+    def __getattr__(self, name):
+        if name in self.NODE_FIELDS:
+            return self.node.GetNodeReference(name)
+        if name in self.VALUE_FIELDS:
+            value = self.node.GetParameter(name)
+            return self.VALUE_FIELDS[name] if value is None else value
+        raise AttributeError(name)
+
+    def __setattr__(self, name, value):
+        if name in self.NODE_FIELDS:
+            self.node.SetNodeReferenceID(name, value.GetID() if value is not None else None)
+        elif name in self.VALUE_FIELDS:
+            self.node.SetParameter(name, str(value))
+        else:
+            raise AttributeError(f"FevarPlanner parameters have no field {name!r}")
+
+
 class FevarPlannerLogic(ScriptedLoadableModuleLogic):
     """Run a case through the core and show the result as MRML nodes.
 
-    Usable without the widget, inside Slicer (``FevarPlannerLogic().run(case_dir)``) and
-    outside it on any vtkMRMLScene (``FevarPlannerLogic(scene).run(case_dir)``).
+    Usable without the widget, inside Slicer (``FevarPlannerLogic().process(parameters)``)
+    and outside it on any vtkMRMLScene (``FevarPlannerLogic(scene)``). Two routes share
+    :meth:`add_result`: :meth:`process` (inputs from loaded nodes, the Slicer way) and
+    :meth:`run` (a case folder, as the CLI reads it).
     """
 
     def __init__(self, scene=None):
@@ -373,6 +552,62 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
     def scene(self):
         """The scene given to the constructor, else Slicer's ``slicer.mrmlScene``."""
         return self._scene if self._scene is not None else slicer.mrmlScene
+
+    def getParameterNode(self) -> FevarPlannerParameters:  # noqa: N802  (Slicer naming)
+        """The scene's parameter node (see :class:`FevarPlannerParameters`)."""
+        return FevarPlannerParameters.of_scene(self.scene)
+
+    def case_from_nodes(self, parameters):
+        """A core :class:`FevarPlannerLib.io.Case` from the parameter node's input nodes (RAS -> LPS here)."""
+        from FevarPlannerLib.io import Case, InputError, projection_for_frame, read_fluoro
+        from FevarPlannerLib.io import Fluoro
+
+        ct_node, frame_node = parameters.ctVolume, parameters.fluoroVolume
+        if ct_node is None:
+            raise InputError("choose the CT volume (ctVolume)")
+        ct = node_to_volume(ct_node)
+        mask = None
+        if parameters.aortaSegmentation is not None:
+            mask = segmentation_node_to_mask(parameters.aortaSegmentation, ct_node)
+            if not mask.array.any():
+                raise InputError(f"segmentation {parameters.aortaSegmentation.GetName()!r} is empty")
+        tagged = read_fluoro(parameters.fluoroFile) if parameters.fluoroFile else None
+        if frame_node is not None:
+            image = node_to_volume(frame_node).array[0].astype(np.float32)
+            fluoro = Fluoro(image, None, tagged.carm if tagged is not None else None,
+                            Path(parameters.fluoroFile) if tagged is not None else None,
+                            missing_tags=tagged.missing_tags if tagged is not None else ("all C-arm tags",))
+        elif tagged is not None:
+            fluoro = tagged
+        else:
+            raise InputError("choose the frame (fluoroVolume) or its DICOM file (fluoroFile)")
+        P, source = projection_for_frame(fluoro, mask if mask is not None else ct, parameters.geometryFile or None)
+        paths = {"ct": Path(ct_node.GetName())}
+        return Case(case_dir=None, ct=ct if mask is None else None, aorta_mask=mask, skeleton3d=None, fluoro=fluoro,
+                    fluoro_mask=None, P=P, paths=paths, available=dict(paths), geometry=source)
+
+    def process(self, parameters=None, *, progress=None, cache=True):
+        """Plan from the loaded nodes of ``parameters`` (default the scene's parameter node).
+
+        The pre-operative model comes from the cache (:mod:`FevarPlannerLib.cache`) when the
+        same CT / segmentation were seen. Returns ``(PlanResult, nodes by role)``.
+        """
+        from FevarPlannerLib import cache as preop_cache
+        from FevarPlannerLib.pipeline import run_case
+
+        parameters = parameters or self.getParameterNode()
+        case = self.case_from_nodes(parameters)
+        model = preop_cache.preop_model(case, progress=progress, use_cache=cache)
+        result = run_case(case, method=parameters.method, start=parameters.start, target=parameters.target,
+                          preop=model, progress=progress, drr=False)
+        nodes = self.add_result(result, model=model, frame_node=parameters.fluoroVolume,
+                                show_fluoro=parameters.fluoroVolume is None)
+        if parameters.aortaSegmentation is None and model.lumen is not None:
+            nodes["aorta"] = mask_to_segmentation_node(self.scene, model.lumen, parameters.ctVolume)
+            parameters.aortaSegmentation = nodes["aorta"]
+        parameters.preopModel, parameters.recoveredModel = nodes["preop"], nodes["deformed"]
+        parameters.pathCurve = nodes["path"]
+        return result, nodes
 
     def run(self, case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
             out_dir=None, overrides: dict | None = None, progress=None, show_fluoro: bool = True):
@@ -392,38 +627,88 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         progress : callable, optional
             ``progress(fraction, message)``.
         show_fluoro : bool
-            Also add the frame as a scalar volume.
+            Also add the frame as a scalar volume, in its own view with the projected tree.
 
         Returns
         -------
         (PlanResult, dict)
             The core's result and the nodes added, by role.
         """
-        from FevarPlannerLib.pipeline import plan_case
+        from FevarPlannerLib import cache as preop_cache
+        from FevarPlannerLib.io import load_case
+        from FevarPlannerLib.pipeline import run_case, write_outputs
 
-        result = plan_case(case_dir, out_dir, method=method, progress=progress, start=start, target=target,
-                           **{key: value for key, value in (overrides or {}).items() if value})
-        return result, self.add_result(result, show_fluoro=show_fluoro)
+        case = load_case(case_dir, **{key: value for key, value in (overrides or {}).items() if value})
+        model = preop_cache.preop_model(case, progress=progress)
+        result = run_case(case, method=method, start=start, target=target, preop=model, progress=progress)
+        if out_dir is not None:
+            write_outputs(result, out_dir)
+        return result, self.add_result(result, model=model, show_fluoro=show_fluoro)
 
-    def add_result(self, result, *, show_fluoro: bool = True) -> dict:
-        """Replace the nodes of an earlier run by this result's; returns the nodes by role."""
+    def add_result(self, result, *, show_fluoro: bool = True, model=None, frame_node=None) -> dict:
+        """Replace the nodes of an earlier run by this result's; returns the nodes by role.
+
+        ``model`` (the cached pre-operative model) gives the centrelines their ``Radius``;
+        ``frame_node`` (a loaded frame) or, with ``show_fluoro``, a new frame volume is shown
+        in the frame view with the 2D skeleton and the recovered tree and path projected on it.
+        """
         scene = self.scene
         remove_result_nodes(scene)
+        radius = lumen_radii(model.lumen, result.preop.points) if model is not None and model.lumen is not None \
+            else None
         nodes = {
-            "preop": centerline_to_model_node(scene, result.preop, "FevarPlanner pre-operative centreline", "preop"),
+            "preop": centerline_to_model_node(scene, result.preop, "FevarPlanner pre-operative centreline", "preop",
+                                              radius),
             "deformed": centerline_to_model_node(scene, result.deformed,
-                                                 f"FevarPlanner deformed centreline ({result.method})", "deformed"),
+                                                 f"FevarPlanner recovered centreline ({result.method})", "deformed",
+                                                 radius),
             "path": path_to_curve_node(scene, result.path),
         }
-        if show_fluoro:
-            nodes["fluoro"] = fluoro_to_volume_node(scene, result.fluoro_image)
+        if frame_node is None and show_fluoro:
+            frame_node = nodes["fluoro"] = fluoro_to_volume_node(scene, result.fluoro_image)
+        if frame_node is not None:
+            nodes.update(self._frame_overlays(result, frame_node))
         return nodes
+
+    def _frame_overlays(self, result, frame_node) -> dict:
+        from FevarPlannerLib.projection import project
+
+        scene = self.scene
+        view = show_frame(scene, frame_node)
+        path_edges = np.column_stack([np.arange(len(result.path.points) - 1), np.arange(1, len(result.path.points))])
+        layers = (("overlay_skeleton2d", "2D skeleton", result.skeleton2d_points, result.skeleton2d_edges),
+                  ("overlay_deformed", "recovered, projected", project(result.P, result.deformed.points),
+                   result.deformed.edges),
+                  ("overlay_path", "catheter path, projected", project(result.P, result.path.points), path_edges))
+        return {role: overlay_to_model_node(scene, frame_node, uv, edges, f"FevarPlanner {name}", role, view)
+                for role, name, uv, edges in layers}
 
 
 def _distance_to_label(centerline: Centerline, point_lps: np.ndarray, label: str) -> float:
     """Distance (mm) from a point to the nearest node of ``centerline`` carrying ``label``."""
     nodes = centerline.points[np.asarray(centerline.labels) == label]
     return float(np.linalg.norm(nodes - point_lps, axis=1).min()) if len(nodes) else float("inf")
+
+
+def _phantom_folder(work_dir, seed: int, mask_only: bool = True) -> Path:
+    from FevarPlannerLib import phantom
+
+    return phantom.write_phantom_set(Path(work_dir) / "phantom", n=1, seed=seed, preset="random",
+                                     mask_only=mask_only)[0]
+
+
+def _path_check(folder: Path, result, curve) -> dict:
+    """Where the path curve's ends lie against the ground truth (see :func:`run_phantom_check`)."""
+    import json
+
+    ras = np.array([curve.GetNthControlPointPositionWorld(i) for i in range(curve.GetNumberOfControlPoints())])
+    truth = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["intraop_centerline"])
+    aorta = truth.points[np.asarray(truth.labels) == "aorta"]
+    start, end = ras_to_lps(ras[0]), ras_to_lps(ras[-1])
+    return {"result": result, "path_ras": ras,
+            "start_right_of_aorta_mm": float(aorta[:, 0].mean() - start[0]),
+            "start_below_aorta_mm": float(aorta[:, 2].min() - start[2]),
+            "end_mm": _distance_to_label(truth, end, "renal_left")}
 
 
 def run_phantom_check(scene, work_dir, *, seed: int = 0, mask_only: bool = True) -> dict:
@@ -439,29 +724,62 @@ def run_phantom_check(scene, work_dir, *, seed: int = 0, mask_only: bool = True)
     artery). ``mask_only`` skips writing the CT series and the DICOM frame, which the
     planner does not read when the aorta mask is there.
     """
-    import json
+    folder = _phantom_folder(work_dir, seed, mask_only)
+    result, nodes = FevarPlannerLogic(scene).run(folder, start="iliac_right", target="renal_left")
+    check = _path_check(folder, result, nodes["path"])
+    check.update({"nodes": nodes,
+                  "models": scene.GetNumberOfNodesByClass("vtkMRMLModelNode"),
+                  "curves": scene.GetNumberOfNodesByClass("vtkMRMLMarkupsCurveNode"),
+                  "volumes": scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode")})
+    return check
 
-    from FevarPlannerLib import phantom
 
-    folder = phantom.write_phantom_set(Path(work_dir) / "phantom", n=1, seed=seed, preset="random",
-                                        mask_only=mask_only)[0]
+def run_node_check(scene, work_dir, *, seed: int = 0) -> dict:
+    """The Slicer route on a phantom: inputs as loaded nodes, through the parameter node.
+
+    The phantom's lumen mask stands in for a CT (lumen 300 HU in soft tissue), its vessel
+    mask for the frame, its geometry.json for ``P``. A CT view ("Red") shows the CT before
+    the run. Returns :func:`run_phantom_check`'s path numbers plus the parameter node, the
+    nodes and the CT view's composite node.
+    """
+    from FevarPlannerLib import io
+
+    folder = _phantom_folder(work_dir, seed)
+    mask = io.read_mask(folder / "aorta_mask.nrrd")
+    ct_node = volume_to_node(scene, mask.with_array(np.where(mask.array, 300.0, 40.0).astype(np.float32)), "CT")
+    frame = io.read_mask_2d(folder / "fluoro_mask.png")
+    frame_node = fluoro_to_volume_node(scene, np.where(frame, 0.25, 0.75), name="XA frame")
+    frame_node.RemoveAttribute(ROLE_ATTRIBUTE)  # a loaded input, not a result
+    red = scene.AddNewNodeByClass("vtkMRMLSliceCompositeNode")
+    red.SetLayoutName("Red")
+    red.SetBackgroundVolumeID(ct_node.GetID())
     logic = FevarPlannerLogic(scene)
-    result, nodes = logic.run(folder, start="iliac_right", target="renal_left")
-    curve = nodes["path"]
-    ras = np.array([curve.GetNthControlPointPositionWorld(i) for i in range(curve.GetNumberOfControlPoints())])
-    truth = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["intraop_centerline"])
-    aorta = truth.points[np.asarray(truth.labels) == "aorta"]
-    start, end = ras_to_lps(ras[0]), ras_to_lps(ras[-1])
-    return {
-        "result": result,
-        "models": scene.GetNumberOfNodesByClass("vtkMRMLModelNode"),
-        "curves": scene.GetNumberOfNodesByClass("vtkMRMLMarkupsCurveNode"),
-        "volumes": scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode"),
-        "path_ras": ras,
-        "start_right_of_aorta_mm": float(aorta[:, 0].mean() - start[0]),
-        "start_below_aorta_mm": float(aorta[:, 2].min() - start[2]),
-        "end_mm": _distance_to_label(truth, end, "renal_left"),
-    }
+    parameters = logic.getParameterNode()
+    parameters.ctVolume, parameters.fluoroVolume = ct_node, frame_node
+    parameters.aortaSegmentation = mask_to_segmentation_node(scene, mask, ct_node)
+    parameters.geometryFile = str(folder / "geometry.json")
+    result, nodes = logic.process(parameters)
+    check = _path_check(folder, result, nodes["path"])
+    check.update({"parameters": parameters, "nodes": nodes, "ct_view": red, "folder": folder, "mask": mask})
+    return check
+
+
+#: The layout with the frame's own view beside the 3D view and the CT's axial view.
+FRAME_LAYOUT_ID = 50412
+FRAME_LAYOUT_XML = f"""
+<layout type="horizontal" split="true">
+ <item><view class="vtkMRMLViewNode" singletontag="1"><property name="viewlabel" action="default">1</property></view></item>
+ <item><layout type="vertical">
+  <item><view class="vtkMRMLSliceNode" singletontag="Red">
+   <property name="orientation" action="default">Axial</property>
+   <property name="viewlabel" action="default">R</property>
+   <property name="viewcolor" action="default">#F34A33</property></view></item>
+  <item><view class="vtkMRMLSliceNode" singletontag="{FRAME_VIEW}">
+   <property name="orientation" action="default">Axial</property>
+   <property name="viewlabel" action="default">XA</property>
+   <property name="viewcolor" action="default">#1AC0CF</property></view></item>
+ </layout></item>
+</layout>"""
 
 
 if SLICER_APPLICATION:
@@ -473,34 +791,66 @@ if SLICER_APPLICATION:
             ScriptedLoadableModule.__init__(self, parent)
             self.parent.title = "FEVAR Planner"
             self.parent.categories = ["Vascular"]
-            self.parent.dependencies = ["Markups"]
+            self.parent.dependencies = ["Markups", "Segmentations"]
             self.parent.contributors = ["FevarPlanner developers"]
             self.parent.helpText = (
                 "Recovers the intra-operative 3D shape of an abdominal aortic aneurysm from the "
                 "pre-operative CT and one fluoroscopic frame, and plans a catheter path from the "
                 "femoral access to a renal ostium for fenestrated endovascular aortic repair "
-                "(Zheng, Zhou, Riga and Yang, ICRA 2019). Choose a case folder (ct/ or ct.nrrd, "
-                "fluoro.dcm or fluoro.png, optional masks and geometry.json) and press Plan path.")
+                "(Zheng, Zhou, Riga and Yang, ICRA 2019). Choose the CT volume (e.g. from the DICOM "
+                "module), optionally an aorta segmentation (edit it in Segment Editor: the next run "
+                "uses it), the frame as a volume and its geometry (geometry.json or the XA file with "
+                "C-arm tags), or a case folder, and press Plan path. The frame appears in its own "
+                "view (XA) with the projected tree; the CT keeps its views.<br><br><b>"
+                + RESEARCH_USE_STATEMENT + "</b>")
             self.parent.acknowledgementText = (
                 "Implements J.-Q. Zheng, X.-Y. Zhou, C. Riga and G.-Z. Yang, 'Towards 3D Path "
                 "Planning from a Single 2D Fluoroscopic Image for Robot Assisted Fenestrated "
                 "Endovascular Aortic Repair', ICRA 2019. Built on the Slicer scripted module "
                 "template by Jean-Christophe Fillion-Robin (Kitware) and Steve Pieper (Isomics).")
 
-    class FevarPlannerWidget(ScriptedLoadableModuleWidget):
-        """The shared .ui panel; every computation goes through :class:`FevarPlannerLogic`."""
+    if parameterNodeWrapper is not None:
+
+        @parameterNodeWrapper
+        class FevarPlannerParameterNode:
+            """The fields of :class:`FevarPlannerParameters`, bound to the widget by Slicer."""
+
+            ctVolume: slicer.vtkMRMLScalarVolumeNode
+            aortaSegmentation: slicer.vtkMRMLSegmentationNode
+            fluoroVolume: slicer.vtkMRMLScalarVolumeNode
+            preopModel: slicer.vtkMRMLModelNode
+            recoveredModel: slicer.vtkMRMLModelNode
+            pathCurve: slicer.vtkMRMLMarkupsCurveNode
+            method: str = "proposed"
+            start: str = "iliac_right"
+            target: str = "renal_left"
+            geometryFile: str = ""
+            fluoroFile: str = ""
+
+    class FevarPlannerWidget(ScriptedLoadableModuleWidget, slicer.util.VTKObservationMixin):
+        """The shared .ui panel plus node selectors; every computation goes through :class:`FevarPlannerLogic`."""
 
         OVERRIDES = ("ct", "aortaMask", "skeleton3d", "fluoro", "fluoroMask", "geometry")
         DISPLAY = {"showPreopCheckBox": "preop", "showDeformedCheckBox": "deformed", "showPathCheckBox": "path"}
+        SELECTORS = (("ctVolume", "CT volume:", "vtkMRMLScalarVolumeNode"),
+                     ("aortaSegmentation", "Aorta segmentation:", "vtkMRMLSegmentationNode"),
+                     ("fluoroVolume", "Frame (XA):", "vtkMRMLScalarVolumeNode"))
+
+        def __init__(self, parent=None):
+            ScriptedLoadableModuleWidget.__init__(self, parent)
+            slicer.util.VTKObservationMixin.__init__(self)
+            self.logic = None
+            self.parameters = None
+            self.nodes = {}
 
         def setup(self):
             ScriptedLoadableModuleWidget.setup(self)
+            self.logic = FevarPlannerLogic()
+            self.layout.addWidget(self._scene_inputs())
             panel = slicer.util.loadUI(str(module_resource_path("UI/FevarPlanner.ui")))
             self.layout.addWidget(panel)
             self.ui = slicer.util.childWidgetVariables(panel)
-            self.logic = FevarPlannerLogic()
-            self.nodes = {}
-            self.ui.showSurfaceCheckBox.visible = False  # Slicer users load the segmentation themselves
+            self.ui.showSurfaceCheckBox.visible = False  # the aorta is a segmentation node here
             self.ui.caseDirBrowseButton.connect("clicked()", lambda: self._browse_folder(self.ui.caseDirLineEdit))
             self.ui.outputDirBrowseButton.connect("clicked()", lambda: self._browse_folder(self.ui.outputDirLineEdit))
             for key in self.OVERRIDES:
@@ -511,9 +861,86 @@ if SLICER_APPLICATION:
             self.ui.runButton.connect("clicked()", self.onRunButton)
             for box in self.DISPLAY:
                 getattr(self.ui, box).connect("toggled(bool)", self._update_visibility)
+            for combo, field in (("methodComboBox", "method"), ("startComboBox", "start"),
+                                 ("targetComboBox", "target")):
+                getattr(self.ui, combo).connect("currentTextChanged(QString)",
+                                                lambda text, name=field: self._set_parameter(name, text))
             self.layout.addStretch(1)
-            self._update_run_button()
+            self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+            self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+            self.initializeParameterNode()
 
+        def _scene_inputs(self):
+            """Node selectors for the inputs loaded in the scene (the Slicer route)."""
+            box = qt.QGroupBox("Inputs from the scene")
+            form = qt.QFormLayout(box)
+            self.selectors = {}
+            for field, label, node_class in self.SELECTORS:
+                selector = slicer.qMRMLNodeComboBox()
+                selector.nodeTypes = [node_class]
+                selector.noneEnabled = field == "aortaSegmentation"
+                selector.addEnabled = selector.removeEnabled = False
+                selector.setMRMLScene(slicer.mrmlScene)
+                selector.connect("currentNodeChanged(vtkMRMLNode*)",
+                                 lambda node, name=field: self._set_parameter(name, node))
+                form.addRow(label, selector)
+                self.selectors[field] = selector
+            self.geometryPathLineEdit = ctk.ctkPathLineEdit()
+            self.geometryPathLineEdit.connect("currentPathChanged(QString)",
+                                              lambda path: self._set_parameter("geometryFile", path))
+            form.addRow("Geometry (geometry.json):", self.geometryPathLineEdit)
+            self.fluoroFileLineEdit = ctk.ctkPathLineEdit()
+            self.fluoroFileLineEdit.connect("currentPathChanged(QString)",
+                                            lambda path: self._set_parameter("fluoroFile", path))
+            form.addRow("or XA file (C-arm tags):", self.fluoroFileLineEdit)
+            self.planNodesButton = qt.QPushButton("Plan path from these nodes")
+            self.planNodesButton.connect("clicked()", self.onPlanNodesButton)
+            form.addRow(self.planNodesButton)
+            return box
+
+        # ---------------------------------------------------------------- parameter node
+        def initializeParameterNode(self):  # noqa: N802  (Slicer naming)
+            """Take the scene's parameter node and show its values."""
+            self.parameters = self.logic.getParameterNode()
+            if self.parameters.ctVolume is None:
+                first = slicer.mrmlScene.GetFirstNodeByClass("vtkMRMLScalarVolumeNode")
+                if first is not None:
+                    self.parameters.ctVolume = first
+            self._parameters_to_gui()
+
+        def _parameters_to_gui(self):
+            for field, selector in self.selectors.items():
+                selector.setCurrentNode(getattr(self.parameters, field))
+            self.geometryPathLineEdit.currentPath = self.parameters.geometryFile
+            self.fluoroFileLineEdit.currentPath = self.parameters.fluoroFile
+            for combo, field in (("methodComboBox", "method"), ("startComboBox", "start"),
+                                 ("targetComboBox", "target")):
+                getattr(self.ui, combo).currentText = getattr(self.parameters, field)
+
+        def _set_parameter(self, name, value):
+            if self.parameters is not None:
+                setattr(self.parameters, name, value)
+
+        def enter(self):
+            """Module shown: (re)read the parameter node."""
+            self.initializeParameterNode()
+
+        def exit(self):
+            """Module hidden: nothing runs in the background, so nothing to stop."""
+
+        def onSceneStartClose(self, caller, event):  # noqa: N802
+            self.parameters = None
+            self.nodes = {}
+
+        def onSceneEndClose(self, caller, event):  # noqa: N802
+            if self.parent.isEntered:
+                self.initializeParameterNode()
+
+        def cleanup(self):
+            """Module reloaded or Slicer closing: drop the scene observers."""
+            self.removeObservers()
+
+        # ---------------------------------------------------------------- helpers
         def _browse_folder(self, line_edit):
             folder = qt.QFileDialog.getExistingDirectory(self.parent, "Choose a folder", line_edit.text)
             if folder:
@@ -563,6 +990,29 @@ if SLICER_APPLICATION:
             slicer.util.pip_install(" ".join(missing))
             return not missing_requirements()
 
+        def _show(self, result) -> None:
+            """Table, visibility, the frame layout (frame in its own view; the CT keeps Red) and the status."""
+            self._fill_table(result)
+            self._update_visibility()
+            layout_node = slicer.app.layoutManager().layoutLogic().GetLayoutNode()
+            if not layout_node.IsLayoutDescription(FRAME_LAYOUT_ID):
+                layout_node.AddLayoutDescription(FRAME_LAYOUT_ID, FRAME_LAYOUT_XML)
+            layout_node.SetViewArrangement(FRAME_LAYOUT_ID)
+            frame = slicer.app.layoutManager().sliceWidget(FRAME_VIEW)
+            if frame is not None:
+                frame.sliceLogic().FitSliceToAll()
+            slicer.util.resetThreeDViews()
+            self.ui.statusLabel.text = (f"{result.path.start_label} → {result.path.target_label}: "
+                                        f"{result.path.length_mm:.1f} mm in {result.timings['total']:.2f} s")
+
+        def onPlanNodesButton(self):  # noqa: N802
+            if not self._ensure_requirements():
+                return
+            with slicer.util.tryWithErrorDisplay("FevarPlanner could not plan from these nodes.", waitCursor=True):
+                result, self.nodes = self.logic.process(self.parameters, progress=self._progress)
+                self._parameters_to_gui()
+                self._show(result)
+
         def onRunButton(self):
             if not self._ensure_requirements():
                 return
@@ -574,17 +1024,12 @@ if SLICER_APPLICATION:
                         start=self.ui.startComboBox.currentText, target=self.ui.targetComboBox.currentText,
                         out_dir=self.ui.outputDirLineEdit.text.strip() or None, overrides=self._overrides(),
                         progress=self._progress)
-                    self._fill_table(result)
-                    self._update_visibility()
-                    slicer.util.setSliceViewerLayers(background=self.nodes.get("fluoro"), fit=True)
-                    slicer.util.resetThreeDViews()
-                    self.ui.statusLabel.text = (f"{result.path.start_label} → {result.path.target_label}: "
-                                                f"{result.path.length_mm:.1f} mm in {result.timings['total']:.2f} s")
+                    self._show(result)
             finally:
                 self._update_run_button()
 
     class FevarPlannerTest(ScriptedLoadableModuleTest):
-        """Self-test: a phantom case through the logic, with numbers checked."""
+        """Self-test: phantom cases through both routes of the logic, with numbers checked."""
 
         def setUp(self):
             slicer.mrmlScene.Clear(0)
@@ -594,23 +1039,37 @@ if SLICER_APPLICATION:
             self.test_lps_to_ras()
             self.setUp()
             self.test_phantom_case()
+            self.setUp()
+            self.test_nodes_route()
 
         def test_lps_to_ras(self):
             self.assertEqual(lps_to_ras([10.0, 20.0, 30.0]).tolist(), [-10.0, -20.0, 30.0])
             self.assertEqual(ras_to_lps(lps_to_ras([1.5, -2.0, 3.0])).tolist(), [1.5, -2.0, 3.0])
 
-        def test_phantom_case(self):
-            self.delayDisplay("Planning a phantom case")
-            with tempfile.TemporaryDirectory() as work_dir:
-                check = run_phantom_check(slicer.mrmlScene, work_dir)
-            self.assertEqual(check["models"], 2)
-            self.assertEqual(check["curves"], 1)
-            self.assertEqual(check["volumes"], 1)
+        def _assert_path(self, check):
             self.assertGreaterEqual(len(check["path_ras"]), 10)
             self.assertGreater(check["start_right_of_aorta_mm"], 5.0)
             self.assertGreater(check["start_below_aorta_mm"], 20.0)
             self.assertLess(check["end_mm"], 10.0)
             expected = lps_to_ras(check["result"].path.points)
             self.assertLess(float(np.abs(check["path_ras"] - expected).max()), 1e-6)
+
+        def test_phantom_case(self):
+            self.delayDisplay("Planning a phantom case folder")
+            with tempfile.TemporaryDirectory() as work_dir:
+                check = run_phantom_check(slicer.mrmlScene, work_dir)
+            self.assertEqual(check["curves"], 1)
+            self.assertEqual(check["volumes"], 1)
+            self._assert_path(check)
             logging.info("FevarPlanner self-test: path %.1f mm", check["result"].path.length_mm)
+
+        def test_nodes_route(self):
+            self.delayDisplay("Planning from loaded nodes")
+            with tempfile.TemporaryDirectory() as work_dir:
+                check = run_node_check(slicer.mrmlScene, work_dir)
+            self._assert_path(check)
+            self.assertEqual(check["ct_view"].GetBackgroundVolumeID(), check["parameters"].ctVolume.GetID())
+            curve = check["nodes"]["path"]
+            self.assertTrue(curve.GetLocked())
+            self.assertAlmostEqual(curve.GetCurveLengthWorld(), check["result"].path.length_mm, places=3)
             self.delayDisplay("Test passed")

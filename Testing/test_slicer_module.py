@@ -153,21 +153,72 @@ def test_fluoro_volume_node_keeps_the_pixel_grid(scene):
         fp.fluoro_to_volume_node(scene, np.zeros((2, 2, 2)))
 
 
+OVERLAYS = {"overlay_skeleton2d", "overlay_deformed", "overlay_path"}
+
+
 def test_logic_replaces_the_nodes_of_an_earlier_run(scene, anatomy):
     result = _plan_result(anatomy)
     logic = fp.FevarPlannerLogic(scene)
     first = logic.add_result(result)
     second = logic.add_result(result, show_fluoro=False)
-    assert set(first) == {"preop", "deformed", "path", "fluoro"}
+    assert set(first) == {"preop", "deformed", "path", "fluoro"} | OVERLAYS
     assert set(second) == {"preop", "deformed", "path"}
     assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == 2
     assert scene.GetNumberOfNodesByClass("vtkMRMLMarkupsCurveNode") == 1
     assert scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode") == 0
     assert {role: node.GetID() for role, node in fp.result_nodes(scene).items()} == \
         {role: node.GetID() for role, node in second.items()}
-    assert second["deformed"].GetName() == "FevarPlanner deformed centreline (proposed)"
+    assert second["deformed"].GetName() == "FevarPlanner recovered centreline (proposed)"
     assert fp.remove_result_nodes(scene) == 3
     assert fp.result_nodes(scene) == {}
+
+
+def test_the_frame_gets_its_own_view_and_the_overlay_lands_on_its_pixels(scene, anatomy):
+    result = _plan_result(anatomy)
+    ct = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
+    ct_view = scene.AddNewNodeByClass("vtkMRMLSliceCompositeNode")
+    ct_view.SetLayoutName("Red")
+    ct_view.SetBackgroundVolumeID(ct.GetID())
+    nodes = fp.FevarPlannerLogic(scene).add_result(result)
+    frame_view, composite = fp.frame_view_nodes(scene)
+    assert composite.GetBackgroundVolumeID() == nodes["fluoro"].GetID()
+    assert ct_view.GetBackgroundVolumeID() == ct.GetID()  # the CT's view is left alone
+    for role in OVERLAYS:
+        display = nodes[role].GetDisplayNode()
+        assert [display.GetNthViewNodeID(i) for i in range(display.GetNumberOfViewNodeIDs())] == [frame_view.GetID()]
+        assert not display.GetVisibility3D()
+    # the projected path's points are the frame's pixels (u, v) through the frame's IJK-to-RAS
+    uv = project(result.P, result.path.points)
+    matrix = vtk.vtkMatrix4x4()
+    nodes["fluoro"].GetIJKToRASMatrix(matrix)
+    ijk_to_ras = np.array([[matrix.GetElement(r, c) for c in range(4)] for r in range(4)])
+    overlay = np.array([nodes["overlay_path"].GetPolyData().GetPoint(i) for i in range(len(uv))])
+    np.testing.assert_allclose(overlay, (np.column_stack([uv, np.zeros(len(uv)), np.ones(len(uv))]) @ ijk_to_ras.T)[:, :3],
+                               atol=1e-9)
+    # the frame view looks at the frame: u to the screen's right, v down
+    slice_to_ras = np.array([[frame_view.GetSliceToRAS().GetElement(r, c) for c in range(4)] for r in range(4)])
+    np.testing.assert_allclose(slice_to_ras[:3, 0], ijk_to_ras[:3, 0] / np.linalg.norm(ijk_to_ras[:3, 0]), atol=1e-9)
+    np.testing.assert_allclose(slice_to_ras[:3, 1], -ijk_to_ras[:3, 1] / np.linalg.norm(ijk_to_ras[:3, 1]), atol=1e-9)
+
+
+def test_parameter_node_keeps_values_and_node_references_and_is_saved_with_the_scene(scene, tmp_path):
+    logic = fp.FevarPlannerLogic(scene)
+    parameters = logic.getParameterNode()
+    assert (parameters.method, parameters.start, parameters.target) == ("proposed", "iliac_right", "renal_left")
+    volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
+    parameters.ctVolume, parameters.target = volume, "renal_right"
+    assert logic.getParameterNode().node is parameters.node  # one per scene
+    assert logic.getParameterNode().ctVolume is volume
+    with pytest.raises(AttributeError, match="no field"):
+        parameters.cttVolume = volume
+    scene.SetURL(str(tmp_path / "scene.mrml"))
+    assert scene.Commit() == 1
+    other = slicer.vtkMRMLScene()
+    other.SetURL(str(tmp_path / "scene.mrml"))
+    other.Import()
+    loaded = fp.FevarPlannerParameters.of_scene(other)
+    assert loaded.target == "renal_right"
+    assert loaded.ctVolume is not None and loaded.ctVolume.GetID() == volume.GetID()
 
 
 def test_summary_rows_describe_the_result(anatomy):
@@ -242,10 +293,66 @@ def test_only_the_module_file_imports_slicer_or_qt():
 def test_logic_plans_a_phantom_case_into_the_scene(scene, tmp_path):
     """The module's self-test route (run_phantom_check), on the slicer-core scene."""
     check = fp.run_phantom_check(scene, tmp_path)
-    assert (check["models"], check["curves"], check["volumes"]) == (2, 1, 1)
+    assert (check["models"], check["curves"], check["volumes"]) == (2 + len(OVERLAYS), 1, 1)
+    curve = check["nodes"]["path"]
+    assert curve.GetLocked() and curve.GetCurveTypeAsString(curve.GetCurveType()) == "linear"
+    # linear: the curve's length in Slicer is the one result.json reports
+    assert curve.GetCurveLengthWorld() == pytest.approx(check["result"].path.length_mm, abs=1e-4)
     assert len(check["path_ras"]) >= 10
     np.testing.assert_allclose(check["path_ras"], fp.lps_to_ras(check["result"].path.points), atol=1e-9)
     assert check["start_right_of_aorta_mm"] > 5.0  # the access is on the patient's right ...
     assert check["start_below_aorta_mm"] > 20.0  # ... in the iliac, below the bifurcation
     assert check["end_mm"] < 10.0  # and the path ends at the left renal artery
     assert check["path_ras"][0][0] > check["path_ras"][-1][0]  # RAS: +x is the patient's right
+
+
+@pytest.fixture(scope="module")
+def node_route(tmp_path_factory):
+    """The Slicer route once: inputs as loaded nodes, a segmentation given, through the parameter node."""
+    mrml = slicer.vtkMRMLScene()
+    mrml.AddNode(slicer.vtkMRMLSelectionNode())
+    return mrml, fp.run_node_check(mrml, tmp_path_factory.mktemp("nodes"))
+
+
+def test_nodes_route_creates_the_results_in_ras_and_references_them(node_route):
+    scene, check = node_route
+    result, nodes, parameters = check["result"], check["nodes"], check["parameters"]
+    assert check["start_right_of_aorta_mm"] > 5.0 and check["start_below_aorta_mm"] > 20.0 and check["end_mm"] < 10.0
+    assert check["ct_view"].GetBackgroundVolumeID() == parameters.ctVolume.GetID()  # the CT keeps its view
+    assert parameters.recoveredModel is nodes["deformed"] and parameters.pathCurve is nodes["path"]
+    assert parameters.preopModel is nodes["preop"]
+    recovered = np.array([nodes["deformed"].GetPolyData().GetPoint(i) for i in range(len(result.deformed))])
+    np.testing.assert_allclose(recovered, fp.lps_to_ras(result.deformed.points), atol=1e-9)
+    radius = nodes["deformed"].GetPolyData().GetPointData().GetArray("Radius")
+    aorta = np.asarray(result.deformed.labels) == "aorta"
+    radii = np.array([radius.GetValue(i) for i in range(len(result.deformed))])
+    assert 4.0 < np.median(radii[aorta]) < 16.0  # the phantom's aorta is 9-12 mm in radius
+    assert np.median(radii[aorta]) > np.median(radii[~aorta])
+    assert nodes["path"].GetLocked()
+
+
+def test_an_edited_segmentation_is_used_on_the_next_run(node_route):
+    scene, check = node_route
+    parameters, mask = check["parameters"], check["mask"]
+    logic = fp.FevarPlannerLogic(scene)
+    before = logic.case_from_nodes(parameters).aorta_mask
+    np.testing.assert_array_equal(before.array, mask.array)
+    # "Segment Editor": erase the distal right iliac (patient's right = -x LPS, lowest 20 mm)
+    lps = mask.index_to_lps(np.argwhere(mask.array))
+    right_iliac = (lps[:, 0] < np.median(lps[:, 0]) - 10.0) & (lps[:, 2] < lps[:, 2].min() + 20.0)
+    edited = mask.array.copy()
+    edited[tuple(np.argwhere(mask.array)[right_iliac].T)] = False
+    segmentation = parameters.aortaSegmentation
+    segmentation.GetSegmentation().RemoveAllSegments()
+    labelmap = fp.volume_to_node(scene, mask.with_array(edited), "edited", node_class="vtkMRMLLabelMapVolumeNode")
+    slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation)
+    scene.RemoveNode(labelmap)
+
+    np.testing.assert_array_equal(logic.case_from_nodes(parameters).aorta_mask.array, edited)
+    result, nodes = logic.process(parameters)
+    assert parameters.aortaSegmentation is segmentation  # kept across runs, not replaced
+    lowest_right = lambda centerline: centerline.points[np.asarray(centerline.labels) == "iliac_right"][:, 2].min()
+    assert lowest_right(result.preop) > lowest_right(check["result"].preop) + 10.0
+    ras = np.array([nodes["path"].GetNthControlPointPositionWorld(i)
+                    for i in range(nodes["path"].GetNumberOfControlPoints())])
+    np.testing.assert_allclose(ras, fp.lps_to_ras(result.path.points), atol=1e-9)

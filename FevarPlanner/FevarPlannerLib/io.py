@@ -55,6 +55,7 @@ __all__ = [
     "CASE_INPUTS",
     "find_case_file",
     "load_case",
+    "projection_for_frame",
 ]
 
 VOLUME_SUFFIXES = (".nrrd", ".nii.gz", ".nii", ".mha", ".mhd")
@@ -932,6 +933,17 @@ def _projection_for_case(case_dir: Path | None, available: dict[str, Path], fluo
     if source.assumptions:
         warnings.warn(source.describe(), GeometryAssumptionWarning, stacklevel=3)
     return P, path, source
+
+
+def projection_for_frame(fluoro: Fluoro, reference: Volume, geometry=None) -> tuple[np.ndarray, GeometrySource]:
+    """``P`` of a frame for callers holding loaded data (the Slicer module): same rules as a case folder.
+
+    ``geometry`` (a geometry.json path) gives the matrix and/or an in-plane correction;
+    without it ``P`` comes from the frame's C-arm tags, the isocentre at ``reference``'s centre.
+    """
+    available = {"geometry": Path(geometry)} if geometry else {}
+    P, _, source = _projection_for_case(None, available, fluoro, reference)
+    return P, source
 
 
 def frame_from_mask(mask: np.ndarray, path=None) -> Fluoro:
