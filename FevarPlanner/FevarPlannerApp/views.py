@@ -144,6 +144,13 @@ class _LayeredView(QVTKRenderWindowInteractor):
         self.layers = {}
         self._legend_rows = []
 
+    def drop_layer(self, name: str) -> None:
+        """Remove one layer (and its legend rows), leaving the others as they are."""
+        removed = self.layers.pop(name, [])
+        for prop in removed:
+            self.renderer.RemoveViewProp(prop)
+        self._legend_rows = [(actor, index) for actor, index in self._legend_rows if actor not in removed]
+
     def add_to_layer(self, name: str, prop) -> None:
         self.layers.setdefault(name, []).append(prop)
         prop.SetVisibility(name not in self.hidden)
@@ -160,9 +167,9 @@ class _LayeredView(QVTKRenderWindowInteractor):
         """The view as rendered now: (rows, cols, 3) uint8."""
         return render_to_array(self.GetRenderWindow())
 
-    def _legend(self, entries) -> None:
+    def _legend(self, entries, first_row: int = 0) -> None:
         """Coloured legend lines in the top-left corner, one per ``(layer, text, color)``."""
-        for index, (layer, text, color) in enumerate(entries):
+        for index, (layer, text, color) in enumerate(entries, start=first_row):
             actor = _text(f"\u2014 {text}", color, 15)
             actor.GetTextProperty().SetVerticalJustificationToTop()
             self._legend_rows.append((actor, index))
@@ -224,17 +231,27 @@ class View3D(_LayeredView):
         self.add_to_layer("preop", tube_actor(centerline_to_polydata(result.preop), COLORS["preop"], radius, 0.55))
         self.add_to_layer("deformed", tube_actor(centerline_to_polydata(result.deformed), COLORS["deformed"],
                                                   radius * 1.25))
-        path = np.asarray(result.path.points, dtype=float)
-        self.add_to_layer("path", tube_actor(polyline_polydata(path), COLORS["path"], radius * 2.0))
-        for point, text in ((path[0], result.path.start_label), (path[-1], result.path.target_label)):
-            self.add_to_layer("path", _sphere_actor(point, radius * 3.2, COLORS["path"]))
-            self.add_to_layer("path", _label_3d(text, point, COLORS["text"]))
+        self._radius = radius
         if surface is not None and surface.GetNumberOfPoints():
             self.add_to_layer("surface", self._surface_actor(surface))
         self._legend([("preop", f"{ROLE_NAMES['preop']} centreline", COLORS["preop"]),
-                      ("deformed", f"{ROLE_NAMES['recovered']} centreline ({result.method})", COLORS["deformed"]),
-                      ("path", f"catheter path {result.path.length_mm:.0f} mm", COLORS["path"])])
+                      ("deformed", f"{ROLE_NAMES['recovered']} centreline ({result.method})", COLORS["deformed"])])
+        self._add_path(result)
         self.reset_camera()
+
+    def _add_path(self, result) -> None:
+        path = np.asarray(result.path.points, dtype=float)
+        self.add_to_layer("path", tube_actor(polyline_polydata(path), COLORS["path"], self._radius * 2.0))
+        for point, text in ((path[0], result.path.start_label), (path[-1], result.path.target_label)):
+            self.add_to_layer("path", _sphere_actor(point, self._radius * 3.2, COLORS["path"]))
+            self.add_to_layer("path", _label_3d(text, point, COLORS["text"]))
+        self._legend([("path", f"{ROLE_NAMES['path']} {result.path.length_mm:.0f} mm", COLORS["path"])], first_row=2)
+
+    def update_path(self, result) -> None:
+        """Redraw only the path (after re-planning on the same recovered centreline)."""
+        self.drop_layer("path")
+        self._add_path(result)
+        self.GetRenderWindow().Render()
 
     @staticmethod
     def _surface_actor(surface: vtkPolyData) -> vtkActor:
@@ -305,14 +322,23 @@ class FluoroView(_LayeredView):
                                             ("deformed", result.deformed, 2.5, -3.0)):
             uv = project(result.P, centerline.points)
             self.add_to_layer(layer, _line_actor(segments_polydata(uv, centerline.edges, z=z), COLORS[layer], width))
+        self._legend([("skeleton2d", ROLE_NAMES["skeleton2d"], COLORS["skeleton2d"]),
+                      ("preop", f"{ROLE_NAMES['preop']}, projected", COLORS["preop"]),
+                      ("deformed", f"{ROLE_NAMES['recovered']}, projected", COLORS["deformed"])])
+        self._add_path(result)
+        self.reset_camera()
+
+    def _add_path(self, result) -> None:
         path_uv = project(result.P, result.path.points)
         path = polyline_polydata(np.column_stack([path_uv, np.full(len(path_uv), -4.0)]))
         self.add_to_layer("path", _line_actor(path, COLORS["path"], 4.0))
-        self._legend([("skeleton2d", ROLE_NAMES["skeleton2d"], COLORS["skeleton2d"]),
-                      ("preop", f"{ROLE_NAMES['preop']}, projected", COLORS["preop"]),
-                      ("deformed", f"{ROLE_NAMES['recovered']}, projected", COLORS["deformed"]),
-                      ("path", "catheter path, projected", COLORS["path"])])
-        self.reset_camera()
+        self._legend([("path", f"{ROLE_NAMES['path']}, projected", COLORS["path"])], first_row=3)
+
+    def update_path(self, result) -> None:
+        """Redraw only the projected path (after re-planning on the same recovered centreline)."""
+        self.drop_layer("path")
+        self._add_path(result)
+        self.GetRenderWindow().Render()
 
     def reset_camera(self) -> None:
         """Whole frame in view, u to the right and v down (camera on the -z side)."""

@@ -232,7 +232,11 @@ class MainWindow(QMainWindow):
         except ValueError as exc:
             self._on_failed(str(exc).splitlines()[0])
             return False
-        self.show_outcome(self.outcome)
+        for view in (self.view3d, self.fluoro_view):
+            view.update_path(result)
+        self._fill_table(summary_rows(result))
+        self._set_status(f"re-planned on the {result.method} result: {start} \u2192 {target}, "
+                         f"{result.path.length_mm:.1f} mm")
         return True
 
     def is_running(self) -> bool:
