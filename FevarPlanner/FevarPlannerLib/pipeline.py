@@ -29,7 +29,7 @@ from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
 from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
 from .io import Case, InputError, load_case
-from .projection import image_directions, project, view_label
+from .projection import image_directions, pixels_per_mm, project, view_label
 
 __all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "preop_from_lumen",
            "build_preop", "prepare_preop", "picture_title", "register_frame", "run_case", "plan_case", "write_outputs"]
@@ -191,11 +191,6 @@ def prepare_preop(case: Case, progress=None, segmenter: str = "unet", cache=Fals
     return preop_cache.preop_model(case, segmenter=segmenter, progress=progress, cache_dir=folder).preop
 
 
-def _pixels_per_mm(P: np.ndarray, at: np.ndarray) -> float:
-    uv = project(P, np.array([at, at + [1.0, 0, 0], at + [0, 0, 1.0]]))
-    return float(np.mean(np.linalg.norm(uv[1:] - uv[0], axis=1)))
-
-
 def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
     return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), pixel_size=mm_per_pixel)
 
@@ -291,7 +286,7 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
 def _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta) -> FrameResult:
     timings = {}
     with _timed(timings, "skeleton2d"):
-        g2 = _skeleton2d_graph(mask2d, 1.0 / _pixels_per_mm(P, preop.centre))
+        g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
     c2 = None
     if refine_pose or method == "proposed":
         with _timed(timings, "graph2d"):

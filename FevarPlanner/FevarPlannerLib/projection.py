@@ -212,6 +212,18 @@ def image_directions(P: np.ndarray, at: np.ndarray, step_mm: float = 10.0) -> tu
     return left / np.linalg.norm(left), superior / np.linalg.norm(superior)
 
 
+def pixels_per_mm(P: np.ndarray, at) -> float | np.ndarray:
+    """Image pixels per mm at the depth of ``at`` (the perspective magnification of eq. 1).
+
+    The mean of the image lengths of one mm towards the patient's left and one mm superior.
+    ``at`` is one LPS point (3,), giving a float, or points (n, 3), giving an (n,) array.
+    """
+    at = np.asarray(at, dtype=float)
+    uv = project(P, np.array([at, at + LPS_DIRECTIONS["left"], at + LPS_DIRECTIONS["superior"]]))
+    per_mm = 0.5 * (np.linalg.norm(uv[1] - uv[0], axis=-1) + np.linalg.norm(uv[2] - uv[0], axis=-1))
+    return float(per_mm) if per_mm.ndim == 0 else per_mm
+
+
 def in_plane_transform(P: np.ndarray, translation=(0.0, 0.0), rotation_deg: float = 0.0,
                        scale: float = 1.0, center=(0.0, 0.0)) -> np.ndarray:
     """Compose ``P`` with a similarity transform of the image plane about ``center`` (u, v).

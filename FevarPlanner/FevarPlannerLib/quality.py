@@ -71,7 +71,7 @@ class FluoroPrior:
     """
 
     def __init__(self, points, edges, labels, P, radii_mm=None):
-        from .projection import project
+        from .projection import pixels_per_mm, project
 
         self.points = np.asarray(points, dtype=float)
         self.edges = np.asarray(edges, dtype=int).reshape(-1, 2)
@@ -80,7 +80,7 @@ class FluoroPrior:
         self.radii_mm = (np.array([TYPICAL_RADIUS_MM.get(label, 3.0) for label in self.labels])
                          if radii_mm is None else np.asarray(radii_mm, dtype=float))
         self.uv = project(self.P, self.points)
-        self.px_per_mm = self._pixels_per_mm()
+        self.px_per_mm = pixels_per_mm(self.P, self.points)
         self.radii_px = self.radii_mm * self.px_per_mm
         self.margin_px = np.array([DEFORMATION_MARGIN_MM.get(label, 20.0) for label in self.labels]) * self.px_per_mm
 
@@ -93,14 +93,6 @@ class FluoroPrior:
             index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
             radii = np.maximum(distance[tuple(index.T)], 1.0)
         return cls(centerline.points, centerline.edges, centerline.labels, P, radii)
-
-    def _pixels_per_mm(self) -> np.ndarray:
-        """Image pixels per mm at each node's depth (perspective magnification)."""
-        from .projection import project
-
-        shifted = project(self.P, self.points + np.array([1.0, 0.0, 0.0]))
-        lifted = project(self.P, self.points + np.array([0.0, 0.0, 1.0]))
-        return 0.5 * (np.linalg.norm(shifted - self.uv, axis=1) + np.linalg.norm(lifted - self.uv, axis=1))
 
     def rasterise(self, shape, factor: int = 1):
         """Distance (px of the reduced grid) to the projected tree, and the nearest node's index.
