@@ -12,29 +12,22 @@ Writes ``bench_phantom.json`` and ``bench_phantom.png`` into ``--out``.
 
 from __future__ import annotations
 
-import os
+from common import argument_parser, blas_threads, pyplot, save_figure, timed, write_report
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "2")
+blas_threads(2)             # before NumPy: set the variables yourself to compare
 
-import argparse
-import json
-import tempfile
-import time
-from pathlib import Path
+import json  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
 
-import matplotlib
+import numpy as np  # noqa: E402
+from PIL import Image  # noqa: E402
+from skimage.morphology import skeletonize  # noqa: E402
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-import numpy as np
-from PIL import Image
-from skimage.morphology import skeletonize
-
-from FevarPlannerLib import io
-from FevarPlannerLib import phantom as ph
-from FevarPlannerLib.centerline import Centerline
-from FevarPlannerLib.projection import project
+from FevarPlannerLib import io  # noqa: E402
+from FevarPlannerLib import phantom as ph  # noqa: E402
+from FevarPlannerLib.centerline import Centerline  # noqa: E402
+from FevarPlannerLib.projection import project  # noqa: E402
 
 COLOURS = {"aorta": "tab:red", "renal_left": "tab:cyan", "renal_right": "tab:pink", "iliac_left": "gold",
            "iliac_right": "tab:green", "other": "tab:blue"}
@@ -51,16 +44,14 @@ def case_statistics(folder: Path) -> dict:
 
 
 def time_mask_only_set(n: int, seed: int, work: Path) -> tuple[float, list]:
-    start = time.perf_counter()
-    folders = ph.write_phantom_set(work / "set", n=n, seed=seed, preset="paper", mask_only=True)
-    return time.perf_counter() - start, folders
+    folders, seconds, _ = timed(ph.write_phantom_set, work / "set", n=n, seed=seed, preset="paper", mask_only=True)
+    return seconds, folders
 
 
 def time_full_case(seed: int, work: Path) -> tuple[float, Path]:
     params = ph.random_params(np.random.default_rng(seed), sma=True, coeliac=True, internal_iliacs=True)
-    start = time.perf_counter()
-    folder = ph.write_case(ph.generate_case(params, name="full"), work / "full")
-    return time.perf_counter() - start, folder
+    folder, seconds, _ = timed(lambda: ph.write_case(ph.generate_case(params, name="full"), work / "full"))
+    return seconds, folder
 
 
 def draw_case(folder: Path, path: Path) -> None:
@@ -74,7 +65,7 @@ def draw_case(folder: Path, path: Path) -> None:
     ct = io.read_ct(folder / "ct")
     mask3d = io.read_volume(folder / "aorta_mask.nrrd").array > 0
 
-    fig = plt.figure(figsize=(18, 9))
+    fig = pyplot().figure(figsize=(18, 9))
     ax = fig.add_subplot(1, 4, 1)
     ax.imshow(frame, cmap="gray")
     for label, colour in COLOURS.items():
@@ -106,14 +97,11 @@ def draw_case(folder: Path, path: Path) -> None:
     j = int(np.argmax(mask3d.sum(axis=(0, 2))))
     ax.imshow(ct.array[::-1, j], cmap="gray", vmin=-200, vmax=500)
     ax.set_title("CT coronal (superior up)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True)
+    parser = argument_parser(__doc__)
     parser.add_argument("--n", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
@@ -133,9 +121,8 @@ def main(argv=None) -> int:
         "shape_variation_mm": {"mean": float(np.mean([s["shape_variation_mm"] for s in stats])),
                                "max": float(np.max([s["shape_variation_mm"] for s in stats]))},
         "cases": stats,
-        "cpu_count": os.cpu_count(),
     }
-    (args.out / "bench_phantom.json").write_text(json.dumps(summary, indent=2))
+    write_report(args.out, "bench_phantom", summary)
     print(json.dumps({k: v for k, v in summary.items() if k != "cases"}, indent=2))
     return 0
 

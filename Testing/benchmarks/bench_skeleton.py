@@ -14,11 +14,7 @@ of a 1000-node skeleton <= 20 ms. Writes ``bench_skeleton.json`` and ``bench_ske
 to ``--out``. Run: ``.venv/bin/python Testing/benchmarks/bench_skeleton.py --out bench_out``.
 """
 
-import argparse
 import json
-import platform
-import time
-from pathlib import Path
 
 import numpy as np
 
@@ -26,7 +22,7 @@ from FevarPlannerLib.graph import SkeletonGraph, classify, label_anatomy  # noqa
 from FevarPlannerLib.io import Volume  # noqa: E402
 from FevarPlannerLib.projection import CArmGeometry, image_directions, projection_matrix_from_carm  # noqa: E402
 from FevarPlannerLib.skeleton import clean_mask, skeletonize_2d, skeletonize_3d  # noqa: E402
-from common import fixtures  # noqa: E402,F401  (registers the shared test fixtures)
+from common import argument_parser, pyplot, save_figure, timed, write_report  # noqa: E402  (registers fixtures)
 from fixtures import AAA_LINES, SAC_CENTRE, SAC_RADIUS, aaa_mask_2d, aaa_segments, draw_tubes  # noqa: E402
 
 
@@ -34,9 +30,8 @@ def median_ms(function, repeats):
     """Median wall time of ``function()`` in ms, and its last result."""
     times, result = [], None
     for _ in range(repeats):
-        start = time.perf_counter()
-        result = function()
-        times.append((time.perf_counter() - start) * 1e3)
+        result, seconds, _ = timed(function)
+        times.append(seconds * 1e3)
     return float(np.median(times)), result
 
 
@@ -115,12 +110,7 @@ def bench_graph_1000(repeats):
 
 
 def plot(results, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(results), figsize=(4.2 * len(results), 4.2))
+    fig, axes = pyplot().subplots(1, len(results), figsize=(4.2 * len(results), 4.2))
     for ax, (name, case) in zip(np.atleast_1d(axes), results.items()):
         stages = case["median_ms"]
         ax.barh(list(stages), list(stages.values()), color="tab:blue")
@@ -128,14 +118,11 @@ def plot(results, path):
         ax.set_xlabel("median time (ms)")
         ax.set_title(f"{name} ({case['skeleton_nodes']} nodes)", fontsize=9)
         ax.tick_params(axis="y", labelsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="folder for the JSON and PNG")
+    parser = argument_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--skip-3d", action="store_true", help="leave out the 512x512x300 thinning")
     args = parser.parse_args(argv)
@@ -146,12 +133,11 @@ def main(argv=None):
     }
     if not args.skip_3d:
         results["3d_512x512x300"] = bench_3d(args.repeats)
-    payload = {"benchmark": "skeleton", "python": platform.python_version(), "machine": platform.machine(),
-               "repeats": args.repeats, "goals_ms": {"2d_1024_mask_to_classified_graph": 50.0,
+    payload = {"repeats": args.repeats, "goals_ms": {"2d_1024_mask_to_classified_graph": 50.0,
                                                      "3d_graph_and_classification_1000_nodes": 20.0},
                "cases": results}
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_skeleton.json").write_text(json.dumps(payload, indent=2))
+    write_report(args.out, "bench_skeleton", payload)
     plot(results, args.out / "bench_skeleton.png")
     print(json.dumps(payload, indent=2))
 
