@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib.projection import (
-    CArmGeometry, homogeneous_columns, image_directions, in_plane_transform, patient_motion, principal_point, project,
+    CArmGeometry, homogeneous_columns, image_directions, in_plane_transform, patient_motion, pixels_per_mm,
+    principal_point, project,
     projection_jacobian, projection_matrix_from_carm, pull_back_columns, read_geometry_json, source_position,
     validate_projection_matrix, write_geometry_json)
 
@@ -26,6 +27,18 @@ def test_ap_view_magnification_and_orientation_by_hand():
     # superior (+z) goes up the image (smaller v)
     assert project(P, [0, 0, 10.0])[1] < project(P, [0, 0, 0.0])[1]
     np.testing.assert_allclose(source_position(P), [0, 750.0, 0], atol=1e-9)
+
+
+def test_pixels_per_mm_is_the_magnification_at_the_depth_of_the_point():
+    P = projection_matrix_from_carm(AP)
+    # SID/SOD at the isocentre, in pixels of 0.4 mm; 150 mm nearer the source, SID/600
+    assert pixels_per_mm(P, [0.0, 0.0, 0.0]) == pytest.approx(1100 / 750 / 0.4, rel=1e-12)
+    assert pixels_per_mm(P, [0.0, 150.0, 0.0]) == pytest.approx(1100 / 600 / 0.4, rel=1e-12)
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 150.0, 0.0], [20.0, -100.0, 40.0]])
+    per_point = pixels_per_mm(P, points)
+    assert per_point.shape == (3,) and isinstance(pixels_per_mm(P, points[2]), float)
+    np.testing.assert_allclose(per_point, [pixels_per_mm(P, p) for p in points], rtol=1e-12)
+    assert per_point[2] == pytest.approx(1100 / 850 / 0.4, rel=1e-12)      # 100 mm anterior: farther away
 
 
 def test_lao_moves_source_to_the_right_posterior():
