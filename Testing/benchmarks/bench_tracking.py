@@ -11,19 +11,19 @@ ms) and ``bench_tracking.png`` (per-frame time by stage) to ``--out``. Run:
 ``.venv/bin/python Testing/benchmarks/bench_tracking.py --out bench_out``.
 """
 
-import argparse
-import json
 import os
-import platform
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from common import argument_parser, single_threaded_blas, timed, write_report
 
-from FevarPlannerLib import io, phantom
-from FevarPlannerLib.tracking import track_case, write_track_outputs
+single_threaded_blas()
+
+import numpy as np  # noqa: E402
+
+from FevarPlannerLib import io, phantom  # noqa: E402
+from FevarPlannerLib.tracking import track_case, write_track_outputs  # noqa: E402
 
 N_FRAMES = 30
 SEED = 4
@@ -65,23 +65,18 @@ def plot(path: Path, result) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="folder for bench_tracking.json / .png")
-    args = parser.parse_args(argv)
+    args = argument_parser(__doc__).parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as work:
         os.environ["FEVAR_PLANNER_CACHE"] = str(Path(work) / "cache")
         case = write_run(Path(work) / "case")
         runs = {}
         for name in ("cold_cache", "warm_cache"):
-            started = time.perf_counter()
-            result = track_case(case)
-            runs[name] = dict(result.summary(), wall_s=time.perf_counter() - started)
+            result, wall, cpu = timed(track_case, case)
+            runs[name] = dict(result.summary(), wall_s=wall, cpu_s=cpu)
         write_track_outputs(result, args.out / "track_out")
     plot(args.out / "bench_tracking.png", result)
-    record = {"benchmark": "track", "n_frames": N_FRAMES, "seed": SEED, "machine": platform.platform(),
-              "cpus": os.cpu_count(), "runs": runs}
-    (args.out / "bench_tracking.json").write_text(json.dumps(record, indent=1))
+    write_report(args.out, "bench_tracking", {"n_frames": N_FRAMES, "seed": SEED, "runs": runs})
     for name, run in runs.items():
         total = run["per_frame_total_ms"]
         print(f"{name}: pre-operative {run['preop_s']:.2f} s (cache {run['preop_from_cache']}), per frame median "
