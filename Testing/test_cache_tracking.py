@@ -78,6 +78,7 @@ def test_track_registers_every_frame_and_writes_csv_and_json(run_case_dir, cache
     assert [int(r["frame"]) for r in rows] == list(range(N_FRAMES))
     summary = json.loads(paths["track.json"].read_text())
     assert summary["n_frames"] == N_FRAMES and summary["per_frame_total_ms"]["median"] > 0
+    assert summary["geometry"]["source"] == "geometry.json"  # which geometry every frame used
     assert json.loads((tmp_path / "out" / "result.json").read_text())["path"]["to"] == "renal_right"
     # a second run finds the pre-operative model in the cache
     again = track_case(folder, count=1)

@@ -74,6 +74,7 @@ class TrackResult:
                     "max": float(values.max()), "mean": float(values.mean())}
 
         return {"method": self.method, "n_frames": len(self.records),
+                "geometry": getattr(self.last, "geometry", None),
                 "failed_frames": [r.frame for r in self.records if r.fit_2d_px is None],
                 "preop_s": self.preop_seconds, "preop_from_cache": self.preop_from_cache,
                 "per_frame_total_ms": stats(totals), "per_frame_registration_ms": stats(registration),
