@@ -559,8 +559,7 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
 
     def case_from_nodes(self, parameters):
         """A core :class:`FevarPlannerLib.io.Case` from the parameter node's input nodes (RAS -> LPS here)."""
-        from FevarPlannerLib.io import Case, InputError, projection_for_frame, read_fluoro
-        from FevarPlannerLib.io import Fluoro
+        from FevarPlannerLib.io import Case, Fluoro, InputError, projection_for_frame, read_fluoro
 
         ct_node, frame_node = parameters.ctVolume, parameters.fluoroVolume
         if ct_node is None:

@@ -275,3 +275,31 @@ def test_views_use_the_one_palette():
 
     for layer in ("preop", "deformed", "path", "skeleton2d"):
         assert COLORS[layer] == PALETTE[layer]
+
+
+def test_a_multi_frame_run_plays_back_against_the_cached_model(window, tmp_path, qapp, monkeypatch):
+    from FevarPlannerLib import io
+
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "cache"))
+    generated = phantom.generate_case(phantom.random_params(np.random.default_rng(4), misalign_shift_px=(0.0, 0.0),
+                                                            misalign_rotation_deg=0.0), name="run")
+    folder = phantom.write_case(generated, tmp_path / "case", mask_only=True)
+    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                    np.random.default_rng(seed))[0] for seed in range(3)]
+    io.write_fluoro_dicom(folder / "fluoro.dcm", np.stack(frames), generated.carm)
+    (folder / "fluoro_mask.png").unlink()
+    window.widget("caseDirLineEdit").setText(str(folder))
+    window.run_plan()
+    window.wait_until_done()
+    assert window.last_error is None and window.run_bar.isVisibleTo(window)
+    assert window.frame_slider.maximum() == 2
+    first = window.outcome.result
+    window.frame_slider.setValue(2)
+    qapp.processEvents()
+    shown = window.outcome.result
+    assert shown is not first and shown.inputs["frame"] == 2
+    assert shown.preop is first.preop  # the same pre-operative model, nothing re-segmented in 3D
+    np.testing.assert_array_equal(shown.fluoro_image, io.read_fluoro(folder / "fluoro.dcm", frame=2).image)
+    assert shown.errors["2d_px"]["mean"] < 6.0
+    assert "frame 3/3" in window.frame_label.text()
+    assert _green_mask(window.fluoro_view.pixels()).sum() > 200

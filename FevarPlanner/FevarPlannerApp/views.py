@@ -229,15 +229,27 @@ class View3D(_LayeredView):
         extent = float(np.ptp(np.vstack([result.preop.points, result.deformed.points]), axis=0).max())
         radius = max(0.4, 0.006 * extent)
         self.add_to_layer("preop", tube_actor(centerline_to_polydata(result.preop), COLORS["preop"], radius, 0.55))
-        self.add_to_layer("deformed", tube_actor(centerline_to_polydata(result.deformed), COLORS["deformed"],
-                                                  radius * 1.25))
         self._radius = radius
         if surface is not None and surface.GetNumberOfPoints():
             self.add_to_layer("surface", self._surface_actor(surface))
-        self._legend([("preop", f"{ROLE_NAMES['preop']} centreline", COLORS["preop"]),
-                      ("deformed", f"{ROLE_NAMES['recovered']} centreline ({result.method})", COLORS["deformed"])])
+        self._legend([("preop", f"{ROLE_NAMES['preop']} centreline", COLORS["preop"])])
+        self._add_recovered(result)
         self._add_path(result)
         self.reset_camera()
+
+    def _add_recovered(self, result) -> None:
+        self.add_to_layer("deformed", tube_actor(centerline_to_polydata(result.deformed), COLORS["deformed"],
+                                                  self._radius * 1.25))
+        self._legend([("deformed", f"{ROLE_NAMES['recovered']} centreline ({result.method})", COLORS["deformed"])],
+                     first_row=1)
+
+    def update_recovered(self, result) -> None:
+        """Redraw the recovered centreline and the path only (another frame of the same run)."""
+        for layer in ("deformed", "path"):
+            self.drop_layer(layer)
+        self._add_recovered(result)
+        self._add_path(result)
+        self.GetRenderWindow().Render()
 
     def _add_path(self, result) -> None:
         path = np.asarray(result.path.points, dtype=float)

@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from PySide6.QtCore import QFile, QPoint, Qt, QThread
+from PySide6.QtCore import QFile, QPoint, Qt, QThread, QTimer
 from PySide6.QtGui import QAction, QColor, QIcon, QImage, QKeySequence, QPainter, QPalette
 from PySide6.QtUiTools import QUiLoader
-from PySide6.QtWidgets import (QApplication, QFileDialog, QHeaderView, QLabel, QMainWindow, QMessageBox, QScrollArea,
-                               QSplitter, QTableWidgetItem, QVBoxLayout, QWidget)
+from PySide6.QtWidgets import (QApplication, QFileDialog, QHBoxLayout, QHeaderView, QLabel, QMainWindow, QMessageBox,
+                               QPushButton, QScrollArea, QSlider, QSplitter, QTableWidgetItem, QVBoxLayout, QWidget)
 
 from FevarPlannerApp.summary import summary_rows
 from FevarPlannerApp.views import FluoroView, View3D
@@ -111,7 +111,9 @@ class MainWindow(QMainWindow):
         self.fluoro_view = FluoroView()
         views = QSplitter(Qt.Horizontal)
         views.addWidget(_titled("Recovered intra-operative anatomy (LPS, mm)", self.view3d))
-        views.addWidget(_titled("Fluoroscopic frame (u \u2192, v \u2193, pixels)", self.fluoro_view))
+        fluoro_box = _titled("Fluoroscopic frame (u \u2192, v \u2193, pixels)", self.fluoro_view)
+        fluoro_box.layout().addWidget(self._run_controls())
+        views.addWidget(fluoro_box)
         views.setSizes([1, 1])
         splitter = QSplitter(Qt.Horizontal)
         splitter.addWidget(scroll)
@@ -125,6 +127,25 @@ class MainWindow(QMainWindow):
             self.widget("caseDirLineEdit").setText(str(case_dir))
         self._update_run_button()
         self.statusBar().showMessage("Ready")
+
+    def _run_controls(self) -> QWidget:
+        """Frame slider and Play button for a multi-frame run (hidden for a single frame)."""
+        self.run_bar = QWidget()
+        layout = QHBoxLayout(self.run_bar)
+        layout.setContentsMargins(4, 0, 4, 0)
+        self.play_button = QPushButton("Play run")
+        self.play_button.setCheckable(True)
+        self.play_button.toggled.connect(self._toggle_play)
+        self.frame_slider = QSlider(Qt.Horizontal)
+        self.frame_slider.valueChanged.connect(self.show_frame)
+        self.frame_label = QLabel("")
+        for item in (self.play_button, self.frame_slider, self.frame_label):
+            layout.addWidget(item)
+        self._play_timer = QTimer(self)
+        self._play_timer.setInterval(200)
+        self._play_timer.timeout.connect(self._next_frame)
+        self.run_bar.setVisible(False)
+        return self.run_bar
 
     # ------------------------------------------------------------------ panel
     def widget(self, name: str):
@@ -239,6 +260,42 @@ class MainWindow(QMainWindow):
                          f"{result.path.length_mm:.1f} mm")
         return True
 
+    def show_frame(self, index: int) -> bool:
+        """Register frame ``index`` of the shown case's run against the cached pre-operative model and show it.
+
+        Only the frame, the recovered centreline and the path are redrawn. Returns whether
+        the frame was shown.
+        """
+        from FevarPlannerLib.tracking import register_run_frame
+
+        outcome = self.outcome
+        if outcome is None or outcome.case is None or outcome.model is None or self._thread is not None:
+            return False
+        if outcome.result.inputs.get("frame", outcome.case.fluoro.frame) == index:
+            return False  # already shown
+        path = outcome.result.path
+        try:
+            result, times = register_run_frame(outcome.model.preop, outcome.case, int(index),
+                                               method=outcome.result.method, start=path.start_label,
+                                               target=path.target_label)
+        except ValueError as exc:
+            self._on_failed(f"frame {index}: {str(exc).splitlines()[0]}")
+            return False
+        outcome.result = result
+        self.fluoro_view.set_result(result)
+        self.view3d.update_recovered(result)
+        for box, layer in DISPLAY.items():
+            self._set_layer_visible(layer, self.widget(box).isChecked())
+        self._fill_table(summary_rows(result))
+        self.frame_label.setText(f"frame {index + 1}/{outcome.case.fluoro.n_frames}, {1000 * times['total']:.0f} ms")
+        return True
+
+    def _toggle_play(self, playing: bool) -> None:
+        (self._play_timer.start if playing else self._play_timer.stop)()
+
+    def _next_frame(self) -> None:
+        self.frame_slider.setValue((self.frame_slider.value() + 1) % (self.frame_slider.maximum() + 1))
+
     def is_running(self) -> bool:
         """Whether a plan is being computed."""
         return self._thread is not None
@@ -294,6 +351,14 @@ class MainWindow(QMainWindow):
         for box, layer in DISPLAY.items():
             self._set_layer_visible(layer, self.widget(box).isChecked())
         self._fill_table(summary_rows(outcome.result))
+        frames = outcome.case.fluoro.n_frames if outcome.case is not None else 1
+        self.run_bar.setVisible(frames > 1 and outcome.model is not None)
+        if frames > 1:
+            self.frame_slider.blockSignals(True)
+            self.frame_slider.setRange(0, frames - 1)
+            self.frame_slider.setValue(outcome.case.fluoro.frame)
+            self.frame_slider.blockSignals(False)
+            self.frame_label.setText(f"frame {outcome.case.fluoro.frame + 1}/{frames}")
         path = outcome.result.path
         self._set_status(f"{outcome.result.method}: {path.start_label} \u2192 {path.target_label}, "
                          f"{path.length_mm:.1f} mm")

@@ -39,6 +39,7 @@ class PlanOutcome:
     surface: object = None
     written: dict = field(default_factory=dict)
     model: object = None
+    case: object = None
 
 
 def aorta_surface(case_dir, aorta_mask=None):
@@ -79,7 +80,7 @@ class PlanWorker(QObject):
             model = cache.preop_model(case, progress=progress, use_cache=request.use_cache)
             result = run_case(case, method=request.method, start=request.start, target=request.target,
                               preop=model, progress=progress)
-            outcome = PlanOutcome(result, model=model)
+            outcome = PlanOutcome(result, model=model, case=case)
             if request.out_dir is not None:
                 self.progress.emit(1.0, f"writing the outputs to {request.out_dir}")
                 outcome.written = write_outputs(result, request.out_dir)

@@ -26,7 +26,7 @@ import numpy as np
 from . import evaluation, planning
 from .io import InputError, load_case, read_fluoro, write_text_atomic
 
-__all__ = ["FrameRecord", "TrackResult", "track_case", "write_track_outputs", "CSV_COLUMNS"]
+__all__ = ["FrameRecord", "TrackResult", "register_run_frame", "track_case", "write_track_outputs", "CSV_COLUMNS"]
 
 CSV_COLUMNS = ("frame", "fit_2d_px", "path_length_mm", "read_ms", "segmentation_ms", "registration_ms",
                "planning_ms", "total_ms", "warnings")
@@ -91,22 +91,38 @@ def _frame_range(n_frames: int, first: int, count: int | None, path) -> range:
     return range(first, last)
 
 
-def _register_one(preop, fluoro, P, method, start, target, segment) -> tuple:
-    """(FrameResult, path, fit) of one frame, timed by stage."""
-    from .pipeline import register_frame
+def register_run_frame(preop, case, index: int, *, method: str = "proposed", start: str = "iliac_right",
+                       target: str = "renal_left"):
+    """Frame ``index`` of the case's run registered against ``preop``: ``(PlanResult, times in s)``.
+
+    The frame is read (the loaded one when it is ``case.fluoro``'s), segmented (vesselness),
+    registered and its path planned; ``errors`` hold the fit to its own skeleton. Used by
+    :func:`track_case` and by the workstation to play a run back.
+    """
+    from .pipeline import PlanResult, register_frame
+    from .segmentation import segment_fluoro
 
     times = {}
     t = time.perf_counter()
-    mask = segment(fluoro.image)
+    fluoro = case.fluoro if index == case.fluoro.frame else read_fluoro(case.fluoro.path, frame=index)
+    times["read"] = time.perf_counter() - t
+    t = time.perf_counter()
+    mask = segment_fluoro(fluoro.image)
     times["segmentation"] = time.perf_counter() - t
     t = time.perf_counter()
-    frame = register_frame(preop, mask, P, method=method)
+    frame = register_frame(preop, mask, case.P, method=method)
     times["registration"] = time.perf_counter() - t
     t = time.perf_counter()
     path = planning.plan_path(frame.deformed, start=start, target=target)
     times["planning"] = time.perf_counter() - t
-    fit = evaluation.evaluate(frame.deformed, None, frame.P, frame.skeleton2d.positions, frame.skeleton2d.edges())
-    return frame, path, fit, times
+    edges = frame.skeleton2d.edges()
+    fit = evaluation.evaluate(frame.deformed, None, frame.P, frame.skeleton2d.positions, edges)
+    times["total"] = sum(times.values())
+    result = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions, edges,
+                        fluoro.image, {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
+                        {"fluoro": str(case.fluoro.path), "frame": index},
+                        geometry=case.geometry.to_dict() if case.geometry is not None else None)
+    return result, times
 
 
 def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
@@ -132,8 +148,7 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
         Overrides of the folder's files (``ct``, ``aorta_mask``, ... as :func:`io.load_case`).
     """
     from . import cache as preop_cache
-    from .pipeline import METHODS, PlanResult
-    from .segmentation import segment_fluoro
+    from .pipeline import METHODS
 
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
@@ -154,24 +169,14 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
         t = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            fluoro = case.fluoro if index == first else read_fluoro(case.fluoro.path, frame=index)
-            read = time.perf_counter() - t
             try:
-                frame, path, fit, times = _register_one(preop, fluoro, case.P, method, start, target,
-                                                        segment_fluoro)
+                last, times = register_run_frame(preop, case, index, method=method, start=start, target=target)
             except (ValueError, RuntimeError) as exc:
-                records.append(FrameRecord(index, None, None, {"read": read, "total": time.perf_counter() - t},
+                records.append(FrameRecord(index, None, None, {"total": time.perf_counter() - t},
                                            [str(exc).splitlines()[0]]))
                 continue
-        times["read"] = read
-        times["total"] = time.perf_counter() - t
-        records.append(FrameRecord(index, fit["2d_px"]["mean"], path.length_mm, times,
+        records.append(FrameRecord(index, last.errors["2d_px"]["mean"], last.path.length_mm, times,
                                    sorted({str(w.message).splitlines()[0] for w in caught})))
-        last = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
-                          frame.skeleton2d.edges(), fluoro.image,
-                          {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
-                          {"fluoro": str(case.fluoro.path), "frame": index},
-                          geometry=case.geometry.to_dict() if case.geometry is not None else None)
     if progress is not None:
         progress(1.0, f"{len(records)} frames")
     return TrackResult(records, preop_seconds, model.from_cache, method, last)
