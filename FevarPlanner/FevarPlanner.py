@@ -812,7 +812,7 @@ if SLICER_APPLICATION:
 
         @parameterNodeWrapper
         class FevarPlannerParameterNode:
-            """The fields of :class:`FevarPlannerParameters`, bound to the widget by Slicer."""
+            """The fields of :class:`FevarPlannerParameters` on the same node, typed and validated by Slicer."""
 
             ctVolume: slicer.vtkMRMLScalarVolumeNode
             aortaSegmentation: slicer.vtkMRMLSegmentationNode
@@ -899,8 +899,10 @@ if SLICER_APPLICATION:
 
         # ---------------------------------------------------------------- parameter node
         def initializeParameterNode(self):  # noqa: N802  (Slicer naming)
-            """Take the scene's parameter node and show its values."""
-            self.parameters = self.logic.getParameterNode()
+            """Take the scene's parameter node (through parameterNodeWrapper where Slicer has it) and show it."""
+            node = self.logic.getParameterNode().node
+            wrapped = parameterNodeWrapper is not None
+            self.parameters = FevarPlannerParameterNode(node) if wrapped else FevarPlannerParameters(node)
             if self.parameters.ctVolume is None:
                 first = slicer.mrmlScene.GetFirstNodeByClass("vtkMRMLScalarVolumeNode")
                 if first is not None:
