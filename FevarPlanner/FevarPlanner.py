@@ -496,7 +496,9 @@ class FevarPlannerParameters:
     ``preopModel``, ``recoveredModel``, ``pathCurve``.
     """
 
-    NODE_FIELDS = ("ctVolume", "aortaSegmentation", "fluoroVolume", "preopModel", "recoveredModel", "pathCurve")
+    NODE_FIELDS = {"ctVolume": "vtkMRMLScalarVolumeNode", "aortaSegmentation": "vtkMRMLSegmentationNode",
+                   "fluoroVolume": "vtkMRMLScalarVolumeNode", "preopModel": "vtkMRMLModelNode",
+                   "recoveredModel": "vtkMRMLModelNode", "pathCurve": "vtkMRMLMarkupsCurveNode"}
     VALUE_FIELDS = {"method": "proposed", "start": "iliac_right", "target": "renal_left", "geometryFile": "",
                     "fluoroFile": ""}
     MODULE_NAME = "FevarPlanner"
@@ -809,31 +811,20 @@ if SLICER_APPLICATION:
                 "template by Jean-Christophe Fillion-Robin (Kitware) and Steve Pieper (Isomics).")
 
     if parameterNodeWrapper is not None:
-
-        @parameterNodeWrapper
-        class FevarPlannerParameterNode:
-            """The fields of :class:`FevarPlannerParameters` on the same node, typed and validated by Slicer."""
-
-            ctVolume: slicer.vtkMRMLScalarVolumeNode
-            aortaSegmentation: slicer.vtkMRMLSegmentationNode
-            fluoroVolume: slicer.vtkMRMLScalarVolumeNode
-            preopModel: slicer.vtkMRMLModelNode
-            recoveredModel: slicer.vtkMRMLModelNode
-            pathCurve: slicer.vtkMRMLMarkupsCurveNode
-            method: str = "proposed"
-            start: str = "iliac_right"
-            target: str = "renal_left"
-            geometryFile: str = ""
-            fluoroFile: str = ""
+        # built from FevarPlannerParameters' fields, with real types (this file postpones annotations)
+        FevarPlannerParameterNode = parameterNodeWrapper(type("FevarPlannerParameterNode", (), {
+            "__doc__": "The fields of FevarPlannerParameters on the same node, typed and validated by Slicer.",
+            "__annotations__": {**{field: getattr(slicer, node_class)
+                                   for field, node_class in FevarPlannerParameters.NODE_FIELDS.items()},
+                                **{field: str for field in FevarPlannerParameters.VALUE_FIELDS}},
+            **FevarPlannerParameters.VALUE_FIELDS}))
 
     class FevarPlannerWidget(ScriptedLoadableModuleWidget, slicer.util.VTKObservationMixin):
         """The shared .ui panel plus node selectors; every computation goes through :class:`FevarPlannerLogic`."""
 
         OVERRIDES = ("ct", "aortaMask", "skeleton3d", "fluoro", "fluoroMask", "geometry")
         DISPLAY = {"showPreopCheckBox": "preop", "showDeformedCheckBox": "deformed", "showPathCheckBox": "path"}
-        SELECTORS = (("ctVolume", "CT volume:", "vtkMRMLScalarVolumeNode"),
-                     ("aortaSegmentation", "Aorta segmentation:", "vtkMRMLSegmentationNode"),
-                     ("fluoroVolume", "Frame (XA):", "vtkMRMLScalarVolumeNode"))
+        SELECTORS = {"ctVolume": "CT volume:", "aortaSegmentation": "Aorta segmentation:", "fluoroVolume": "Frame (XA):"}
 
         def __init__(self, parent=None):
             ScriptedLoadableModuleWidget.__init__(self, parent)
@@ -874,9 +865,9 @@ if SLICER_APPLICATION:
             box = qt.QGroupBox("Inputs from the scene")
             form = qt.QFormLayout(box)
             self.selectors = {}
-            for field, label, node_class in self.SELECTORS:
+            for field, label in self.SELECTORS.items():
                 selector = slicer.qMRMLNodeComboBox()
-                selector.nodeTypes = [node_class]
+                selector.nodeTypes = [FevarPlannerParameters.NODE_FIELDS[field]]
                 selector.noneEnabled = field == "aortaSegmentation"
                 selector.addEnabled = selector.removeEnabled = False
                 selector.setMRMLScene(slicer.mrmlScene)

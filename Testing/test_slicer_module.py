@@ -358,3 +358,41 @@ def test_an_edited_segmentation_is_used_on_the_next_run(node_route):
     ras = np.array([nodes["path"].GetNthControlPointPositionWorld(i)
                     for i in range(nodes["path"].GetNumberOfControlPoints())])
     np.testing.assert_allclose(ras, fp.lps_to_ras(result.path.points), atol=1e-9)
+
+
+def test_application_classes_build_with_the_research_statement_and_the_wrapped_parameters(monkeypatch):
+    """The Slicer-only part, loaded with stand-ins for Slicer's application modules."""
+    import types
+
+    from FevarPlannerLib import RESEARCH_USE_STATEMENT
+
+    class _Base:
+        def __init__(self, parent=None):
+            self.parent = parent
+
+    application = types.ModuleType("slicer.ScriptedLoadableModule")
+    for name in ("ScriptedLoadableModule", "ScriptedLoadableModuleLogic", "ScriptedLoadableModuleTest",
+                 "ScriptedLoadableModuleWidget"):
+        setattr(application, name, type(name, (_Base,), {}))
+    wrapped = {}
+    wrapper = types.ModuleType("slicer.parameterNodeWrapper")
+    wrapper.parameterNodeWrapper = lambda cls: wrapped.setdefault("class", cls)
+    for name, module in (("slicer.ScriptedLoadableModule", application), ("slicer.parameterNodeWrapper", wrapper),
+                         ("qt", types.ModuleType("qt")), ("ctk", types.ModuleType("ctk"))):
+        monkeypatch.setitem(sys.modules, name, module)
+    spec = importlib.util.spec_from_file_location("FevarPlanner_in_slicer", MODULE_DIR / "FevarPlanner.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    assert module.SLICER_APPLICATION
+    description = types.SimpleNamespace()
+    module.FevarPlanner(description)
+    assert RESEARCH_USE_STATEMENT in description.helpText
+    for handler in ("enter", "exit", "cleanup", "onSceneStartClose", "onSceneEndClose", "initializeParameterNode"):
+        assert callable(getattr(module.FevarPlannerWidget, handler))
+    fields = wrapped["class"].__annotations__
+    assert fields["ctVolume"] is slicer.vtkMRMLScalarVolumeNode
+    assert fields["aortaSegmentation"] is slicer.vtkMRMLSegmentationNode
+    assert fields["pathCurve"] is slicer.vtkMRMLMarkupsCurveNode and fields["target"] is str
+    assert wrapped["class"].method == "proposed"
+    assert {"test_phantom_case", "test_nodes_route"} <= set(dir(module.FevarPlannerTest))
