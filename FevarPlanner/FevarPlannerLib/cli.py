@@ -1,4 +1,4 @@
-"""``fevar-planner``: the command line (plan, phantoms, demo, benchmark, train-unet, segment)."""
+"""``fevar-planner``: the command line (plan, track, geometry, phantoms, demo, benchmark, train-unet, segment)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ from . import RESEARCH_USE_STATEMENT, __version__
 __all__ = ["main", "ProgressBar", "build_parser"]
 
 METHOD_CHOICES = ("proposed", "icp-tps", "rigid")
+DESCRIPTION = ("3D catheter path planning for fenestrated endovascular aortic repair (FEVAR) from a pre-operative CT "
+               "and one intra-operative fluoroscopic frame (Zheng et al., ICRA 2019).")
 EPILOG = (f"{RESEARCH_USE_STATEMENT} World coordinates are DICOM LPS millimetres; the case folder, "
           "result.json and the projection conventions are described in docs/DESIGN.md.")
 
@@ -302,7 +304,7 @@ def _cmd_track(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fevar-planner", description=__doc__, epilog=EPILOG,
+    parser = argparse.ArgumentParser(prog="fevar-planner", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"fevar-planner {__version__}. {RESEARCH_USE_STATEMENT}",
                         help="print the version and the research-use statement, then exit")
