@@ -104,15 +104,19 @@ def render_drr(volume: Volume, P: np.ndarray, image_shape, *, size: int = DEFAUL
     lengths = np.linalg.norm(directions, axis=1)  # mm per unit of t along each ray
     n_samples = max(2, int(np.ceil((t_far - t_near) * lengths.max() / step)))
     t = np.linspace(t_near, t_far, n_samples)
+    # the rays in voxel-index space (k, j, i): the index map is affine, so a ray stays a line
+    source_kji = volume.lps_to_index(source)
+    directions_kji = volume.lps_to_index(source + directions) - source_kji
     total = np.empty(len(directions), dtype=np.float32)
     for start in range(0, len(directions), RAYS_PER_BLOCK):
-        block = directions[start:start + RAYS_PER_BLOCK]
-        points = source + t[None, :, None] * block[:, None, :]  # (rays, samples, 3)
-        kji = volume.lps_to_index(points.reshape(-1, 3))
-        samples = ndimage.map_coordinates(mu, kji.T, order=1, mode="constant", cval=0.0, prefilter=False)
+        block = directions_kji[start:start + RAYS_PER_BLOCK].T.astype(np.float32)  # (3, rays)
+        # (3, rays, samples), laid out as map_coordinates wants it: no transposed copy
+        kji = source_kji.astype(np.float32)[:, None, None] + block[:, :, None] * t.astype(np.float32)[None, None, :]
+        samples = ndimage.map_coordinates(mu, kji.reshape(3, -1), order=1, mode="constant", cval=0.0,
+                                          prefilter=False)
         # the sum of samples times the step along this ray (its own length per unit t)
         step_along = (t_far - t_near) / (n_samples - 1) * lengths[start:start + RAYS_PER_BLOCK]
-        total[start:start + len(block)] = samples.reshape(len(block), n_samples).sum(axis=1) * step_along
+        total[start:start + block.shape[1]] = samples.reshape(block.shape[1], n_samples).sum(axis=1) * step_along
     return total.reshape(u.shape)
 
 
