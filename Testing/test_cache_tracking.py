@@ -137,3 +137,6 @@ def test_tags_only_geometry_is_announced_recorded_checked_and_correctable(run_ca
     assert corrected.geometry.in_plane_correction["translation_px"] == [5.0, -3.0]
     assert cli.main(["geometry", str(folder), "--reset"]) == 0
     assert not (folder / "geometry.json").exists()
+    # a folder that is not there is an error, and nothing is created
+    assert cli.main(["geometry", str(tmp_path / "nope"), "--shift", "1", "1"]) == 2
+    assert not (tmp_path / "nope").exists()

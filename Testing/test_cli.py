@@ -52,7 +52,8 @@ _WIRING = {
     "train-unet": (["train-unet", "c", "--out", "w.pt", "--iterations", "9"], "FevarPlannerLib.segmentation.train_unet", 9),
     "segment": (["segment", "ct.nrrd", "--out", "m.nrrd"], "FevarPlannerLib.io.read_ct", "ct.nrrd"),
     "track": (["track", "case_dir", "--out", "o", "--count", "7"], "FevarPlannerLib.tracking.track_case", 7),
-    "geometry": (["geometry", "case_dir", "--shift", "1", "2"], "FevarPlannerLib.io.find_case_file", "case_dir"),
+    "geometry": (["geometry", "case_dir", "--shift", "1", "2"], "FevarPlannerLib.projection.update_in_plane_correction",
+                 "case_dir"),
 }
 
 

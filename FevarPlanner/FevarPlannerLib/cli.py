@@ -250,23 +250,9 @@ def _cmd_segment(args) -> int:
 
 def _cmd_geometry(args) -> int:
     from .io import find_case_file, load_case
-    from .projection import CORRECTION_KEY
+    from .projection import update_in_plane_correction
 
-    path = Path(args.case) / "geometry.json"
-    data = json.loads(path.read_text()) if path.is_file() else {}
-    if args.reset:
-        data.pop(CORRECTION_KEY, None)
-    elif args.shift is not None or args.rotate is not None:
-        old = data.get(CORRECTION_KEY, {})
-        data[CORRECTION_KEY] = {"translation_px": list(args.shift or old.get("translation_px", [0.0, 0.0])),
-                                "rotation_deg": args.rotate if args.rotate is not None else old.get("rotation_deg", 0.0)}
-    if args.reset or args.shift is not None or args.rotate is not None:
-        from .io import write_text_atomic
-
-        if not data:
-            path.unlink(missing_ok=True)
-        else:
-            write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+    path = update_in_plane_correction(args.case, shift=args.shift, rotate=args.rotate, reset=args.reset)
     if find_case_file(args.case, "fluoro", (".dcm", ".png", ".jpg", ".tif")) is None and not path.is_file():
         print(f"{args.case}: no frame and no geometry.json")
         return 0

@@ -64,6 +64,7 @@ __all__ = [
     "GeometryAssumptionWarning",
     "read_geometry_file",
     "apply_in_plane_correction",
+    "update_in_plane_correction",
 ]
 
 
@@ -422,3 +423,37 @@ def apply_in_plane_correction(P: np.ndarray, correction: dict | None, image_shap
     rows, cols = image_shape
     return in_plane_transform(P, correction["translation_px"], correction["rotation_deg"],
                               center=((cols - 1) / 2.0, (rows - 1) / 2.0))
+
+
+def update_in_plane_correction(case_dir, *, shift=None, rotate: float | None = None, reset: bool = False) -> Path:
+    """Store (or remove, with ``reset``) the in-plane correction in ``case_dir/geometry.json``.
+
+    ``shift`` ``(du, dv)`` pixels and ``rotate`` degrees replace the stored values; what is
+    not given keeps its stored value. A calibrated ``projection_matrix`` in the file is kept.
+    The file is removed when nothing is left in it. Returns the geometry.json path.
+    """
+    from .io import InputError, write_text_atomic
+
+    case_dir = Path(case_dir)
+    if not case_dir.is_dir():
+        raise InputError(f"{case_dir}: case folder does not exist")
+    path = case_dir / "geometry.json"
+    try:
+        data = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: cannot read geometry JSON ({exc})") from None
+    if reset:
+        data.pop(CORRECTION_KEY, None)
+    elif shift is not None or rotate is not None:
+        old = data.get(CORRECTION_KEY, {})
+        data[CORRECTION_KEY] = {
+            "translation_px": [float(x) for x in (shift if shift is not None else old.get("translation_px", (0, 0)))],
+            "rotation_deg": float(rotate if rotate is not None else old.get("rotation_deg", 0.0))}
+    else:
+        return path
+    if data:
+        _correction(data, path)  # refuse what read_geometry_file would refuse
+        write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+    else:
+        path.unlink(missing_ok=True)
+    return path
