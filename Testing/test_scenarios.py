@@ -202,3 +202,23 @@ def test_every_kind_plans_and_unknown_kinds_are_refused():
         scenarios.plan_scenarios("sideways", 1)
     angulated = [s.views[0] for s in scenarios.plan_scenarios("angulated", 4, seed=0)]
     assert {(v.primary_deg, v.secondary_deg) for v in angulated} == set(scenarios.ANGULATED_VIEWS_DEG)
+
+
+def test_image_only_case_writes_a_ct_and_a_dsa_frame_of_the_same_anatomy(tmp_path):
+    scenario = scenarios.plan_scenarios("image_only", 1, seed=0)[0]
+    case = scenarios.generate(scenario)
+    folder = scenarios.write_scenario(case, tmp_path / "images")
+    assert (folder / "ct.nrrd").is_file() and (folder / "fluoro.png").is_file()
+    assert not (folder / "aorta_mask.nrrd").exists() and not (folder / "fluoro_mask.png").exists()
+    loaded = io.load_case(folder)
+    assert loaded.stage_3d == "ct" and loaded.fluoro_mask is None
+    # contrast in the lumen: centreline voxels bright, the frame dark along the projected vessels
+    nodes = case.preop.centerline().points
+    idx = np.round(loaded.ct.lps_to_index(nodes)).astype(int)
+    assert np.median(loaded.ct.array[tuple(idx.T)]) > 250
+    assert np.median(loaded.ct.array) < 100
+    frame = loaded.fluoro.image
+    uv = np.round(project(case.views[0].P_true, case.intraop.centerline().points)).astype(int)
+    on_vessels = frame[uv[:, 1], uv[:, 0]]
+    background = frame[~case.views[0].mask]
+    assert np.median(on_vessels) < 0.85 * np.median(background)
