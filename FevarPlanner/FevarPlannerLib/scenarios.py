@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from . import io
 from .centerline import Centerline
+from .conventions import BRANCH_LABELS
 from .projection import CArmGeometry, in_plane_transform, project, projection_matrix_from_carm, source_position, \
     write_geometry_json
 
@@ -70,7 +71,7 @@ __all__ = [
 ]
 
 #: The five vessels that every tree holds and every benchmark compares.
-MAIN_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+MAIN_VESSELS = BRANCH_LABELS
 #: The scenario kinds, one benchmark set each.
 KINDS = ("out_of_plane", "straightening", "clipped", "distal_forks", "wide_sac", "extra_branches", "misaligned",
          "angulated", "two_views", "image_only")

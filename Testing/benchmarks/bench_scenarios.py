@@ -16,17 +16,17 @@ same anatomies given as masks.
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
+from common import argument_parser, single_threaded_blas
 
-from FevarPlannerLib.benchmark import run_independent_benchmark
-from FevarPlannerLib.scenarios import KINDS
-from FevarPlannerLib.cli import ProgressBar
+single_threaded_blas()
+
+from FevarPlannerLib.benchmark import run_independent_benchmark  # noqa: E402  (after the BLAS threads are set)
+from FevarPlannerLib.cli import ProgressBar  # noqa: E402
+from FevarPlannerLib.scenarios import KINDS  # noqa: E402
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True)
+    parser = argument_parser(__doc__)
     parser.add_argument("--quick", action="store_true", help="one case per set (about 1.5 minutes)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--kinds", nargs="+", choices=KINDS, default=None,
