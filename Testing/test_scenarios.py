@@ -222,3 +222,27 @@ def test_image_only_case_writes_a_ct_and_a_dsa_frame_of_the_same_anatomy(tmp_pat
     on_vessels = frame[uv[:, 1], uv[:, 0]]
     background = frame[~case.views[0].mask]
     assert np.median(on_vessels) < 0.85 * np.median(background)
+
+
+def test_independent_summary_counts_worse_than_sv_and_within_the_floor():
+    from FevarPlannerLib.benchmark import FLOOR_TOLERANCE_MM, _independent_summary, _judge_against_sv_and_floor
+
+    def row(mm):
+        vessel = {"3d_mm": mm, "in_plane_mm": 0.1, "along_ray_mm": mm, "true_along_ray_mm": 3.0, "depth_floor_mm": 2.0,
+                  "out_of_plane_recovered": None}
+        return {"2d_px": 0.2, "3d_mm": mm, "in_plane_mm": 0.1, "along_ray_mm": mm, "views_used": 1,
+                "out_of_plane_recovered": None, "registration_s": 0.1, "per_vessel": {"aorta": vessel}}
+
+    cases = []
+    for sv, icp, proposed in ((3.0, 3.5, 2.2), (2.5, 2.0, 2.6)):
+        results = {"SV": row(sv), "ICP-TPS": row(icp), "Proposed": row(proposed)}
+        _judge_against_sv_and_floor(results, 2.0)
+        cases.append({"views": ["main"], "depth_floor_mm": 2.0, "results": results})
+    cases[1]["results"]["ICP-TPS"] = {"failed": "no 2D skeleton"}
+    summary = _independent_summary(cases)
+    proposed, icp = summary["methods"]["Proposed"], summary["methods"]["ICP-TPS"]
+    assert proposed["worse_than_sv"] == 1 and proposed["within_floor"] == 1       # 2.6 > 2.5; 2.2 <= 2.0 + 0.3
+    assert proposed["floor_gap_mm"] == pytest.approx(0.4)
+    assert icp["cases"] == 1 and icp["failed"] == 1 and icp["worse_than_sv"] == 1
+    assert summary["methods"]["SV"]["worse_than_sv"] == 0
+    assert FLOOR_TOLERANCE_MM == 0.3
