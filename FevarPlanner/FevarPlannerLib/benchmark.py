@@ -442,7 +442,11 @@ def _vessel_summary(rows: list[dict]) -> dict:
 
 
 def _independent_summary(cases: list[dict]) -> dict:
-    """Per method over a set's cases: means, counts worse than SV and within the floor, per vessel."""
+    """Per method over a set's cases: means, counts worse than SV and within the floor, per vessel.
+
+    A case a method failed on (``plan_case`` refused it) is counted in ``failed`` and left
+    out of that method's means and counts; ``depth_floor_mm`` is the mean over all cases.
+    """
     summary = {"cases": len(cases), "depth_floor_mm": float(np.mean([c["depth_floor_mm"] for c in cases])),
                "views_per_case": max(len(c["views"]) for c in cases), "methods": {}}
     for label in METHODS:
@@ -469,18 +473,19 @@ def _views_note(summary: dict) -> str:
 
 
 def _independent_table(summaries: dict) -> str:
-    lines = ["| Set | Method | 2D (px) | 3D (mm) | in-plane (mm) | along-ray (mm) | depth floor (mm) | "
+    lines = ["| Set | Method | failed | 2D (px) | 3D (mm) | in-plane (mm) | along-ray (mm) | depth floor (mm) | "
              "worse than SV | within 0.3 mm of floor | depth recovered |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in summaries.items():
         for label, m in s["methods"].items():
             if not m["cases"]:
-                lines.append(f"| {name} | {label} | failed {m['failed']} of {s['cases']} | | | | | | | |")
+                lines.append(f"| {name} | {label} | {m['failed']}/{s['cases']} | | | | | | | | |")
                 continue
             recovered = "" if m["out_of_plane_recovered"] is None else f"{m['out_of_plane_recovered']:.2f}"
-            lines.append(f"| {name}{_views_note(s)} | {label} | {m['2d_px']:.2f} | {m['3d_mm']:.2f} | "
-                         f"{m['in_plane_mm']:.2f} | {m['along_ray_mm']:.2f} | {s['depth_floor_mm']:.2f} | "
-                         f"{m['worse_than_sv']}/{m['cases']} | {m['within_floor']}/{m['cases']} | {recovered} |")
+            lines.append(f"| {name}{_views_note(s)} | {label} | {m['failed']}/{s['cases']} | {m['2d_px']:.2f} | "
+                         f"{m['3d_mm']:.2f} | {m['in_plane_mm']:.2f} | {m['along_ray_mm']:.2f} | "
+                         f"{s['depth_floor_mm']:.2f} | {m['worse_than_sv']}/{m['cases']} | "
+                         f"{m['within_floor']}/{m['cases']} | {recovered} |")
     lines += ["", "Per vessel (mean over the set's cases): 3D / in-plane / along-ray (mm), depth floor (mm), "
               "out-of-plane motion recovered.", "",
               "| Set | Method | " + " | ".join(evaluation.MAIN_VESSELS) + " |",
