@@ -202,3 +202,47 @@ def test_every_kind_plans_and_unknown_kinds_are_refused():
         scenarios.plan_scenarios("sideways", 1)
     angulated = [s.views[0] for s in scenarios.plan_scenarios("angulated", 4, seed=0)]
     assert {(v.primary_deg, v.secondary_deg) for v in angulated} == set(scenarios.ANGULATED_VIEWS_DEG)
+
+
+def test_image_only_case_writes_a_ct_and_a_dsa_frame_of_the_same_anatomy(tmp_path):
+    scenario = scenarios.plan_scenarios("image_only", 1, seed=0)[0]
+    case = scenarios.generate(scenario)
+    folder = scenarios.write_scenario(case, tmp_path / "images")
+    assert (folder / "ct.nrrd").is_file() and (folder / "fluoro.png").is_file()
+    assert not (folder / "aorta_mask.nrrd").exists() and not (folder / "fluoro_mask.png").exists()
+    loaded = io.load_case(folder)
+    assert loaded.stage_3d == "ct" and loaded.fluoro_mask is None
+    # contrast in the lumen: centreline voxels bright, the frame dark along the projected vessels
+    nodes = case.preop.centerline().points
+    idx = np.round(loaded.ct.lps_to_index(nodes)).astype(int)
+    assert np.median(loaded.ct.array[tuple(idx.T)]) > 250
+    assert np.median(loaded.ct.array) < 100
+    frame = loaded.fluoro.image
+    uv = np.round(project(case.views[0].P_true, case.intraop.centerline().points)).astype(int)
+    on_vessels = frame[uv[:, 1], uv[:, 0]]
+    background = frame[~case.views[0].mask]
+    assert np.median(on_vessels) < 0.85 * np.median(background)
+
+
+def test_independent_summary_counts_worse_than_sv_and_within_the_floor():
+    from FevarPlannerLib.benchmark import FLOOR_TOLERANCE_MM, _independent_summary, _judge_against_sv_and_floor
+
+    def row(mm):
+        vessel = {"3d_mm": mm, "in_plane_mm": 0.1, "along_ray_mm": mm, "true_along_ray_mm": 3.0, "depth_floor_mm": 2.0,
+                  "out_of_plane_recovered": None}
+        return {"2d_px": 0.2, "3d_mm": mm, "in_plane_mm": 0.1, "along_ray_mm": mm, "views_used": 1,
+                "out_of_plane_recovered": None, "registration_s": 0.1, "per_vessel": {"aorta": vessel}}
+
+    cases = []
+    for sv, icp, proposed in ((3.0, 3.5, 2.2), (2.5, 2.0, 2.6)):
+        results = {"SV": row(sv), "ICP-TPS": row(icp), "Proposed": row(proposed)}
+        _judge_against_sv_and_floor(results, 2.0)
+        cases.append({"views": ["main"], "depth_floor_mm": 2.0, "results": results})
+    cases[1]["results"]["ICP-TPS"] = {"failed": "no 2D skeleton"}
+    summary = _independent_summary(cases)
+    proposed, icp = summary["methods"]["Proposed"], summary["methods"]["ICP-TPS"]
+    assert proposed["worse_than_sv"] == 1 and proposed["within_floor"] == 1       # 2.6 > 2.5; 2.2 <= 2.0 + 0.3
+    assert proposed["floor_gap_mm"] == pytest.approx(0.4)
+    assert icp["cases"] == 1 and icp["failed"] == 1 and icp["worse_than_sv"] == 1
+    assert summary["methods"]["SV"]["worse_than_sv"] == 0
+    assert FLOOR_TOLERANCE_MM == 0.3

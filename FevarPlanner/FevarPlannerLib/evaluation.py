@@ -49,6 +49,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .centerline import ANATOMY_LABELS, Centerline, as_points
+from .conventions import BRANCH_LABELS
 from .projection import project, source_position, validate_projection_matrix
 
 __all__ = [
@@ -353,7 +354,7 @@ def evaluate(deformed: Centerline, gt: Centerline | None, P, skeleton2d_points, 
 
 #: The five vessels every case holds; the depth analysis compares these ("other" branches
 #: have no counterpart to compare in general).
-MAIN_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+MAIN_VESSELS = BRANCH_LABELS
 #: Below this mean true along-ray displacement (mm) a vessel has no out-of-plane motion worth
 #: a recovered fraction (it would divide by almost nothing).
 MIN_OUT_OF_PLANE_MM = 0.5

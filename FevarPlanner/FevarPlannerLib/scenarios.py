@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from . import io
 from .centerline import Centerline
+from .conventions import BRANCH_LABELS
 from .projection import CArmGeometry, in_plane_transform, project, projection_matrix_from_carm, source_position, \
     write_geometry_json
 
@@ -63,15 +64,17 @@ __all__ = [
     "generate",
     "paint_capsules",
     "mask_end_points",
+    "render_ct",
+    "render_dsa",
     "write_scenario",
     "write_scenario_set",
 ]
 
 #: The five vessels that every tree holds and every benchmark compares.
-MAIN_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+MAIN_VESSELS = BRANCH_LABELS
 #: The scenario kinds, one benchmark set each.
 KINDS = ("out_of_plane", "straightening", "clipped", "distal_forks", "wide_sac", "extra_branches", "misaligned",
-         "angulated", "two_views")
+         "angulated", "two_views", "image_only")
 #: Severities of the out-of-plane set, degrees (bend at the bifurcation and along each iliac).
 OUT_OF_PLANE_SEVERITIES_DEG = (0.0, 5.0, 10.0, 20.0)
 #: Angulated views of the angulated set: (primary, LAO +; secondary, cranial +), degrees.
@@ -81,6 +84,15 @@ SECOND_VIEW_DEG = (30.0, 50.0, 70.0, 90.0)
 STEP_MM = 1.0
 CT_SPACING_MM = 1.0
 CT_MARGIN_MM = 15.0
+#: Image-only cases: a wider CT grid (a body around the vessels), its HU, and the DSA frame.
+IMAGE_CT_MARGIN_MM = 40.0
+CT_HU = {"air": -1000.0, "tissue": 45.0, "lumen": 330.0, "cortical": 750.0, "cancellous": 230.0, "disc": 90.0}
+#: Vertebral bodies behind the aorta: radius, cortical shell, body height and disc height (mm).
+SPINE_MM = {"radius": 17.0, "shell": 3.0, "body": 24.0, "disc": 9.0}
+CT_NOISE_HU = 14.0
+DSA_ATTENUATION_PER_MM = 0.035
+DSA_NOISE = 0.012
+_DSA_FULL_SCALE = 65535
 DETECTOR_MARGIN_PX = 24
 SIDES = ("left", "right")
 _LEFT = {"left": 1.0, "right": -1.0}
@@ -542,6 +554,8 @@ def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, D
     elif kind == "angulated":
         primary, secondary = ANGULATED_VIEWS_DEG[index % len(ANGULATED_VIEWS_DEG)]
         views = [View(primary_deg=primary, secondary_deg=secondary)]
+    elif kind == "image_only":
+        info = {"images": True}
     elif kind == "two_views":
         angle = SECOND_VIEW_DEG[index % len(SECOND_VIEW_DEG)] * (1.0 if index % 2 == 0 else -1.0)
         name = f"{'lao' if angle > 0 else 'rao'}{abs(angle):g}"
@@ -571,35 +585,39 @@ def plan_scenarios(kind: str, n: int, seed: int = 0) -> list[Scenario]:
 
 # --------------------------------------------------------------------------- rendering
 
+def _capsule_blocks(shape, centres: np.ndarray, radii: np.ndarray, chunk: int = 8):
+    """Yield ``(box, headroom)`` over a polyline's tube: for each cell of the box (a tuple of
+    slices into an array of ``shape``) the largest ``r**2 - d**2`` over the chunk's segments,
+    ``d`` the distance to a segment and ``r`` its radius there (>= 0: inside the tube)."""
+    centres = np.asarray(centres, dtype=float)
+    radii = np.asarray(radii, dtype=float)
+    shape = np.array(shape)
+    for start in range(0, len(centres) - 1, chunk):
+        b, rb = centres[start + 1:start + chunk + 1], radii[start + 1:start + chunk + 1]
+        a, ra = centres[start:start + len(b)], radii[start:start + len(b)]
+        reach = max(ra.max(), rb.max()) + 1.0
+        low = np.maximum(np.floor(np.minimum(a.min(0), b.min(0)) - reach).astype(int), 0)
+        high = np.minimum(np.ceil(np.maximum(a.max(0), b.max(0)) + reach).astype(int) + 1, shape)
+        if np.any(high <= low):
+            continue
+        cells = np.stack(np.meshgrid(*[np.arange(lo, hi) for lo, hi in zip(low, high)], indexing="ij"), axis=-1)
+        cells = cells.reshape(-1, len(shape)).astype(float)
+        ab = b - a
+        length2 = np.maximum(np.einsum("sd,sd->s", ab, ab), 1e-12)
+        t = np.clip(np.einsum("csd,sd->cs", cells[:, None, :] - a[None], ab) / length2, 0.0, 1.0)
+        distance2 = np.square(cells[:, None, :] - (a[None] + t[..., None] * ab[None])).sum(axis=-1)
+        headroom = (np.square(ra[None] + t * (rb - ra)[None]) - distance2).max(axis=1)
+        yield tuple(slice(lo, hi) for lo, hi in zip(low, high)), headroom.reshape(high - low)
+
+
 def paint_capsules(mask: np.ndarray, centres: np.ndarray, radii: np.ndarray, chunk: int = 8) -> None:
     """Set every cell of ``mask`` (2D or 3D) inside the tube along a polyline, in place.
 
     ``centres`` (n, d) are in index units of ``mask`` (row/column, or k/j/i), ``radii``
     (n,) too; between two points the radius varies linearly (a rounded cone per segment).
     """
-    centres = np.asarray(centres, dtype=float)
-    radii = np.asarray(radii, dtype=float)
-    shape = np.array(mask.shape)
-    for start in range(0, len(centres) - 1, chunk):
-        a, b = centres[start:start + chunk], centres[start + 1:start + chunk + 1]
-        ra, rb = radii[start:start + chunk], radii[start + 1:start + chunk + 1]
-        a = a[:len(b)]
-        ra = ra[:len(b)]
-        reach = max(ra.max(), rb.max()) + 1.0
-        low = np.maximum(np.floor(np.minimum(a.min(0), b.min(0)) - reach).astype(int), 0)
-        high = np.minimum(np.ceil(np.maximum(a.max(0), b.max(0)) + reach).astype(int) + 1, shape)
-        if np.any(high <= low):
-            continue
-        box = tuple(slice(lo, hi) for lo, hi in zip(low, high))
-        cells = np.stack(np.meshgrid(*[np.arange(lo, hi) for lo, hi in zip(low, high)], indexing="ij"), axis=-1)
-        cells = cells.reshape(-1, len(shape)).astype(float)
-        ab = b - a
-        length2 = np.maximum(np.einsum("sd,sd->s", ab, ab), 1e-12)
-        t = np.clip(np.einsum("csd,sd->cs", cells[:, None, :] - a[None], ab) / length2, 0.0, 1.0)
-        nearest = a[None] + t[..., None] * ab[None]
-        distance = np.linalg.norm(cells[:, None, :] - nearest, axis=-1)
-        inside = np.any(distance <= ra[None] + t * (rb - ra)[None], axis=1)
-        mask[box] |= inside.reshape(high - low)
+    for box, headroom in _capsule_blocks(mask.shape, centres, radii, chunk):
+        mask[box] |= headroom >= 0.0
 
 
 def _projected_radius(P: np.ndarray, points: np.ndarray, radius: np.ndarray) -> np.ndarray:
@@ -625,10 +643,10 @@ def _draw_lumen(tree: VesselTree, volume: io.Volume) -> np.ndarray:
     return lumen
 
 
-def _ct_volume(tree: VesselTree) -> io.Volume:
+def _ct_volume(tree: VesselTree, margin_mm: float = CT_MARGIN_MM) -> io.Volume:
     """An axis-aligned 1 mm grid around the CT's tubes."""
     points = np.concatenate([t.points for t in tree.tubes.values() if t.in_ct])
-    reach = max(float(t.radius.max()) for t in tree.tubes.values() if t.in_ct) + CT_MARGIN_MM
+    reach = max(float(t.radius.max()) for t in tree.tubes.values() if t.in_ct) + margin_mm
     low, high = points.min(axis=0) - reach, points.max(axis=0) + reach
     counts = np.ceil((high - low) / CT_SPACING_MM).astype(int) + 1
     return io.Volume(np.zeros(tuple(counts[::-1]), dtype=np.uint8), (CT_SPACING_MM,) * 3, np.round(low, 3),
@@ -717,11 +735,77 @@ def generate(scenario: Scenario) -> ScenarioCase:
     """Build both trees, the CT lumen and every view's mask of ``scenario``."""
     preop = build_tree(scenario.shape)
     intraop = deform_tree(preop, scenario.deformation)
-    volume = _ct_volume(preop)
+    volume = _ct_volume(preop, IMAGE_CT_MARGIN_MM if scenario.info.get("images") else CT_MARGIN_MM)
     lumen = volume.with_array(_draw_lumen(preop, volume).astype(np.uint8))
     isocenter = volume.center_lps()
     views = [_render_view(intraop, scenario, view, isocenter) for view in scenario.views]
     return ScenarioCase(scenario, preop, intraop, lumen, views)
+
+
+def _chord_image(tree: VesselTree, P: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Millimetres of contrast-filled lumen along each pixel's ray (each tube once, tubes summed;
+    a branch from where it leaves its parent's lumen, so that no lumen counts twice)."""
+    path = np.zeros(shape)
+    for tube in tree.tubes.values():
+        first = 0
+        if tube.parent is not None:
+            parent = tree.tubes[tube.parent]
+            outside = np.linalg.norm(tube.points - parent.points[tube.parent_index], axis=1) > \
+                parent.radius[tube.parent_index]
+            first = min(int(np.argmax(outside)), len(tube.points) - 2)
+        points, radius = tube.points[first:], tube.radius[first:]
+        uv = project(P, points)
+        radius_px = _projected_radius(P, points, radius)
+        mm_per_px = float(np.mean(radius / radius_px))
+        chord = np.zeros(shape)
+        for box, headroom in _capsule_blocks(shape, uv[:, ::-1], radius_px):
+            block = chord[box]
+            np.maximum(block, 2.0 * mm_per_px * np.sqrt(np.clip(headroom, 0.0, None)), out=block)
+        path += chord
+    return path
+
+
+def render_dsa(tree: VesselTree, P: np.ndarray, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """A DSA-like frame (uint16, dark vessels): a smooth uneven background attenuated as
+    ``exp(-mu * lumen path)``, slightly blurred, with signal-dependent noise from ``rng``."""
+    from scipy import ndimage
+
+    rows, cols = shape
+    vv, uu = np.mgrid[0:rows, 0:cols]
+    radial2 = ((vv - rows / 2) ** 2 + (uu - cols / 2) ** 2) / (0.5 * max(shape)) ** 2
+    slow = ndimage.gaussian_filter(rng.normal(size=shape), sigma=max(shape) / 10.0)
+    slow /= max(float(np.abs(slow).max()), 1e-12)
+    background = 0.6 * _DSA_FULL_SCALE * (1.0 - 0.1 * radial2 + 0.05 * slow)
+    path = ndimage.gaussian_filter(_chord_image(tree, P, shape), 0.8)
+    signal = background * np.exp(-DSA_ATTENUATION_PER_MM * path)
+    noisy = signal + rng.normal(size=shape) * DSA_NOISE * np.sqrt(signal * background.mean())
+    return np.clip(np.rint(noisy), 0, _DSA_FULL_SCALE).astype(np.uint16)
+
+
+def render_ct(tree: VesselTree, lumen: io.Volume, rng: np.random.Generator) -> io.Volume:
+    """A contrast CT (int16 HU) on the lumen's grid: an elliptic body of soft tissue in air,
+    vertebral bodies (cortical shell, cancellous core) and discs behind the aorta, the lumen
+    (partial volume at its border) and noise."""
+    from scipy import ndimage
+
+    k, j, i = np.indices(lumen.shape, sparse=True)
+    x = lumen.origin[0] + i * lumen.spacing[0]
+    y = lumen.origin[1] + j * lumen.spacing[1]
+    z = lumen.origin[2] + k * lumen.spacing[2]
+    centre_x, centre_y = (lumen.origin[:2] + (np.array(lumen.shape[::-1][:2]) - 1) * lumen.spacing[:2] / 2.0)
+    half = (np.array(lumen.shape[::-1][:2]) - 1) * lumen.spacing[:2] / 2.0 - 3.0
+    body = ((x - centre_x) / half[0]) ** 2 + ((y - centre_y) / half[1]) ** 2 <= 1.0
+    aorta = tree.tubes["aorta"]
+    spine_y = float(aorta.points[:, 1].max() + aorta.radius.max() + SPINE_MM["radius"] + 4.0)
+    radial = np.hypot(x - float(np.median(aorta.points[:, 0])), y - spine_y)
+    in_disc = np.mod(z, SPINE_MM["body"] + SPINE_MM["disc"]) < SPINE_MM["disc"]
+    bone = np.where(radial <= SPINE_MM["radius"] - SPINE_MM["shell"], CT_HU["cancellous"], CT_HU["cortical"])
+    hu = np.where(body, CT_HU["tissue"], CT_HU["air"]) + np.zeros(lumen.shape)
+    hu = np.where((radial <= SPINE_MM["radius"]) & body, np.where(in_disc, CT_HU["disc"], bone), hu)
+    filled = ndimage.gaussian_filter(lumen.array.astype(float), 0.6 / lumen.spacing[0])
+    hu += filled * (CT_HU["lumen"] - hu) * body
+    hu += rng.normal(scale=CT_NOISE_HU, size=lumen.shape)
+    return lumen.with_array(np.clip(np.rint(hu), -1024, 3071).astype(np.int16))
 
 
 def mask_end_points(mask: np.ndarray) -> np.ndarray:
@@ -734,22 +818,33 @@ def mask_end_points(mask: np.ndarray) -> np.ndarray:
     return np.argwhere(thin & (neighbours == 1))
 
 
-def write_scenario(case: ScenarioCase | Scenario, folder) -> Path:
+def write_scenario(case: ScenarioCase | Scenario, folder, *, images: bool | None = None) -> Path:
     """Write a scenario as a case folder (docs/DESIGN.md section 4), atomically; returns the folder.
 
-    ``aorta_mask.nrrd``, ``fluoro_mask.png`` + ``geometry.json`` (the first view, given
-    ``P``; ``true_projection_matrix`` beside it), ``views/<name>/`` for any further view,
-    ``gt.json`` and ``scenario.json``.
+    Mask level: ``aorta_mask.nrrd`` and ``fluoro_mask.png``; with ``images`` (default: the
+    scenario's ``info["images"]``, the image-only kind) ``ct.nrrd`` (HU, :func:`render_ct`)
+    and ``fluoro.png`` (16-bit DSA-like, :func:`render_dsa`) instead, so that the pipeline
+    segments both. Beside them ``geometry.json`` (the first view's given ``P``;
+    ``true_projection_matrix`` too), ``views/<name>/`` for any further view, ``gt.json``
+    and ``scenario.json``.
     """
     if isinstance(case, Scenario):
         case = generate(case)
+    images = bool(case.scenario.info.get("images")) if images is None else images
+    rng = np.random.default_rng([case.scenario.seed, 7])
     folder = Path(folder)
     with io.atomic_folder(folder) as tmp:
-        io.write_volume(tmp / "aorta_mask.nrrd", case.lumen)
+        if images:
+            io.write_volume(tmp / "ct.nrrd", render_ct(case.preop, case.lumen, rng))
+        else:
+            io.write_volume(tmp / "aorta_mask.nrrd", case.lumen)
         for k, view in enumerate(case.views):
             where = tmp if k == 0 else tmp / "views" / view.name
             where.mkdir(parents=True, exist_ok=True)
-            io.write_mask_png(where / "fluoro_mask.png", view.mask)
+            if images:
+                io.write_png(where / "fluoro.png", render_dsa(case.intraop, view.P_true, view.mask.shape, rng))
+            else:
+                io.write_mask_png(where / "fluoro_mask.png", view.mask)
             write_geometry_json(where / "geometry.json", view.P_given, true_projection_matrix=view.P_true.tolist(),
                                 view=view.name, primary_angle=view.carm.primary_angle,
                                 secondary_angle=view.carm.secondary_angle)

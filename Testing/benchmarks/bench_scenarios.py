@@ -7,26 +7,30 @@ ICP-TPS and the proposed method on each with ``pipeline.plan_case`` and scores t
 the depth floor and the in-plane / along-ray split per vessel
 (FevarPlannerLib.benchmark.run_independent_benchmark). Outputs in ``--out``:
 ``independent.json``, ``independent_table.md``, ``independent_sets.png``,
-``independent_vessels.png`` and the case folders under ``cases/``.
+``independent_vessels.png`` and the case folders under ``cases/``. ``--kinds image_only``
+runs the image-only cases (a CT and a DSA-like frame, segmented by the pipeline) beside the
+same anatomies given as masks.
 
     .venv/bin/python Testing/benchmarks/bench_scenarios.py --out OUT [--quick] [--seed 0] [--kinds clipped two_views]
 """
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
+from common import argument_parser, single_threaded_blas
 
-from FevarPlannerLib.benchmark import INDEPENDENT_SETS, run_independent_benchmark
-from FevarPlannerLib.cli import ProgressBar
+single_threaded_blas()
+
+from FevarPlannerLib.benchmark import run_independent_benchmark  # noqa: E402  (after the BLAS threads are set)
+from FevarPlannerLib.cli import ProgressBar  # noqa: E402
+from FevarPlannerLib.scenarios import KINDS  # noqa: E402
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True)
+    parser = argument_parser(__doc__)
     parser.add_argument("--quick", action="store_true", help="one case per set (about 1.5 minutes)")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--kinds", nargs="+", choices=sorted(INDEPENDENT_SETS), default=None)
+    parser.add_argument("--kinds", nargs="+", choices=KINDS, default=None,
+                        help="scenario kinds (default: all but image_only, whose CT segmentation is slow)")
     args = parser.parse_args(argv)
     summary = run_independent_benchmark(args.out, quick=args.quick, seed=args.seed, kinds=args.kinds,
                                         progress=ProgressBar())
