@@ -364,7 +364,7 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
     with _timed(timings, "segmentation2d"):
         qc.mask2d = mask2d = _vessel_mask(case, progress, prior)
-    quality.check_frame_mask(mask2d, prior, qc)
+    quality.check_frame_mask(mask2d, prior, qc, frame=case.fluoro.image)
     _report(progress, 0.5, f"registering ({method})")
     frame = register_frame(preop, mask2d, case.P, method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
     timings.update(frame.timings)

@@ -560,13 +560,21 @@ def _nearest_true(mask: np.ndarray, index: np.ndarray, radius: int = 6) -> np.nd
     return local[np.argmin(((local - index) ** 2).sum(axis=1))]
 
 
-def segment_ct(ct: Volume, method: str = "unet", **kwargs) -> Volume:
-    """Lumen mask by ``method`` ``'unet'`` (:func:`segment_ct_unet`) or ``'threshold'``."""
+#: The CT segmenters :func:`segment_ct` knows.
+CT_SEGMENTERS = ("classical", "unet", "threshold")
+
+
+def segment_ct(ct: Volume, method: str = "classical", **kwargs) -> Volume:
+    """Lumen mask by ``method``: ``'classical'`` (:func:`segment_ct_classical`, the default:
+    no training, validated on a real CT), ``'unet'`` (:func:`segment_ct_unet`, trained on
+    phantoms only) or ``'threshold'`` (:func:`segment_ct_threshold`)."""
+    if method == "classical":
+        return segment_ct_classical(ct, **kwargs)
     if method == "unet":
         return segment_ct_unet(ct, **kwargs)
     if method == "threshold":
         return segment_ct_threshold(ct, **kwargs)
-    raise ValueError(f"unknown segmenter {method!r}; use 'unet' or 'threshold'")
+    raise ValueError(f"unknown segmenter {method!r}; use one of {', '.join(CT_SEGMENTERS)}")
 
 
 def postprocess_mask(mask, *, min_size_mm3: float = 50.0, keep_largest: bool = True,
@@ -972,6 +980,20 @@ def _spine_behind(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji,
     return strip.size > 0 and bool((strip > BONE_HU).sum() >= 3)
 
 
+def _inside_bone(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, ring_mm: float = 4.0,
+                 max_fraction: float = 0.25) -> bool:
+    """True if a ring just outside the blob is largely cortical bone (a vertebral body's
+    cancellous core is as bright and as round as the aorta, but the aorta is never walled by bone)."""
+    reach = radius_mm + ring_mm
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int) + 1
+    lo = np.maximum(np.floor(centre_ji).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre_ji).astype(int) + half + 1, hu_slice.shape)
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    dist = np.hypot((rows - centre_ji[0]) * spacing_ji[0], (cols - centre_ji[1]) * spacing_ji[1])
+    ring = (dist > radius_mm + 0.5) & (dist <= reach)
+    return bool(ring.any() and (hu_slice[lo[0]:hi[0], lo[1]:hi[1]][ring] > BONE_HU).mean() > max_fraction)
+
+
 def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, step_mm: float = 5.0):
     """The best aorta cross-section of the CT: a bright round blob in front of the spine.
 
@@ -993,6 +1015,8 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
         for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
             if not _spine_behind(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior):
                 continue
+            if _inside_bone(hu_slice, blob["centre"], blob["radius"], spacing_ji):
+                continue
             if best is None or blob["score"] > best[3]:
                 best = (k, blob["centre"], blob["radius"], blob["score"])
     return best
@@ -1006,10 +1030,12 @@ class _Trace:
         self.centres = {k: np.asarray(centre, dtype=float)}
         self.radii = {k: float(radius)}
         self.k, self.centre, self.radius = k, np.asarray(centre, dtype=float), float(radius)
+        self.previous = None        # (cross-section mask, its (row, col) offset) in the last slice
 
 
 def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
-                    max_growth: float = 1.45):
+                    max_growth: float = 1.45, previous=None, reference_radius: float | None = None,
+                    detect_split: bool = True):
     """The lumen cross-section continuing a trace into the next slice.
 
     Pixels within ``lumen_hu`` (after a light smoothing) in a window around the predicted
@@ -1037,34 +1063,57 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     local = centre - lo_ji
     dist = np.hypot((rows - local[0]) * spacing_ji[0], (cols - local[1]) * spacing_ji[1])
     labels, _ = ndi.label(inside)
-    touching = np.unique(labels[(dist <= 0.6 * radius) & inside])
+    core = dist <= 0.6 * radius
+    if previous is not None:        # overlap with the last cross-section counts as well
+        core |= _paste(previous[0], previous[1] - lo_ji, window.shape)
+    touching = np.unique(labels[core & inside])
     touching = touching[touching > 0]
-    if len(touching) == 0:
-        return None
+    if len(touching) == 0:      # the lumen left the predicted core: ended, or split into two
+        near = np.unique(labels[(dist <= radius) & inside])
+        candidate = np.isin(labels, near[near > 0]) & (dist <= max_growth * radius + 2.0)
+        if not candidate.any():
+            return None
+        edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
+        return None, lo_ji, None, float(edt.max()), _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM)
     candidate = np.isin(labels, touching) & (dist <= max_growth * radius + 2.0)
     edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
     new_radius = float(edt.max())
+    split = _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM) if detect_split else []
+    if len(split) == 2 and split[1][1] >= 0.5 * split[0][1]:     # two lumens of similar size: a bifurcation
+        return None, lo_ji, None, new_radius, split
     if new_radius < min_radius:
         return None
-    if new_radius < 0.6 * radius:
-        return None, lo_ji, None, new_radius, _split_blobs(candidate, edt, lo_ji, spacing_ji, min_radius)
-    peak = np.array(np.unravel_index(np.argmax(edt), edt.shape), dtype=float)
+    if new_radius < 0.6 * (reference_radius or radius):
+        return None, lo_ji, None, new_radius, _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM)
+    own = np.where(dist <= max(radius, 2.0 * max(spacing_ji)), edt, 0.0)   # this vessel's centre, not a neighbour's
+    peak = np.array(np.unravel_index(np.argmax(own), own.shape), dtype=float)
+    new_radius = float(own.max()) if own.max() >= min_radius else new_radius
     new_dist = np.hypot((rows - peak[0]) * spacing_ji[0], (cols - peak[1]) * spacing_ji[1])
     mask = candidate & (new_dist <= 1.25 * new_radius + 1.5)
     return mask, lo_ji, peak + lo_ji, new_radius, []
 
 
+def _paste(mask: np.ndarray, offset, shape) -> np.ndarray:
+    """``mask`` placed at ``offset`` (row, col) in an empty array of ``shape`` (clipped)."""
+    out = np.zeros(shape, dtype=bool)
+    r0, c0 = int(offset[0]), int(offset[1])
+    rs, cs = max(r0, 0), max(c0, 0)
+    re, ce = min(r0 + mask.shape[0], shape[0]), min(c0 + mask.shape[1], shape[1])
+    if re > rs and ce > cs:
+        out[rs:re, cs:ce] = mask[rs - r0:re - r0, cs - c0:ce - c0]
+    return out
+
+
 def _split_blobs(candidate, edt, offset, spacing_ji, min_radius: float) -> list:
-    """(centre, radius) of the separate round parts of ``candidate`` at least ``min_radius`` wide."""
-    labels, n = ndi.label(candidate)
-    blobs = []
-    for label in range(1, n + 1):
-        inside = np.where(labels == label, edt, 0.0)
-        radius = float(inside.max())
-        if radius >= min_radius:
-            peak = np.array(np.unravel_index(np.argmax(inside), inside.shape), dtype=float)
-            blobs.append((peak + offset, radius))
-    return sorted(blobs, key=lambda blob: -blob[1])[:2]
+    """(centre, radius) of the (at most two) widest separate lumens in ``candidate``: maxima of the
+    distance map at least ``min_radius`` deep and two radii apart (the two iliacs below the
+    bifurcation, still joined by partial volume or already apart)."""
+    from skimage.feature import peak_local_max
+
+    min_distance = max(1, int(round(2 * min_radius / max(spacing_ji))))
+    peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=min_radius, num_peaks=2,
+                           exclude_border=False)
+    return [(np.asarray(p, dtype=float) + offset, float(edt[tuple(p)])) for p in peaks]
 
 
 def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, progress=None) -> list:
@@ -1077,8 +1126,10 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
     spacing_ji = _slice_axes_mm(ct)
     k = trace.k + trace.step
     while 0 <= k < ct.shape[0]:
+        recent = [trace.radii[j] for j in sorted(trace.radii, key=lambda j: -abs(j - k))[-15:]]
         found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
-                                trace.min_radius)
+                                trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
+                                detect_split=trace.name == "aorta")
         if found is None:
             return []
         mask, offset, centre, radius, split = found
@@ -1087,6 +1138,7 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
         view = out[k, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]]
         view[mask & (view == 0)] = label
         trace.centres[k], trace.radii[k] = centre, radius
+        trace.previous = (mask, offset)
         trace.centre = centre
         trace.radius = 0.7 * trace.radius + 0.3 * radius
         trace.k = k
@@ -1126,12 +1178,49 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
         traces.append(trace)
         split = _follow(trace, ct, lumen_hu, labels, 1, counter)
-        if step == -up:
-            for k, c, r in split:
+        if step == -up and split:
+            for k, c, r in _iliac_seeds(ct, split[0][0], trace, lumen_hu):
                 iliac = _Trace("iliac", k - step, c, r, step, ILIAC_MIN_RADIUS_MM)
                 traces.append(iliac)
                 _follow(iliac, ct, lumen_hu, labels, 2, counter)
     return labels, traces, lumen_hu
+
+
+def _iliac_seeds(ct: Volume, k_start: int, aorta: _Trace, lumen_hu, search_mm: float = 30.0) -> list:
+    """The two common iliacs where the aorta ended: the first slice (within ``search_mm`` below)
+    whose lumen near the aorta's last centre has two distance-map maxima at least 0.8 times
+    the sum of their radii apart (two separate lumens, not one flattened one).
+
+    Returns
+    -------
+    list of (k, centre_ji, radius_mm)
+    """
+    from skimage.feature import peak_local_max
+
+    spacing_ji = _slice_axes_mm(ct)
+    reach = 1.6 * aorta.radius + 8.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    centre = np.floor(aorta.centre).astype(int)
+    lo = np.maximum(centre - half, 0)
+    hi = np.minimum(centre + half + 1, ct.shape[1:])
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    disc = np.hypot((rows - aorta.centre[0]) * spacing_ji[0], (cols - aorta.centre[1]) * spacing_ji[1]) <= reach
+    min_distance = max(1, int(round(2 * ILIAC_MIN_RADIUS_MM / max(spacing_ji))))
+    for n in range(int(search_mm / ct.spacing[2]) + 1):
+        k = k_start + n * aorta.step
+        if not 0 <= k < ct.shape[0]:
+            break
+        window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
+                                     0.6 / np.asarray(spacing_ji))
+        edt = ndi.distance_transform_edt((window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc, sampling=spacing_ji)
+        peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=ILIAC_MIN_RADIUS_MM, num_peaks=2,
+                               exclude_border=False)
+        if len(peaks) == 2:
+            radii = edt[tuple(peaks.T)]
+            apart = np.hypot(*((peaks[0] - peaks[1]) * np.asarray(spacing_ji)))
+            if apart >= 0.8 * radii.sum() and radii.min() >= 0.5 * radii.max():
+                return [(k, peak.astype(float) + lo, float(r)) for peak, r in zip(peaks, radii)]
+    return []
 
 
 class _SliceCounter:
