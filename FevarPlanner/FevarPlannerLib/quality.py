@@ -87,6 +87,7 @@ class FluoroPrior:
         self.px_per_mm = pixels_per_mm(self.P, self.points)
         self.radii_px = self.radii_mm * self.px_per_mm
         self.margin_px = np.array([DEFORMATION_MARGIN_MM.get(label, 20.0) for label in self.labels]) * self.px_per_mm
+        self._raster_cache = {}
 
     @classmethod
     def from_centerline(cls, centerline, P, lumen: Volume | None = None) -> "FluoroPrior":
@@ -101,25 +102,33 @@ class FluoroPrior:
     def rasterise(self, shape, factor: int = 1):
         """Distance (px of the reduced grid) to the projected tree, and the nearest node's index.
 
-        The tree's edges are drawn on a grid reduced by ``factor``; the Euclidean distance
-        transform gives, per pixel, how far the nearest drawn pixel is and which node it came from.
+        The tree's edges are sampled every half pixel on a grid reduced by ``factor``; the
+        Euclidean distance transform gives, per pixel, how far the nearest drawn pixel is and
+        which node it came from (the nearer end of its edge). Cached per (shape, factor).
         """
-        from skimage.draw import line
+        key = (tuple(shape), int(factor))
+        if key not in self._raster_cache:
+            self._raster_cache[key] = self._rasterise(tuple(shape), int(factor))
+        return self._raster_cache[key]
 
-        node_of_pixel = np.full(shape, -1, dtype=np.int64)
+    def _rasterise(self, shape, factor: int):
         uv = (self.uv + 0.5) / factor - 0.5
-        rows_max, cols_max = shape[0] - 1, shape[1] - 1
-        for a, b in self.edges:
-            (ua, va), (ub, vb) = uv[a], uv[b]
-            if not np.all(np.isfinite([ua, va, ub, vb])):
-                continue
-            rr, cc = line(int(round(va)), int(round(ua)), int(round(vb)), int(round(ub)))
-            inside = (rr >= 0) & (rr <= rows_max) & (cc >= 0) & (cc <= cols_max)
-            half = len(rr) // 2
-            nodes = np.where(np.arange(len(rr)) < half, a, b)
-            node_of_pixel[rr[inside], cc[inside]] = nodes[inside]
+        finite = np.all(np.isfinite(uv[self.edges].reshape(len(self.edges), -1)), axis=1) if len(self.edges) else []
+        edges = self.edges[finite] if len(self.edges) else self.edges
+        node_of_pixel = np.full(shape, -1, dtype=np.int64)
+        if len(edges):
+            a, b = uv[edges[:, 0]], uv[edges[:, 1]]
+            counts = np.ceil(2.0 * np.linalg.norm(b - a, axis=1)).astype(int) + 1
+            edge_index = np.repeat(np.arange(len(edges)), counts)
+            t = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)) / np.repeat(
+                np.maximum(counts - 1, 1), counts)
+            points = a[edge_index] + t[:, None] * (b - a)[edge_index]
+            cols, rows = np.round(points[:, 0]).astype(int), np.round(points[:, 1]).astype(int)
+            inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+            nodes = np.where(t < 0.5, edges[edge_index, 0], edges[edge_index, 1])
+            node_of_pixel[rows[inside], cols[inside]] = nodes[inside]
         if not (node_of_pixel >= 0).any():
-            return np.full(shape, np.inf, dtype=np.float32), np.zeros(shape + (2,), dtype=np.int64) - 1
+            return np.full(shape, np.inf, dtype=np.float32), np.full(shape, -1, dtype=np.int64)
         distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
         return distance.astype(np.float32), node_of_pixel[ri, ci]
 

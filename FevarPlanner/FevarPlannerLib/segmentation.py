@@ -1268,12 +1268,54 @@ def _trunk_box(labels: np.ndarray, ct: Volume, margin_mm: float) -> tuple[slice,
     return tuple(slice(max(b.start - m, 0), min(b.stop + m, n)) for b, m, n in zip(box, margins, labels.shape))
 
 
+def _symmetric_eigenvalues_3d(hxx, hyy, hzz, hxy, hxz, hyz) -> np.ndarray:
+    """Eigenvalues of symmetric 3x3 matrices given by their six fields, sorted by absolute value
+    (|l1| <= |l2| <= |l3|), in closed form (trigonometric solution of the characteristic cubic)."""
+    q = (hxx + hyy + hzz) / 3.0
+    p1 = hxy ** 2 + hxz ** 2 + hyz ** 2
+    p2 = (hxx - q) ** 2 + (hyy - q) ** 2 + (hzz - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0) + 1e-12
+    bxx, byy, bzz = (hxx - q) / p, (hyy - q) / p, (hzz - q) / p
+    det = (bxx * (byy * bzz - (hyz / p) ** 2) - (hxy / p) * ((hxy / p) * bzz - (hyz / p) * (hxz / p))
+           + (hxz / p) * ((hxy / p) * (hyz / p) - byy * (hxz / p)))
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    e1 = q + 2.0 * p * np.cos(phi)
+    e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    e2 = 3.0 * q - e1 - e3
+    values = np.stack([e1, e2, e3])
+    order = np.argsort(np.abs(values), axis=0)
+    return np.take_along_axis(values, order, axis=0)
+
+
+def tubularity_3d(volume: np.ndarray, sigmas_vox, *, blob_beta: float = 0.5) -> np.ndarray:
+    """Bright-tube response of a 3D array, maximum over scales (Sato / Frangi family).
+
+    At each scale the Hessian of the Gaussian-smoothed volume (finite differences) gives
+    eigenvalues ``|l1| <= |l2| <= |l3|``; a bright tube has ``l2, l3 < 0`` and ``l1 ~ 0``. The
+    response is ``sigma^2 (-l2)`` where ``l2, l3 < 0``, damped by ``exp(-(l1 / l2)^2 / (2
+    blob_beta^2))`` when ``l1 < 0`` too (a blob: kidney, heart chamber, bowel loop).
+    """
+    volume = np.asarray(volume, dtype=np.float32)
+    best = np.zeros_like(volume)
+    for sigma in sigmas_vox:
+        smooth = ndi.gaussian_filter(volume, sigma, mode="nearest")
+        gk, gj, gi = np.gradient(smooth)
+        hkk, hkj, hki = np.gradient(gk)
+        hjj, hji = np.gradient(gj, axis=(1, 2))
+        hii = np.gradient(gi, axis=2)
+        l1, l2, l3 = _symmetric_eigenvalues_3d(hii, hjj, hkk, hji, hki, hkj)
+        tube = (l2 < 0) & (l3 < 0)
+        blob = np.where(l1 < 0, np.exp(-(l1 / np.where(l2 == 0, -1e-12, l2)) ** 2 / (2 * blob_beta ** 2)), 1.0)
+        np.maximum(best, np.where(tube, sigma ** 2 * -l2 * blob, 0.0).astype(np.float32), out=best)
+    return best
+
+
 def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_SIGMAS_MM,
                   reach_mm: float = BRANCH_REACH_MM, voxel_mm: float = 1.5, min_vesselness: float = 0.04):
     """Side branches (renal, visceral, iliac continuations) connected to the traced trunk.
 
     On a copy reduced to about ``voxel_mm`` voxels around the trunk, bright tubular voxels
-    (Sato vesselness over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
+    (:func:`tubularity_3d` over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
     ``lumen_hu``, away from cortical bone) are kept if they connect to the trunk within
     ``reach_mm`` (geodesic steps through the candidates); round blobs (kidneys, heart, bowel)
     respond weakly to the tubular filter and stay out. The result is brought back to the CT
@@ -1284,8 +1326,6 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     numpy.ndarray of bool
         Branch voxels on the CT grid (not including ``trunk``).
     """
-    from skimage.filters import sato
-
     box = _trunk_box(trunk, ct, reach_mm)
     factor = _coarse_factor(ct, voxel_mm)
     hu = np.asarray(ct.array[box], dtype=np.float32)
@@ -1295,8 +1335,7 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     coarse_mm = np.asarray(ct.spacing, dtype=float)[::-1] * factor
     sigmas = [s / float(coarse_mm.mean()) for s in sigmas_mm]
     contrast = float(lumen_hu[0] * 2 - SOFT_TISSUE_HU) - SOFT_TISSUE_HU
-    tubular = sato(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas=sigmas, black_ridges=False,
-                   mode="nearest") > min_vesselness * contrast
+    tubular = tubularity_3d(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas) > min_vesselness * contrast
     candidate = tubular & (coarse >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (coarse <= lumen_hu[1]) & ~bone
     seeds = ndi.binary_dilation(coarse_trunk, iterations=1) & candidate
     steps = int(math.ceil(reach_mm / float(coarse_mm.min())))
