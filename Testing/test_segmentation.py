@@ -2,6 +2,7 @@
 fluoroscopy vesselness. All data are small synthetic volumes and frames made here."""
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -331,6 +332,7 @@ def test_dice_values():
 # Classical CT route (no training)
 # ----------------------------------------------------------------------------------------
 
+@functools.lru_cache(maxsize=None)
 def _phantom_ct(seed=3, spacing_mm=1.5, noise_hu=12.0):
     params = ph.random_params(np.random.default_rng(seed), ct_spacing_mm=spacing_mm, ct_noise_hu=noise_hu)
     case = ph.generate_case(params)
@@ -388,6 +390,7 @@ def _segment_mask(shape, p0, p1, width):
     return np.clip(width / 2 + 0.5 - np.hypot(u - (p0[0] + t * d[0]), v - (p0[1] + t * d[1])), 0, 1)
 
 
+@functools.lru_cache(maxsize=None)
 def distractor_frame(seed=1, *, subtracted=True, polarity="dark", contrast=True):
     """A phantom frame with a guide wire along the right iliac into the aorta, a straight catheter
     beside the aorta, a collimator border, a table edge, burned-in text and (unsubtracted) a spine.
