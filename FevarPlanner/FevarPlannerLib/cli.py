@@ -233,10 +233,10 @@ def _cmd_segment(args) -> int:
     bar(0.0, f"reading {args.ct}")
     ct = read_ct(args.ct)
     kwargs = {}
+    if args.segmenter != "threshold":
+        kwargs["progress"] = lambda done, total: bar(0.05 + 0.9 * done / max(total, 1), f"segmenting: slice {done}/{total}")
     if args.segmenter == "unet":
-        kwargs = {"model": load_unet(args.model),
-                  "progress": lambda done, total: bar(0.05 + 0.9 * done / max(total, 1),
-                                                      f"segmenting: slice {done}/{total}")}
+        kwargs["model"] = load_unet(args.model)
     mask = segment_ct(ct, args.segmenter, **kwargs)
     write_volume(args.out, mask.with_array(mask.array.astype(np.uint8)))
     if args.surface is not None:
