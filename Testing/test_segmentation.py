@@ -1,13 +1,21 @@
 """Segmentation stage: UNet, training, CT threshold segmenter, post-processing, surface,
 fluoroscopy vesselness. All data are small synthetic volumes and frames made here."""
 
+import dataclasses
+import functools
+
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage as ndi
 import vtk
 from vtk.util import numpy_support
 
+from FevarPlannerLib import phantom as ph
+from FevarPlannerLib import quality
 from FevarPlannerLib import segmentation as seg
+from FevarPlannerLib.centerline import Centerline
+from FevarPlannerLib.projection import project
 from FevarPlannerLib.io import InputError, Volume
 
 
@@ -318,3 +326,191 @@ def test_dice_values():
     assert seg.dice(a, b) == pytest.approx(0.5)
     with pytest.raises(ValueError):
         seg.dice(a, np.zeros((3, 3)))
+
+
+# ----------------------------------------------------------------------------------------
+# Classical CT route (no training)
+# ----------------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=None)
+def _phantom_ct(seed=3, spacing_mm=1.5, noise_hu=12.0):
+    params = ph.random_params(np.random.default_rng(seed), ct_spacing_mm=spacing_mm, ct_noise_hu=noise_hu)
+    case = ph.generate_case(params)
+    ct = ph.render_ct(case.preop, case.preop_params, np.random.default_rng(seed), case.grid)
+    return ct, ph.rasterize_lumen(case.preop, ct), case
+
+
+@pytest.mark.parametrize("spacing", [(1.5, 1.5, 2.0), (0.8, 0.8, 3.0)])
+def test_classical_ct_traces_the_tube_at_any_spacing(spacing):
+    shape = (int(72 / spacing[2]), int(108 / spacing[1]), int(120 / spacing[0]))
+    ct, lumen, _ = synthetic_ct(shape=shape, spacing=spacing)
+    calls = []
+    mask = seg.segment_ct_classical(ct, progress=lambda done, total: calls.append((done, total)))
+    assert seg.dice(mask, lumen) >= 0.9
+    assert len(calls) >= shape[0] - 2 and calls[-1] == (shape[0], shape[0])     # progress moves per slice
+    assert [done for done, _ in calls] == sorted(done for done, _ in calls)
+
+
+def test_classical_ct_finds_the_phantom_tree_with_branches_not_kidneys_or_spine():
+    ct, truth, case = _phantom_ct()
+    mask, parts = seg.segment_ct_classical(ct, return_labels=True)
+    assert seg.dice(mask, truth) >= 0.9
+    truth_a = np.asarray(truth.array) > 0
+    found = np.asarray(mask.array)
+    assert (found & truth_a).sum() / found.sum() >= 0.97           # no kidney, spine or fat
+    labels = np.asarray(parts.array)
+    for name in ("renal_left", "renal_right", "iliac_left", "iliac_right"):
+        tip = ct.lps_to_index(case.preop.vessels[name].points[-5]).round().astype(int)
+        near = tuple(slice(max(t - 3, 0), t + 4) for t in tip)
+        assert labels[near].any(), f"{name} not reached"
+
+
+def test_classical_ct_refuses_a_ct_without_an_aorta():
+    ct, _, _ = synthetic_ct()
+    plain = ct.with_array(np.where(ct.array > 300, 40.0, ct.array).astype(np.float32))
+    with pytest.raises(InputError, match="no aorta found"):
+        seg.segment_ct_classical(plain)
+
+
+def test_segment_ct_dispatches_the_classical_route():
+    ct, lumen, _ = synthetic_ct()
+    assert seg.dice(seg.segment_ct(ct, "classical"), lumen) >= 0.9
+
+
+# ----------------------------------------------------------------------------------------
+# Frame with the pre-operative prior, distractors
+# ----------------------------------------------------------------------------------------
+
+def _segment_mask(shape, p0, p1, width):
+    """Anti-aliased coverage of a straight segment of ``width`` pixels (p = (u, v))."""
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    d = np.subtract(p1, p0).astype(float)
+    d = d if d @ d > 1e-9 else np.array([1e-3, 0.0])
+    t = np.clip(((u - p0[0]) * d[0] + (v - p0[1]) * d[1]) / (d @ d), 0, 1)
+    return np.clip(width / 2 + 0.5 - np.hypot(u - (p0[0] + t * d[0]), v - (p0[1] + t * d[1])), 0, 1)
+
+
+def distractor_frame(seed=1, *, subtracted=True, polarity="dark", contrast=True):
+    """:func:`_distractor_frame` (cached), inverted for ``polarity='bright'``."""
+    frame, truth, prior, parts = _distractor_frame(seed, subtracted, contrast)
+    return (4095 - frame if polarity == "bright" else frame), truth, prior, parts
+
+
+@functools.lru_cache(maxsize=None)
+def _distractor_frame(seed, subtracted, contrast):
+    """A phantom frame with a guide wire along the right iliac into the aorta, a straight catheter
+    beside the aorta, a collimator border, a table edge, burned-in text and (unsubtracted) a spine.
+
+    Returns (uint16 frame, true vessel mask, FluoroPrior of the pre-op tree through P_given,
+    {distractor: mask})."""
+    from PIL import Image, ImageDraw
+
+    rng = np.random.default_rng(seed)
+    case = ph.generate_case(ph.random_params(rng))
+    params = case.params if contrast else dataclasses.replace(case.params, fluoro_attenuation_per_mm=0.0)
+    frame, truth = ph.render_fluoro(case.intraop, case.P_true, case.carm, params, rng)
+    truth = truth if contrast else np.zeros_like(truth)
+    image = frame.astype(np.float64) / 4095.0
+    rows, cols = image.shape
+    px_mm = 1.0 / 0.6
+    aorta = project(case.P_true, case.intraop.vessels["aorta"].points)
+    iliac = project(case.P_true, case.intraop.vessels["iliac_right"].points)
+    if not subtracted:      # vertebrae beside the aorta and soft tissue
+        v, u = np.mgrid[0:rows, 0:cols].astype(float)
+        order = np.argsort(aorta[:, 1])
+        spine_u = np.interp(v, aorta[order, 1], aorta[order, 0]) + 15 * px_mm
+        body = np.exp(-((u - spine_u) / (25 * px_mm)) ** 6) * (np.mod(v / px_mm, 35) > 6)
+        image *= np.exp(-0.5 * ndi.gaussian_filter(body, 2)) * np.exp(-0.15 * np.exp(-((u - cols / 2) / (0.4 * cols)) ** 2))
+    out = (iliac[-1] - iliac[-8]) / np.linalg.norm(iliac[-1] - iliac[-8])
+    path = [iliac[-1] + 60 * px_mm * out] + list(iliac[::-1][::5]) + list(aorta[::-1][::10])
+    wire = np.max([_segment_mask(image.shape, p, q, 1.6) for p, q in zip(path[:-1], path[1:])], axis=0)
+    catheter = _segment_mask(image.shape, aorta[0] - [30 * px_mm, 0], aorta[-1] + [-30 * px_mm, 60 * px_mm], 3.0)
+    image *= np.exp(-0.5 * np.maximum(wire, catheter))
+    parts = {"wire": wire > 0.5, "catheter": catheter > 0.5}
+    table_row, border = int(0.85 * rows), int(0.06 * cols)
+    image[table_row:] *= 0.85
+    image[:, :border] = 0.97
+    parts["table"] = np.zeros_like(truth)
+    parts["table"][table_row - 2:table_row + 2] = True
+    parts["collimator"] = np.zeros_like(truth)
+    parts["collimator"][:, border - 3:border + 3] = True
+    text = Image.new("L", (cols, rows), 0)
+    ImageDraw.Draw(text).text((cols - 160, 10), "L  12:34:56  30fps", fill=255)
+    text = np.asarray(text) > 0
+    image[text] = 1.0
+    parts["text"] = ndi.binary_dilation(text, iterations=2)
+    image = np.clip(image, 0, 1)
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    return (image * 4095).astype(np.uint16), truth, prior, parts
+
+
+def _distractors_taken(mask, truth, parts) -> dict:
+    away = ~ndi.binary_dilation(truth, iterations=3)
+    return {name: float((mask & part & away).sum() / max((part & away).sum(), 1)) for name, part in parts.items()}
+
+
+@pytest.mark.parametrize("polarity", ["dark", "bright"])
+def test_prior_frame_segmentation_keeps_vessels_and_drops_devices_borders_text(polarity):
+    frame, truth, prior, parts = distractor_frame(polarity=polarity)
+    mask = seg.segment_fluoro(frame, prior)
+    assert seg.dice(mask, truth) >= 0.85
+    taken = _distractors_taken(mask, truth, parts)
+    assert max(taken.values()) <= 0.1, taken
+    without = seg.segment_fluoro(frame)             # the old call still works (and does worse)
+    assert without.shape == frame.shape
+
+
+def test_prior_frame_segmentation_on_an_unsubtracted_frame_with_spine():
+    frame, truth, prior, parts = distractor_frame(subtracted=False)
+    mask = seg.segment_fluoro(frame, prior)
+    assert seg.dice(mask, truth) >= 0.6
+    taken = _distractors_taken(mask, truth, parts)
+    assert max(taken[name] for name in ("wire", "catheter", "collimator", "text")) <= 0.1, taken
+
+
+def test_multi_frame_run_uses_the_frame_with_contrast():
+    frame, truth, prior, _ = distractor_frame()
+    empty, _, _, _ = distractor_frame(contrast=False)
+    run = np.stack([empty, frame, empty])
+    assert seg.select_frame(run, prior) == 1
+    assert seg.select_frame(run) == 1
+    assert seg.dice(seg.segment_fluoro(run, prior), truth) >= 0.85
+
+
+# ----------------------------------------------------------------------------------------
+# Quality gate
+# ----------------------------------------------------------------------------------------
+
+def test_frame_gate_passes_an_angiogram_and_refuses_noise_wire_only_and_blank(tmp_path):
+    frame, truth, prior, _ = distractor_frame()
+    report = quality.check_frame_mask(seg.segment_fluoro(frame, prior), prior, frame=frame)
+    assert min(report["coverage"].values()) >= 0.8
+    noise = np.random.default_rng(0).normal(2000, 300, frame.shape)
+    wire_only, _, _, _ = distractor_frame(contrast=False)
+    wire_and_spine, _, _, _ = distractor_frame(contrast=False, subtracted=False)
+    for bad in (noise, wire_only, wire_and_spine):
+        with pytest.raises(quality.QualityError, match="frame check") as failure:
+            quality.check_frame_mask(seg.segment_fluoro(bad, prior), prior, quality.QCData(frame=bad, prior=prior),
+                                     frame=bad)
+        assert "\n" not in str(failure.value)
+        picture = quality.write_segmentation_qc(tmp_path / "qc.png", failure.value.qc, str(failure.value))
+        assert picture.stat().st_size > 1000
+    with pytest.raises(InputError, match="flat"):
+        seg.segment_fluoro(np.full(frame.shape, 1000, np.uint16), prior)
+
+
+def test_preop_gate_names_the_missing_vessel_and_checks_radii():
+    _, truth, case = _phantom_ct()
+    centreline = case.preop.to_centerline()
+    report = quality.check_preop_tree(centreline, truth)
+    assert set(report) == set(quality.MAIN_VESSELS)
+    assert 2.0 <= report["renal_left"]["radius_mm"] <= 4.5
+    keep = np.array([label != "renal_left" for label in centreline.labels])
+    index = np.cumsum(keep) - 1
+    edges = centreline.edges[keep[centreline.edges].all(axis=1)]
+    pruned = Centerline(centreline.points[keep], index[edges], [l for l, k in zip(centreline.labels, keep) if k])
+    with pytest.raises(quality.QualityError, match="renal_left not found"):
+        quality.check_preop_tree(pruned)
+    thin = truth.with_array(ndi.binary_erosion(truth.array, iterations=4))
+    with pytest.raises(quality.QualityError, match="radius"):
+        quality.check_preop_tree(centreline, thin)

@@ -90,8 +90,9 @@ def _add_planning_options(parser: argparse.ArgumentParser) -> None:
                         help="access vessel; the path starts at its distal end (default iliac_right)")
     parser.add_argument("--target", choices=VESSEL_LABELS, default="renal_left",
                         help="target vessel; the path ends at its ostium (default renal_left)")
-    parser.add_argument("--segmenter", choices=("unet", "threshold"), default="unet",
-                        help="CT segmentation when the case holds no mask (default unet)")
+    parser.add_argument("--segmenter", choices=("classical", "unet", "threshold"), default="classical",
+                        help="CT segmentation when the case holds no mask (default classical: no training, "
+                             "validated on a real CT; unet: trained on phantoms only)")
     parser.add_argument("--no-cache", dest="cache", action="store_false",
                         help="recompute the pre-operative model instead of reusing it from the cache "
                              "($FEVAR_PLANNER_CACHE, else ~/.cache/fevar-planner)")
@@ -234,10 +235,10 @@ def _cmd_segment(args) -> int:
     bar(0.0, f"reading {args.ct}")
     ct = read_ct(args.ct)
     kwargs = {}
+    if args.segmenter != "threshold":
+        kwargs["progress"] = lambda done, total: bar(0.05 + 0.9 * done / max(total, 1), f"segmenting: slice {done}/{total}")
     if args.segmenter == "unet":
-        kwargs = {"model": load_unet(args.model),
-                  "progress": lambda done, total: bar(0.05 + 0.9 * done / max(total, 1),
-                                                      f"segmenting: slice {done}/{total}")}
+        kwargs["model"] = load_unet(args.model)
     mask = segment_ct(ct, args.segmenter, **kwargs)
     write_volume(args.out, mask.with_array(mask.array.astype(np.uint8)))
     if args.surface is not None:
@@ -373,11 +374,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--pixel-mm", type=float, default=1.0, help="in-plane resampling of the slices, mm (default 1)")
     train.set_defaults(func=_cmd_train_unet)
 
-    segment = sub.add_parser("segment", help="segment the aorta lumen in a CT (UNet or threshold)", epilog=EPILOG)
+    segment = sub.add_parser("segment", help="segment the aorta lumen in a CT (classical, UNet or threshold)", epilog=EPILOG)
     segment.add_argument("ct", type=Path, help="DICOM series folder or NRRD / NIfTI / MHA")
     segment.add_argument("--out", type=Path, required=True, help="mask file (.nrrd / .nii.gz / .mha)")
-    segment.add_argument("--segmenter", choices=("unet", "threshold"), default="unet",
-                         help="the trained UNet or HU thresholding (default unet)")
+    segment.add_argument("--segmenter", choices=("classical", "unet", "threshold"), default="classical",
+                         help="classical (aorta traced slice by slice, branches by vesselness; no training), "
+                              "the UNet trained on phantoms, or HU thresholding (default classical)")
     segment.add_argument("--model", type=Path, default=None, help="UNet weights (default: the shipped ones)")
     segment.add_argument("--surface", type=Path, default=None, help="also write the lumen surface (.vtp)")
     segment.set_defaults(func=_cmd_segment)

@@ -122,7 +122,7 @@ def _induced_edges(graph_: graph.SkeletonGraph, nodes: np.ndarray) -> np.ndarray
     return edges[np.all(edges >= 0, axis=1)]
 
 
-def _skeleton3d_and_lumen(case: Case, progress=None, segmenter: str = "unet"):
+def _skeleton3d_and_lumen(case: Case, progress=None, segmenter: str = "classical"):
     """The case's 3D skeleton volume (given, or thinned from the lumen) and its lumen mask (or None)."""
     mask = case.aorta_mask
     if case.skeleton3d is not None:
@@ -131,10 +131,10 @@ def _skeleton3d_and_lumen(case: Case, progress=None, segmenter: str = "unet"):
         from . import segmentation
 
         _report(progress, 0.05, "segmenting the aorta in the CT")
-        # the UNet reports slice by slice: move the bar from 5 to 15 %
+        # the classical route and the UNet report slice by slice: move the bar from 5 to 15 %
         kwargs = {"progress": lambda done, total: _report(progress, 0.05 + 0.1 * done / max(total, 1),
                                                           f"segmenting the aorta: slice {done}/{total}")}
-        mask = segmentation.segment_ct(case.ct, segmenter, **(kwargs if segmenter == "unet" else {}))
+        mask = segmentation.segment_ct(case.ct, segmenter, **(kwargs if segmenter != "threshold" else {}))
     _report(progress, 0.15, "thinning the 3D lumen")
     return skeleton.skeletonize_3d(mask), mask
 
@@ -167,7 +167,7 @@ def preop_from_lumen(lumen, timings: dict | None = None) -> Preoperative:
     return preop_from_skeleton(skeleton.skeletonize_3d(lumen), timings, lumen)
 
 
-def build_preop(case: Case, progress=None, segmenter: str = "unet"):
+def build_preop(case: Case, progress=None, segmenter: str = "classical"):
     """(:class:`Preoperative`, lumen mask or None) of a case, computed (see :func:`prepare_preop`)."""
     timings = {}
     with _timed(timings, "preop_skeleton3d"):
@@ -176,10 +176,10 @@ def build_preop(case: Case, progress=None, segmenter: str = "unet"):
     return preop_from_skeleton(skeleton_volume, timings, lumen), lumen
 
 
-def prepare_preop(case: Case, progress=None, segmenter: str = "unet", cache=False) -> Preoperative:
+def prepare_preop(case: Case, progress=None, segmenter: str = "classical", cache=False) -> Preoperative:
     """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1), centred and labelled.
 
-    A case holding only a CT is segmented first with ``segmenter`` ("unet" or "threshold").
+    A case holding only a CT is segmented first with ``segmenter`` ("classical", "unet" or "threshold").
     ``cache``: True (the default cache folder) or a folder keeps the result on disk and
     reuses it for the same inputs (:mod:`cache`); False computes it.
     """
@@ -346,10 +346,10 @@ def _preop_of(case: Case, preop, progress, segmenter, cache) -> Preoperative:
 
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
              target: str = "renal_left", refine_pose: bool = False, alpha: float = 500.0,
-             beta: float = 10.0, segmenter: str = "unet", preop=None, cache=False, drr="auto") -> PlanResult:
+             beta: float = 10.0, segmenter: str = "classical", preop=None, cache=False, drr="auto") -> PlanResult:
     """Run the whole job on a loaded case: pre-op graph, frame registration, path, errors.
 
-    ``segmenter`` ("unet" or "threshold") segments a case that holds only a CT. ``preop``
+    ``segmenter`` ("classical", "unet" or "threshold") segments a case that holds only a CT. ``preop``
     (a :class:`Preoperative` or a :class:`cache.PreopModel`) skips the pre-operative work;
     ``cache`` keeps it on disk (:func:`prepare_preop`). ``drr``: render the geometry check
     (:mod:`drr`) always (True), never (False) or when ``P`` came from C-arm tags ("auto").
@@ -364,7 +364,7 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
     with _timed(timings, "segmentation2d"):
         qc.mask2d = mask2d = _vessel_mask(case, progress, prior)
-    quality.check_frame_mask(mask2d, prior, qc)
+    quality.check_frame_mask(mask2d, prior, qc, frame=case.fluoro.image)
     _report(progress, 0.5, f"registering ({method})")
     frame = register_frame(preop, mask2d, case.P, method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
     timings.update(frame.timings)

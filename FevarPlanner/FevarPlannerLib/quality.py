@@ -27,7 +27,7 @@ from .conventions import PALETTE
 from .io import InputError, Volume, atomic_path
 
 __all__ = ["FluoroPrior", "TYPICAL_RADIUS_MM", "DEFORMATION_MARGIN_MM", "MAIN_VESSELS", "LENGTH_RANGE_MM", "RADIUS_RANGE_MM", "QualityError", "QCData", "check_preop_tree",
-           "check_frame_mask", "write_segmentation_qc"]
+           "check_frame_mask", "vessel_contrast_to_noise", "write_segmentation_qc"]
 
 MAIN_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
 #: Centreline length (mm) each main vessel's labelled part may have.
@@ -39,8 +39,12 @@ RADIUS_RANGE_MM = {"aorta": (4.0, 40.0), "renal_left": (1.0, 8.0), "renal_right"
 #: A projected vessel counts as seen when this fraction of it lies within TOLERANCE_MM of the
 #: 2D skeleton after the best in-plane shift (searched up to SHIFT_MM).
 MIN_SEEN_FRACTION = 0.5
-TOLERANCE_MM = 10.0
 SHIFT_MM = 40.0
+#: An angiogram's mask is one tree (plus small disconnected side branches): its largest
+#: 8-connected piece holds at least this fraction of it.
+MIN_LARGEST_PIECE = 0.75
+#: The masked vessels must differ from their surroundings by this many noise standard deviations.
+MIN_CONTRAST_TO_NOISE = 3.0
 #: A vessel mask covering more of the frame than this is noise, not an angiogram.
 MAX_MASK_FRACTION = 0.35
 
@@ -83,6 +87,7 @@ class FluoroPrior:
         self.px_per_mm = pixels_per_mm(self.P, self.points)
         self.radii_px = self.radii_mm * self.px_per_mm
         self.margin_px = np.array([DEFORMATION_MARGIN_MM.get(label, 20.0) for label in self.labels]) * self.px_per_mm
+        self._raster_cache = {}
 
     @classmethod
     def from_centerline(cls, centerline, P, lumen: Volume | None = None) -> "FluoroPrior":
@@ -97,25 +102,33 @@ class FluoroPrior:
     def rasterise(self, shape, factor: int = 1):
         """Distance (px of the reduced grid) to the projected tree, and the nearest node's index.
 
-        The tree's edges are drawn on a grid reduced by ``factor``; the Euclidean distance
-        transform gives, per pixel, how far the nearest drawn pixel is and which node it came from.
+        The tree's edges are sampled every half pixel on a grid reduced by ``factor``; the
+        Euclidean distance transform gives, per pixel, how far the nearest drawn pixel is and
+        which node it came from (the nearer end of its edge). Cached per (shape, factor).
         """
-        from skimage.draw import line
+        key = (tuple(shape), int(factor))
+        if key not in self._raster_cache:
+            self._raster_cache[key] = self._rasterise(tuple(shape), int(factor))
+        return self._raster_cache[key]
 
-        node_of_pixel = np.full(shape, -1, dtype=np.int64)
+    def _rasterise(self, shape, factor: int):
         uv = (self.uv + 0.5) / factor - 0.5
-        rows_max, cols_max = shape[0] - 1, shape[1] - 1
-        for a, b in self.edges:
-            (ua, va), (ub, vb) = uv[a], uv[b]
-            if not np.all(np.isfinite([ua, va, ub, vb])):
-                continue
-            rr, cc = line(int(round(va)), int(round(ua)), int(round(vb)), int(round(ub)))
-            inside = (rr >= 0) & (rr <= rows_max) & (cc >= 0) & (cc <= cols_max)
-            half = len(rr) // 2
-            nodes = np.where(np.arange(len(rr)) < half, a, b)
-            node_of_pixel[rr[inside], cc[inside]] = nodes[inside]
+        finite = np.all(np.isfinite(uv[self.edges].reshape(len(self.edges), -1)), axis=1) if len(self.edges) else []
+        edges = self.edges[finite] if len(self.edges) else self.edges
+        node_of_pixel = np.full(shape, -1, dtype=np.int64)
+        if len(edges):
+            a, b = uv[edges[:, 0]], uv[edges[:, 1]]
+            counts = np.ceil(2.0 * np.linalg.norm(b - a, axis=1)).astype(int) + 1
+            edge_index = np.repeat(np.arange(len(edges)), counts)
+            t = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)) / np.repeat(
+                np.maximum(counts - 1, 1), counts)
+            points = a[edge_index] + t[:, None] * (b - a)[edge_index]
+            cols, rows = np.round(points[:, 0]).astype(int), np.round(points[:, 1]).astype(int)
+            inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
+            nodes = np.where(t < 0.5, edges[edge_index, 0], edges[edge_index, 1])
+            node_of_pixel[rows[inside], cols[inside]] = nodes[inside]
         if not (node_of_pixel >= 0).any():
-            return np.full(shape, np.inf, dtype=np.float32), np.zeros(shape + (2,), dtype=np.int64) - 1
+            return np.full(shape, np.inf, dtype=np.float32), np.full(shape, -1, dtype=np.int64)
         distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
         return distance.astype(np.float32), node_of_pixel[ri, ci]
 
@@ -239,15 +252,42 @@ def _best_shift_coverage(distance: np.ndarray, uv: np.ndarray, groups: dict, tol
     return coverage, best_shift
 
 
-def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, min_fraction: float = MIN_SEEN_FRACTION,
-                     tolerance_mm: float = TOLERANCE_MM, shift_mm: float = SHIFT_MM) -> dict:
+def _pieces(mask: np.ndarray) -> tuple[int, np.ndarray]:
+    """Number of 8-connected pieces of ``mask`` and their sizes."""
+    labels, n = ndi.label(mask, structure=np.ones((3, 3), dtype=bool))
+    return n, np.bincount(labels.ravel())[1:]
+
+
+def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int = 6) -> float:
+    """|median inside the mask - median of a ring around it| over the frame's pixel noise
+    (robust: 1.4826 MAD of the difference between the frame and its 1-pixel Gaussian blur,
+    rescaled to the noise of a single pixel)."""
+    grey = np.asarray(frame, dtype=np.float32)
+    if grey.ndim == 3:
+        grey = grey[..., :3].mean(axis=-1) if grey.shape[-1] in (3, 4) else grey[0]
+    mask = np.asarray(mask) > 0
+    ring = ndi.binary_dilation(mask, iterations=ring_px) & ~ndi.binary_dilation(mask, iterations=2)
+    if not mask.any() or not ring.any():
+        return 0.0
+    detail = grey - ndi.gaussian_filter(grey, 1.0)
+    noise = 1.4826 * float(np.median(np.abs(detail - np.median(detail)))) / 0.78 + 1e-6
+    return abs(float(np.median(grey[mask]) - np.median(grey[ring]))) / noise
+
+
+def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame: np.ndarray | None = None,
+                     min_fraction: float = MIN_SEEN_FRACTION, tolerance_mm: float | None = None,
+                     shift_mm: float = SHIFT_MM, min_cnr: float = MIN_CONTRAST_TO_NOISE) -> dict:
     """Check that a frame's vessel mask is an angiogram of the projected pre-operative tree.
 
-    The mask must be neither empty nor cover more than :data:`MAX_MASK_FRACTION` of the frame;
-    after the in-plane shift (up to ``shift_mm``) that best lays the projected tree onto the
-    mask's skeleton, at least ``min_fraction`` of each main vessel projected inside the frame
-    must lie within ``tolerance_mm`` of the skeleton (rigid alignment, translations only:
-    the pose is refined later, this is only a plausibility check).
+    The mask must be neither empty nor cover more than :data:`MAX_MASK_FRACTION` of the frame,
+    and be one tree rather than scattered pieces (:data:`MIN_LARGEST_PIECE`);
+    with the ``frame``, the masked vessels must stand out of the pixel noise (contrast to
+    noise at least ``min_cnr``: noise and blank frames do not); after the in-plane shift (up
+    to ``shift_mm``) that best lays the projected tree onto the mask's skeleton, at least
+    ``min_fraction`` of each main vessel projected inside the frame must lie within
+    ``tolerance_mm`` of the skeleton (default: the vessel's expected deformation,
+    :data:`DEFORMATION_MARGIN_MM`; rigid alignment, translations only: the pose is refined
+    later, this is only a plausibility check).
 
     Parameters
     ----------
@@ -274,6 +314,16 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, min_f
     if fraction > MAX_MASK_FRACTION:
         raise QualityError(f"frame check: the vessel mask covers {100 * fraction:.0f}% of the frame (noise, not an "
                            f"angiogram; see segmentation_qc.png)", qc)
+    pieces, sizes = _pieces(mask)
+    if sizes.max() < MIN_LARGEST_PIECE * sizes.sum():
+        raise QualityError(f"frame check: the segmented vessels fall apart into {pieces} pieces (the largest holds "
+                           f"{100 * sizes.max() / sizes.sum():.0f}%): not a contrast-filled vessel tree "
+                           f"(bones or devices only? see segmentation_qc.png)", qc)
+    if frame is not None:
+        cnr = vessel_contrast_to_noise(frame, mask)
+        if cnr < min_cnr:
+            raise QualityError(f"frame check: the segmented vessels do not stand out of the noise (contrast to noise "
+                               f"{cnr:.1f} < {min_cnr:.1f}): not a usable angiogram (see segmentation_qc.png)", qc)
     px_per_mm = float(np.median(prior.px_per_mm))
     factor = max(1, int(round(max(mask.shape) / 256)))
     small = ndi.zoom(mask.astype(np.float32), 1.0 / factor, order=1) > 0.25
@@ -281,13 +331,16 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, min_f
     uv = (prior.uv + 0.5) / factor - 0.5
     labels = np.asarray(prior.labels)
     groups = {vessel: labels == vessel for vessel in MAIN_VESSELS if (labels == vessel).any()}
-    coverage, shift = _best_shift_coverage(distance, uv, groups, tolerance_mm * px_per_mm / factor,
-                                           shift_mm * px_per_mm / factor, max(1.0, 2.0 * px_per_mm / factor))
+    tolerance = np.array([tolerance_mm if tolerance_mm is not None else DEFORMATION_MARGIN_MM.get(label, 20.0)
+                          for label in labels]) * px_per_mm / factor
+    coverage, shift = _best_shift_coverage(distance, uv, groups, tolerance, shift_mm * px_per_mm / factor,
+                                           max(1.0, 2.0 * px_per_mm / factor))
     for vessel, seen in coverage.items():
         if seen is not None and seen < min_fraction:
             u, v = prior.uv[groups[vessel]].mean(axis=0)
+            within = tolerance_mm if tolerance_mm is not None else DEFORMATION_MARGIN_MM.get(vessel, 20.0)
             raise QualityError(f"frame check: {vessel} not found in the frame near pixel (u={u:.0f}, v={v:.0f}): "
-                               f"{100 * seen:.0f}% of its projection lies within {tolerance_mm:.0f} mm of the "
+                               f"{100 * seen:.0f}% of its projection lies within {within:.0f} mm of the "
                                f"segmented vessels (see segmentation_qc.png)", qc)
     return {"coverage": coverage, "shift_px": (shift * factor).tolist()}
 

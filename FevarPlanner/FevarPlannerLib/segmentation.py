@@ -560,13 +560,21 @@ def _nearest_true(mask: np.ndarray, index: np.ndarray, radius: int = 6) -> np.nd
     return local[np.argmin(((local - index) ** 2).sum(axis=1))]
 
 
-def segment_ct(ct: Volume, method: str = "unet", **kwargs) -> Volume:
-    """Lumen mask by ``method`` ``'unet'`` (:func:`segment_ct_unet`) or ``'threshold'``."""
+#: The CT segmenters :func:`segment_ct` knows.
+CT_SEGMENTERS = ("classical", "unet", "threshold")
+
+
+def segment_ct(ct: Volume, method: str = "classical", **kwargs) -> Volume:
+    """Lumen mask by ``method``: ``'classical'`` (:func:`segment_ct_classical`, the default:
+    no training, validated on a real CT), ``'unet'`` (:func:`segment_ct_unet`, trained on
+    phantoms only) or ``'threshold'`` (:func:`segment_ct_threshold`)."""
+    if method == "classical":
+        return segment_ct_classical(ct, **kwargs)
     if method == "unet":
         return segment_ct_unet(ct, **kwargs)
     if method == "threshold":
         return segment_ct_threshold(ct, **kwargs)
-    raise ValueError(f"unknown segmenter {method!r}; use 'unet' or 'threshold'")
+    raise ValueError(f"unknown segmenter {method!r}; use one of {', '.join(CT_SEGMENTERS)}")
 
 
 def postprocess_mask(mask, *, min_size_mm3: float = 50.0, keep_largest: bool = True,
@@ -972,6 +980,20 @@ def _spine_behind(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji,
     return strip.size > 0 and bool((strip > BONE_HU).sum() >= 3)
 
 
+def _inside_bone(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, ring_mm: float = 4.0,
+                 max_fraction: float = 0.25) -> bool:
+    """True if a ring just outside the blob is largely cortical bone (a vertebral body's
+    cancellous core is as bright and as round as the aorta, but the aorta is never walled by bone)."""
+    reach = radius_mm + ring_mm
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int) + 1
+    lo = np.maximum(np.floor(centre_ji).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre_ji).astype(int) + half + 1, hu_slice.shape)
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    dist = np.hypot((rows - centre_ji[0]) * spacing_ji[0], (cols - centre_ji[1]) * spacing_ji[1])
+    ring = (dist > radius_mm + 0.5) & (dist <= reach)
+    return bool(ring.any() and (hu_slice[lo[0]:hi[0], lo[1]:hi[1]][ring] > BONE_HU).mean() > max_fraction)
+
+
 def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, step_mm: float = 5.0):
     """The best aorta cross-section of the CT: a bright round blob in front of the spine.
 
@@ -993,6 +1015,8 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
         for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
             if not _spine_behind(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior):
                 continue
+            if _inside_bone(hu_slice, blob["centre"], blob["radius"], spacing_ji):
+                continue
             if best is None or blob["score"] > best[3]:
                 best = (k, blob["centre"], blob["radius"], blob["score"])
     return best
@@ -1006,10 +1030,12 @@ class _Trace:
         self.centres = {k: np.asarray(centre, dtype=float)}
         self.radii = {k: float(radius)}
         self.k, self.centre, self.radius = k, np.asarray(centre, dtype=float), float(radius)
+        self.previous = None        # (cross-section mask, its (row, col) offset) in the last slice
 
 
 def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
-                    max_growth: float = 1.45):
+                    max_growth: float = 1.45, previous=None, reference_radius: float | None = None,
+                    detect_split: bool = True):
     """The lumen cross-section continuing a trace into the next slice.
 
     Pixels within ``lumen_hu`` (after a light smoothing) in a window around the predicted
@@ -1037,34 +1063,57 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     local = centre - lo_ji
     dist = np.hypot((rows - local[0]) * spacing_ji[0], (cols - local[1]) * spacing_ji[1])
     labels, _ = ndi.label(inside)
-    touching = np.unique(labels[(dist <= 0.6 * radius) & inside])
+    core = dist <= 0.6 * radius
+    if previous is not None:        # overlap with the last cross-section counts as well
+        core |= _paste(previous[0], previous[1] - lo_ji, window.shape)
+    touching = np.unique(labels[core & inside])
     touching = touching[touching > 0]
-    if len(touching) == 0:
-        return None
+    if len(touching) == 0:      # the lumen left the predicted core: ended, or split into two
+        near = np.unique(labels[(dist <= radius) & inside])
+        candidate = np.isin(labels, near[near > 0]) & (dist <= max_growth * radius + 2.0)
+        if not candidate.any():
+            return None
+        edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
+        return None, lo_ji, None, float(edt.max()), _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM)
     candidate = np.isin(labels, touching) & (dist <= max_growth * radius + 2.0)
     edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
     new_radius = float(edt.max())
+    split = _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM) if detect_split else []
+    if len(split) == 2 and split[1][1] >= 0.5 * split[0][1]:     # two lumens of similar size: a bifurcation
+        return None, lo_ji, None, new_radius, split
     if new_radius < min_radius:
         return None
-    if new_radius < 0.6 * radius:
-        return None, lo_ji, None, new_radius, _split_blobs(candidate, edt, lo_ji, spacing_ji, min_radius)
-    peak = np.array(np.unravel_index(np.argmax(edt), edt.shape), dtype=float)
+    if new_radius < 0.6 * (reference_radius or radius):
+        return None, lo_ji, None, new_radius, _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM)
+    own = np.where(dist <= max(radius, 2.0 * max(spacing_ji)), edt, 0.0)   # this vessel's centre, not a neighbour's
+    peak = np.array(np.unravel_index(np.argmax(own), own.shape), dtype=float)
+    new_radius = float(own.max()) if own.max() >= min_radius else new_radius
     new_dist = np.hypot((rows - peak[0]) * spacing_ji[0], (cols - peak[1]) * spacing_ji[1])
     mask = candidate & (new_dist <= 1.25 * new_radius + 1.5)
     return mask, lo_ji, peak + lo_ji, new_radius, []
 
 
+def _paste(mask: np.ndarray, offset, shape) -> np.ndarray:
+    """``mask`` placed at ``offset`` (row, col) in an empty array of ``shape`` (clipped)."""
+    out = np.zeros(shape, dtype=bool)
+    r0, c0 = int(offset[0]), int(offset[1])
+    rs, cs = max(r0, 0), max(c0, 0)
+    re, ce = min(r0 + mask.shape[0], shape[0]), min(c0 + mask.shape[1], shape[1])
+    if re > rs and ce > cs:
+        out[rs:re, cs:ce] = mask[rs - r0:re - r0, cs - c0:ce - c0]
+    return out
+
+
 def _split_blobs(candidate, edt, offset, spacing_ji, min_radius: float) -> list:
-    """(centre, radius) of the separate round parts of ``candidate`` at least ``min_radius`` wide."""
-    labels, n = ndi.label(candidate)
-    blobs = []
-    for label in range(1, n + 1):
-        inside = np.where(labels == label, edt, 0.0)
-        radius = float(inside.max())
-        if radius >= min_radius:
-            peak = np.array(np.unravel_index(np.argmax(inside), inside.shape), dtype=float)
-            blobs.append((peak + offset, radius))
-    return sorted(blobs, key=lambda blob: -blob[1])[:2]
+    """(centre, radius) of the (at most two) widest separate lumens in ``candidate``: maxima of the
+    distance map at least ``min_radius`` deep and two radii apart (the two iliacs below the
+    bifurcation, still joined by partial volume or already apart)."""
+    from skimage.feature import peak_local_max
+
+    min_distance = max(1, int(round(2 * min_radius / max(spacing_ji))))
+    peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=min_radius, num_peaks=2,
+                           exclude_border=False)
+    return [(np.asarray(p, dtype=float) + offset, float(edt[tuple(p)])) for p in peaks]
 
 
 def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, progress=None) -> list:
@@ -1077,8 +1126,10 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
     spacing_ji = _slice_axes_mm(ct)
     k = trace.k + trace.step
     while 0 <= k < ct.shape[0]:
+        recent = [trace.radii[j] for j in sorted(trace.radii, key=lambda j: -abs(j - k))[-15:]]
         found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
-                                trace.min_radius)
+                                trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
+                                detect_split=trace.name == "aorta")
         if found is None:
             return []
         mask, offset, centre, radius, split = found
@@ -1087,6 +1138,7 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
         view = out[k, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]]
         view[mask & (view == 0)] = label
         trace.centres[k], trace.radii[k] = centre, radius
+        trace.previous = (mask, offset)
         trace.centre = centre
         trace.radius = 0.7 * trace.radius + 0.3 * radius
         trace.k = k
@@ -1126,12 +1178,49 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
         traces.append(trace)
         split = _follow(trace, ct, lumen_hu, labels, 1, counter)
-        if step == -up:
-            for k, c, r in split:
+        if step == -up and split:
+            for k, c, r in _iliac_seeds(ct, split[0][0], trace, lumen_hu):
                 iliac = _Trace("iliac", k - step, c, r, step, ILIAC_MIN_RADIUS_MM)
                 traces.append(iliac)
                 _follow(iliac, ct, lumen_hu, labels, 2, counter)
     return labels, traces, lumen_hu
+
+
+def _iliac_seeds(ct: Volume, k_start: int, aorta: _Trace, lumen_hu, search_mm: float = 30.0) -> list:
+    """The two common iliacs where the aorta ended: the first slice (within ``search_mm`` below)
+    whose lumen near the aorta's last centre has two distance-map maxima at least 0.8 times
+    the sum of their radii apart (two separate lumens, not one flattened one).
+
+    Returns
+    -------
+    list of (k, centre_ji, radius_mm)
+    """
+    from skimage.feature import peak_local_max
+
+    spacing_ji = _slice_axes_mm(ct)
+    reach = 1.6 * aorta.radius + 8.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    centre = np.floor(aorta.centre).astype(int)
+    lo = np.maximum(centre - half, 0)
+    hi = np.minimum(centre + half + 1, ct.shape[1:])
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    disc = np.hypot((rows - aorta.centre[0]) * spacing_ji[0], (cols - aorta.centre[1]) * spacing_ji[1]) <= reach
+    min_distance = max(1, int(round(2 * ILIAC_MIN_RADIUS_MM / max(spacing_ji))))
+    for n in range(int(search_mm / ct.spacing[2]) + 1):
+        k = k_start + n * aorta.step
+        if not 0 <= k < ct.shape[0]:
+            break
+        window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
+                                     0.6 / np.asarray(spacing_ji))
+        edt = ndi.distance_transform_edt((window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc, sampling=spacing_ji)
+        peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=ILIAC_MIN_RADIUS_MM, num_peaks=2,
+                               exclude_border=False)
+        if len(peaks) == 2:
+            radii = edt[tuple(peaks.T)]
+            apart = np.hypot(*((peaks[0] - peaks[1]) * np.asarray(spacing_ji)))
+            if apart >= 0.8 * radii.sum() and radii.min() >= 0.5 * radii.max():
+                return [(k, peak.astype(float) + lo, float(r)) for peak, r in zip(peaks, radii)]
+    return []
 
 
 class _SliceCounter:
@@ -1179,12 +1268,54 @@ def _trunk_box(labels: np.ndarray, ct: Volume, margin_mm: float) -> tuple[slice,
     return tuple(slice(max(b.start - m, 0), min(b.stop + m, n)) for b, m, n in zip(box, margins, labels.shape))
 
 
+def _symmetric_eigenvalues_3d(hxx, hyy, hzz, hxy, hxz, hyz) -> np.ndarray:
+    """Eigenvalues of symmetric 3x3 matrices given by their six fields, sorted by absolute value
+    (|l1| <= |l2| <= |l3|), in closed form (trigonometric solution of the characteristic cubic)."""
+    q = (hxx + hyy + hzz) / 3.0
+    p1 = hxy ** 2 + hxz ** 2 + hyz ** 2
+    p2 = (hxx - q) ** 2 + (hyy - q) ** 2 + (hzz - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0) + 1e-12
+    bxx, byy, bzz = (hxx - q) / p, (hyy - q) / p, (hzz - q) / p
+    det = (bxx * (byy * bzz - (hyz / p) ** 2) - (hxy / p) * ((hxy / p) * bzz - (hyz / p) * (hxz / p))
+           + (hxz / p) * ((hxy / p) * (hyz / p) - byy * (hxz / p)))
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    e1 = q + 2.0 * p * np.cos(phi)
+    e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    e2 = 3.0 * q - e1 - e3
+    values = np.stack([e1, e2, e3])
+    order = np.argsort(np.abs(values), axis=0)
+    return np.take_along_axis(values, order, axis=0)
+
+
+def tubularity_3d(volume: np.ndarray, sigmas_vox, *, blob_beta: float = 0.5) -> np.ndarray:
+    """Bright-tube response of a 3D array, maximum over scales (Sato / Frangi family).
+
+    At each scale the Hessian of the Gaussian-smoothed volume (finite differences) gives
+    eigenvalues ``|l1| <= |l2| <= |l3|``; a bright tube has ``l2, l3 < 0`` and ``l1 ~ 0``. The
+    response is ``sigma^2 (-l2)`` where ``l2, l3 < 0``, damped by ``exp(-(l1 / l2)^2 / (2
+    blob_beta^2))`` when ``l1 < 0`` too (a blob: kidney, heart chamber, bowel loop).
+    """
+    volume = np.asarray(volume, dtype=np.float32)
+    best = np.zeros_like(volume)
+    for sigma in sigmas_vox:
+        smooth = ndi.gaussian_filter(volume, sigma, mode="nearest")
+        gk, gj, gi = np.gradient(smooth)
+        hkk, hkj, hki = np.gradient(gk)
+        hjj, hji = np.gradient(gj, axis=(1, 2))
+        hii = np.gradient(gi, axis=2)
+        l1, l2, l3 = _symmetric_eigenvalues_3d(hii, hjj, hkk, hji, hki, hkj)
+        tube = (l2 < 0) & (l3 < 0)
+        blob = np.where(l1 < 0, np.exp(-(l1 / np.where(l2 == 0, -1e-12, l2)) ** 2 / (2 * blob_beta ** 2)), 1.0)
+        np.maximum(best, np.where(tube, sigma ** 2 * -l2 * blob, 0.0).astype(np.float32), out=best)
+    return best
+
+
 def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_SIGMAS_MM,
                   reach_mm: float = BRANCH_REACH_MM, voxel_mm: float = 1.5, min_vesselness: float = 0.04):
     """Side branches (renal, visceral, iliac continuations) connected to the traced trunk.
 
     On a copy reduced to about ``voxel_mm`` voxels around the trunk, bright tubular voxels
-    (Sato vesselness over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
+    (:func:`tubularity_3d` over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
     ``lumen_hu``, away from cortical bone) are kept if they connect to the trunk within
     ``reach_mm`` (geodesic steps through the candidates); round blobs (kidneys, heart, bowel)
     respond weakly to the tubular filter and stay out. The result is brought back to the CT
@@ -1195,8 +1326,6 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     numpy.ndarray of bool
         Branch voxels on the CT grid (not including ``trunk``).
     """
-    from skimage.filters import sato
-
     box = _trunk_box(trunk, ct, reach_mm)
     factor = _coarse_factor(ct, voxel_mm)
     hu = np.asarray(ct.array[box], dtype=np.float32)
@@ -1206,8 +1335,7 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     coarse_mm = np.asarray(ct.spacing, dtype=float)[::-1] * factor
     sigmas = [s / float(coarse_mm.mean()) for s in sigmas_mm]
     contrast = float(lumen_hu[0] * 2 - SOFT_TISSUE_HU) - SOFT_TISSUE_HU
-    tubular = sato(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas=sigmas, black_ridges=False,
-                   mode="nearest") > min_vesselness * contrast
+    tubular = tubularity_3d(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas) > min_vesselness * contrast
     candidate = tubular & (coarse >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (coarse <= lumen_hu[1]) & ~bone
     seeds = ndi.binary_dilation(coarse_trunk, iterations=1) & candidate
     steps = int(math.ceil(reach_mm / float(coarse_mm.min())))

@@ -1,10 +1,12 @@
 """Benchmark the segmentation stage on held-out phantom cases.
 
-CT side: Dice of the UNet and the threshold segmenter against the phantom lumen, mean
+CT side: Dice of the UNet, the threshold and the classical segmenter against the phantom lumen, mean
 distance of the 3D skeleton of each predicted mask to the true centreline, and the time
 of each; CPU inference time of the UNet on a 512 x 512 x 300 CT (a phantom CT embedded in
-a body-sized field). Fluoroscopy side: Dice and time of ``segment_fluoro`` on the cases'
-DSA frames and on a 1024 x 1024 phantom frame.
+a body-sized field) and of the classical route on the same. Fluoroscopy side: Dice and time of
+``segment_fluoro`` without and with the pre-operative prior on the cases' DSA frames and on a
+1024 x 1024 phantom frame, and on phantom frames with distractors (wire, catheter,
+collimator, table edge, burned-in text, spine; both polarities, subtracted or not).
 
     .venv/bin/python Testing/benchmarks/bench_segmentation.py --out Testing/benchmarks/results
 
@@ -25,6 +27,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from dataclasses import replace
@@ -43,6 +46,7 @@ from FevarPlannerLib import io
 from FevarPlannerLib import phantom as ph
 from FevarPlannerLib import segmentation as seg
 from FevarPlannerLib.centerline import Centerline
+from FevarPlannerLib.quality import FluoroPrior
 from FevarPlannerLib.pipeline import preop_from_skeleton
 from FevarPlannerLib.skeleton import skeletonize_3d
 
@@ -88,7 +92,8 @@ def evaluate_ct_case(folder: Path, model) -> dict:
     centreline = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["preop_centerline"])
     result = {"case": folder.name, "shape_kji": list(ct.shape)}
     for name, function in (("unet", lambda: seg.segment_ct_unet(ct, model)),
-                           ("threshold", lambda: seg.segment_ct_threshold(ct))):
+                           ("threshold", lambda: seg.segment_ct_threshold(ct)),
+                           ("classical", lambda: seg.segment_ct_classical(ct))):
         mask, seconds = timed(function)
         result[name] = {"dice": seg.dice(mask, truth), "time_s": seconds, **skeleton_distance_mm(mask, centreline)}
     return result
@@ -98,7 +103,36 @@ def evaluate_fluoro_case(folder: Path) -> dict:
     fluoro = io.read_fluoro(folder / "fluoro.dcm")
     truth = np.array(Image.open(folder / "fluoro_mask.png")) > 0
     mask, seconds = timed(seg.segment_fluoro, fluoro.image, vessels="auto", repeat=3)
-    return {"case": folder.name, "shape": list(fluoro.shape), "dice": seg.dice(mask, truth), "time_s": seconds}
+    prior = case_prior(folder)
+    prior_mask, prior_seconds = timed(seg.segment_fluoro, fluoro.image, prior, repeat=3)
+    return {"case": folder.name, "shape": list(fluoro.shape), "dice": seg.dice(mask, truth), "time_s": seconds,
+            "with_prior": {"dice": seg.dice(prior_mask, truth), "time_s": prior_seconds}}
+
+
+def case_prior(folder: Path) -> FluoroPrior:
+    """The pre-operative tree (gt.json's preop centreline) projected through the given P."""
+    case = io.load_case(folder)
+    centreline = Centerline.from_dict(json.loads((folder / "gt.json").read_text())["preop_centerline"])
+    return FluoroPrior.from_centerline(centreline, case.P)
+
+
+def distractor_frames(seeds=(1, 2, 3)) -> list:
+    """Dice and distractors kept on the phantom frames with wire, catheter, collimator, table,
+    text (and, unsubtracted, a spine) of Testing/test_segmentation.py, with the prior."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from test_segmentation import _distractors_taken, distractor_frame
+
+    rows = []
+    for seed in seeds:
+        for subtracted in (True, False):
+            for polarity in ("dark", "bright"):
+                frame, truth, prior, parts = distractor_frame(seed, subtracted=subtracted, polarity=polarity)
+                mask, seconds = timed(seg.segment_fluoro, frame, prior)
+                rows.append({"seed": seed, "subtracted": subtracted, "polarity": polarity, "shape": list(frame.shape),
+                             "dice_with_prior": seg.dice(mask, truth),
+                             "dice_without_prior": seg.dice(seg.segment_fluoro(frame), truth),
+                             "distractor_fraction_kept": _distractors_taken(mask, truth, parts), "time_s": seconds})
+    return rows
 
 
 def large_ct(ct: io.Volume, shape=(300, 512, 512), spacing=(0.8, 0.8, 1.0)) -> io.Volume:
@@ -114,10 +148,10 @@ def large_ct(ct: io.Volume, shape=(300, 512, 512), spacing=(0.8, 0.8, 1.0)) -> i
     return io.Volume(array, spacing, (-ni * spacing[0] / 2, -nj * spacing[1] / 2, 0.0), np.eye(3))
 
 
-def phantom_frame_1024(seed: int) -> tuple[np.ndarray, np.ndarray]:
+def phantom_frame_1024(seed: int):
     params = replace(ph.random_params(np.random.default_rng(seed)), detector_rows=1024, detector_cols=1024)
     case = ph.generate_case(params, name="frame1024")
-    return ph.render_fluoro(case.intraop, case.P_true, case.carm, case.params, np.random.default_rng(seed))
+    return (*ph.render_fluoro(case.intraop, case.P_true, case.carm, case.params, np.random.default_rng(seed)), case)
 
 
 def held_out_cases(args, work: Path) -> list[Path]:
@@ -130,8 +164,8 @@ def plot(results: dict, example: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 4, figsize=(18, 4.5))
     cases = results["ct_cases"]
     x = np.arange(len(cases))
-    for offset, name in ((-0.2, "unet"), (0.2, "threshold")):
-        axes[0].bar(x + offset, [c[name]["dice"] for c in cases], 0.4, label=name)
+    for offset, name in ((-0.27, "unet"), (0.0, "threshold"), (0.27, "classical")):
+        axes[0].bar(x + offset, [c[name]["dice"] for c in cases], 0.27, label=name)
     axes[0].axhline(0.9, color="k", ls="--", lw=1)
     axes[0].set(title="CT lumen Dice (goal 0.90)", xticks=x, xticklabels=[c["case"] for c in cases], ylim=(0.5, 1))
     axes[0].legend()
@@ -180,13 +214,21 @@ def main() -> None:
     big = large_ct(ct)
     _, unet_big_s = timed(seg.segment_ct_unet, big, model)
     _, unet_big_raw_s = timed(seg.segment_ct_unet, big, model, postprocess=False)
-    frame, frame_truth = phantom_frame_1024(args.seed)
+    frame, frame_truth, frame_case = phantom_frame_1024(args.seed)
     frame_mask, frame_s = timed(seg.segment_fluoro, frame, vessels="auto", repeat=5)
+    frame_prior = FluoroPrior.from_centerline(frame_case.preop.to_centerline(), frame_case.P_given)
+    frame_prior_mask, frame_prior_s = timed(seg.segment_fluoro, frame, frame_prior, repeat=5)
+    _, classical_big_s = timed(seg.segment_ct_classical, big)
+    distractors = distractor_frames()
     results = {
         "ct_cases": ct_cases,
         "ct_mean": {name: {key: float(np.mean([c[name][key] for c in ct_cases])) for key in ct_cases[0][name]}
-                    for name in ("unet", "threshold")},
+                    for name in ("unet", "threshold", "classical")},
         "ct_512x512x300_unet_s": unet_big_s,
+        "ct_512x512x300_classical_s": classical_big_s,
+        "fluoro_1024_with_prior_dice": seg.dice(frame_prior_mask, frame_truth),
+        "fluoro_1024_with_prior_time_s": frame_prior_s,
+        "fluoro_distractor_frames": distractors,
         "ct_512x512x300_unet_without_postprocess_s": unet_big_raw_s,
         "fluoro_cases": fluoro_cases,
         "fluoro_mean_dice": float(np.mean([c["dice"] for c in fluoro_cases])),
