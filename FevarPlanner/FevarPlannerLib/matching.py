@@ -14,6 +14,23 @@ Beyond the paper: both graphs also carry anatomical labels (graph.label_anatomy)
 where the tangent matching and the labels disagree, or the trunk ranks are ambiguous,
 every consistent candidate is kept; the caller deforms with each and keeps the one with
 the lowest final energy (Algorithm 2 run once per candidate).
+
+Matching against the projected pre-operative tree (:func:`match_by_projection`, beyond the
+paper). Algorithm 1 in 2D keeps the five longest branches, and a frame often shows
+branches that the 3D tree lacks: the internal / external iliac fork below a common iliac,
+accessory renal arteries, side branches off the aorta, spurs from a wide sac. Ranked by
+length, one of them is matched as a main vessel and a whole iliac lands on the wrong
+vessel. The rigid pre-alignment ``P`` says where each 3D branch must appear, so each 3D
+branch is scored against the 2D path from (the node nearest) its projected junction to
+every 2D end node of the kept 2D graph: mean closest distance between the two curves over
+their common arc length, plus the share of the projected branch that the 2D path does not
+cover (less about ``TIP_RADII`` radii: thinning eats a tip by about its radius). A path
+through a fork the 3D tree lacks continues along the arm closest to the projection. The
+Hungarian assignment (``linear_sum_assignment``) pairs 3D branches with distinct 2D ends,
+with a "no partner" column per 3D branch at :data:`NO_PARTNER_PX`; 2D ends left over stay
+unmatched. The junctions, trunks and branch chains are then read off the 2D tree spanned
+by the matched ends, so a 2D branch hanging off the wrong junction costs the stretch of
+aorta between the two junctions.
 """
 
 from __future__ import annotations
@@ -23,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import csgraph
 
 from .graph import Classification, SkeletonGraph
 from .projection import image_directions, project
@@ -33,7 +51,9 @@ __all__ = [
     "branch_tangents",
     "match_trunks",
     "match_branches",
+    "match_by_projection",
     "candidate_correspondences",
+    "candidate_score",
     "soft_assign",
     "ETA_S",
     "ETA_T",
@@ -44,6 +64,31 @@ __all__ = [
 ETA_S = 1
 ETA_T = 10
 _FORBIDDEN = 1e6
+#: Cost (px) of leaving a 3D branch without a 2D partner: a pairing whose projected branch
+#: and 2D path lie further apart than this on average is worse than none (the branch then
+#: follows its neighbours by TPS). Deformations of the protocol move an iliac tip up to
+#: about 25 px; the mean over the branch stays well below.
+NO_PARTNER_PX = 30.0
+#: Cost (px) of a 2D path that covers none of its projected 3D branch; scaled by the share
+#: left uncovered.
+COVERAGE_PX = 15.0
+#: A 2D path that ends short of its projected 3D branch by up to this many vessel radii
+#: (at the 2D end) covers it: thinning retracts a tip by about one radius.
+TIP_RADII = 1.5
+#: A second free 2D end costing at most this much (px) more than a branch's chosen one
+#: makes a second projection candidate (:func:`match_by_projection`); at most
+#: ``MAX_ALTERNATIVES`` of them, each one more deformation to run.
+AMBIGUOUS_PX = 2.0
+MAX_ALTERNATIVES = 1
+#: Cost (px) per radian that a projected branch must be turned about its junction to lie
+#: along a 2D path (:func:`_turned_residual`): 10 degrees cost 3.5 px.
+TURN_PX_PER_RAD = 20.0
+#: Samples per curve in the mean closest distance of :func:`_curve_distances`.
+_SAMPLES = 16
+#: Weight (px^2) per share of the 3D nodes left unassigned, in :func:`candidate_score`:
+#: a candidate that leaves a branch without partner wins over one that pairs it only when
+#: the pairing fits worse than this many px (RMS) after the deformation.
+UNASSIGNED_PX2 = 25.0
 
 
 @dataclass
@@ -53,24 +98,36 @@ class Correspondence:
     Attributes
     ----------
     branch_pairs : list of (int, int)
-        ``(index into c3.branches, index into c2.branches)``.
+        ``(index into c3.branches, index into c2.branches)``; for a projection match the
+        index of the preserved 2D branch that ends where the chain ends, or None when the
+        chain ends on a 2D branch that Algorithm 1 omitted.
     trunk_pairs : list of (numpy.ndarray, numpy.ndarray)
         Matched node chains ``(3D nodes, 2D nodes)``, ordered from matched junction to
         matched junction.
     junction_pairs : dict
         3D junction node -> 2D junction node.
     source : str
-        How it was found ("tangent", "labels", ...), for the report.
+        How it was found ("projection", "tangent", "labels"), for the report.
+    branch_chains : dict
+        3D branch index -> 2D node chain from its junction to its end (eq. 4's 2D side);
+        by default the preserved 2D branch of ``branch_pairs``.
     """
 
     branch_pairs: list
     trunk_pairs: list
     junction_pairs: dict
     source: str = ""
+    branch_chains: dict = field(default_factory=dict)
 
     def key(self) -> tuple:
-        trunks = tuple((int(a[0]), int(a[-1]), int(b[0]), int(b[-1])) for a, b in self.trunk_pairs)
-        return tuple(sorted(self.branch_pairs)), trunks
+        """Which 3D branch goes to which 2D end node: candidates that agree on it are duplicates
+        (their junctions differ by a node or two at most)."""
+        return tuple(sorted((int(i3), int(chain[-1])) for i3, chain in self.branch_chains.items()))
+
+
+def _with_chains(correspondence: Correspondence, c2: Classification) -> Correspondence:
+    correspondence.branch_chains = {i3: np.asarray(c2.branches[i2].nodes) for i3, i2 in correspondence.branch_pairs}
+    return correspondence
 
 
 @dataclass
@@ -199,16 +256,25 @@ def candidate_correspondences(g3: SkeletonGraph, c3: Classification, g2: Skeleto
                               c2: Classification, P: np.ndarray) -> list[Correspondence]:
     """Every consistent correspondence worth deforming with (duplicates removed).
 
-    For each trunk candidate: the tangent-similarity branch match (the paper's), and the
-    anatomical-label match where it differs.
+    First the match against the projected 3D tree (:func:`match_by_projection`); then, for
+    each trunk candidate, the tangent-similarity branch match (the paper's) and the
+    anatomical-label match where they differ from it.
     """
     found = {}
-    for trunk_pairs, junction_pairs in match_trunks(g3, c3, g2, c2, P):
+    for projected in match_by_projection(g3, c3, g2, c2, P):
+        found.setdefault(projected.key(), projected)
+    try:
+        trunk_candidates = match_trunks(g3, c3, g2, c2, P)
+    except ValueError:
+        if not found:
+            raise
+        trunk_candidates = []
+    for trunk_pairs, junction_pairs in trunk_candidates:
         for source, branch_pairs in (("tangent", match_branches(g3, c3, g2, c2, P, junction_pairs)),
                                      ("labels", _pairs_by_label(c3, c2))):
             if len(branch_pairs) < len(c3.branches):
                 continue
-            candidate = Correspondence(branch_pairs, trunk_pairs, junction_pairs, source)
+            candidate = _with_chains(Correspondence(branch_pairs, trunk_pairs, junction_pairs, source), c2)
             found.setdefault(candidate.key(), candidate)
     if not found:
         raise ValueError("no consistent branch correspondence between the 3D and 2D skeletons")
@@ -260,14 +326,245 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         s3 = _cumulative_length(g3.positions[nodes3])
         lam2 = _cumulative_length(g2.positions[nodes2])[-1]
         add(np.asarray(nodes3), s3 * (lam2 / s3[-1]) if s3[-1] > 0 else s3, np.asarray(nodes2))
-    for i3, i2 in correspondence.branch_pairs:
-        nodes3, nodes2 = c3.branches[i3].nodes, c2.branches[i2].nodes
+    chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
+    for i3, nodes2 in chains.items():
+        nodes3 = c3.branches[i3].nodes
         # eq. (4): projected 3D path length equals 2D path length
         s3 = _cumulative_length(project(P, g3.positions[nodes3]))
         add(np.asarray(nodes3), s3, np.asarray(nodes2))
 
+    if not vals:
+        raise ValueError("the correspondence assigns no 3D node")
     M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n2, n3))
     M.sum_duplicates()
     targets = np.full((n3, 2), np.nan)
     targets[assigned] = (M.T @ g2.positions)[assigned]  # t_j = X M[:, j]
     return SoftAssignment(M, targets, assigned, correspondence)
+
+
+# ---------------------------------------------------------------------------------------
+# Matching against the projected pre-operative tree (beyond the paper; module docstring)
+# ---------------------------------------------------------------------------------------
+
+def _resample(points: np.ndarray, arc: np.ndarray, at: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(at, arc, points[:, d]) for d in range(points.shape[1])])
+
+
+def _point_to_polyline(points: np.ndarray, polylines: np.ndarray) -> np.ndarray:
+    """Distance from each point to the nearest segment of its polyline, batched.
+
+    ``points`` (k, m, 2) and ``polylines`` (k, n, 2) give (k, m).
+    """
+    a, ab = polylines[:, :-1], np.diff(polylines, axis=1)
+    offset = points[:, :, None, :] - a[:, None]
+    t = np.clip(np.einsum("kmnd,knd->kmn", offset, ab) / np.maximum(np.einsum("knd,knd->kn", ab, ab), 1e-12)[:, None],
+                0.0, 1.0)
+    gap = offset - t[..., None] * ab[:, None]
+    return np.sqrt(np.einsum("kmnd,kmnd->kmn", gap, gap)).min(axis=2)
+
+
+def _curve_distances(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Mean closest distance between paired curves sampled at equal arc lengths, both ways.
+
+    ``first`` and ``second`` are (k, samples, 2): the first ``length`` of two curves each.
+    """
+    return 0.5 * (_point_to_polyline(first, second).mean(axis=1) + _point_to_polyline(second, first).mean(axis=1))
+
+
+def _turned_residual(first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean distance between paired curves (equal arc lengths) after the best in-plane turn
+    of the first about its start onto the second, about the second's start; and the angle.
+
+    Deformation swings a vessel about its junction (iliac swing and straightening, renal
+    tilt); turned, the projected branch lies along the 2D path it became, and past a fork
+    the 3D tree lacks, along the arm that continues it.
+    """
+    a, b = first - first[:, :1], second - second[:, :1]
+    dot = np.einsum("ksd,ksd->k", a, b)
+    cross = np.einsum("ks,ks->k", a[..., 0], b[..., 1]) - np.einsum("ks,ks->k", a[..., 1], b[..., 0])
+    angle = np.arctan2(cross, dot)
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    turned = np.stack([c * a[..., 0] - s * a[..., 1], s * a[..., 0] + c * a[..., 1]], axis=-1)
+    return np.linalg.norm(turned - b, axis=2).mean(axis=1), angle
+
+
+def _coverage_cost(length3: np.ndarray, length2: np.ndarray, tip_radius: np.ndarray) -> np.ndarray:
+    """:data:`COVERAGE_PX` times the share of a projected 3D branch that its 2D chain leaves
+    uncovered by more than ``TIP_RADII`` radii of the 2D tip (thinning eats a tip by one)."""
+    uncovered = np.maximum(0.0, length3 - length2 - TIP_RADII * tip_radius)
+    return COVERAGE_PX * uncovered / np.maximum(length3, 1e-9)
+
+
+def _paths_to(predecessors: np.ndarray, targets) -> dict:
+    """Node chains from the Dijkstra source to each target (source first)."""
+    predecessors = predecessors.tolist()
+    paths = {}
+    for target in targets:
+        path = [int(target)]
+        while predecessors[path[-1]] >= 0:
+            path.append(predecessors[path[-1]])
+        paths[int(target)] = np.array(path[::-1], dtype=np.int64)
+    return paths
+
+
+def _branch_costs(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray, ends2: np.ndarray):
+    """Cost (px) of pairing each 3D branch with the 2D path to each 2D end, shape (branches, ends).
+
+    The path runs from the 2D node nearest the projected 3D junction. Cost: mean closest
+    distance between the projected branch and the path over their common arc length, plus
+    :func:`_coverage_cost`. Unreachable ends cost ``inf``.
+    """
+    kept2 = np.flatnonzero(g2.degrees > 0)
+    starts = {}
+    for j3 in sorted({int(b.junction) for b in c3.branches}):
+        starts[j3] = _nearest(g2, kept2, project(P, g3.positions[[j3]])[0])
+    sources = sorted(set(starts.values()))
+    _, predecessors = csgraph.dijkstra(g2.adjacency, directed=True, indices=sources, return_predecessors=True)
+    chains = {}
+    for row, source in enumerate(sources):
+        for end, path in _paths_to(predecessors[row], ends2).items():
+            if len(path) > 1 and path[0] == source:
+                points = g2.positions[path]
+                chains[source, end] = (points, _cumulative_length(points))
+    radii = g2.radii if g2.radii is not None else np.zeros(len(g2.positions))
+    at = np.linspace(0.0, 1.0, _SAMPLES)
+    pairs, first, second, lengths = [], [], [], []
+    for i3, branch in enumerate(c3.branches):
+        projected = project(P, g3.positions[branch.nodes])
+        projected_arc = _cumulative_length(projected)
+        for column, end in enumerate(ends2.tolist()):
+            chain = chains.get((starts[int(branch.junction)], end))
+            if chain is None or projected_arc[-1] <= 0:
+                continue
+            common = min(projected_arc[-1], chain[1][-1]) * at
+            pairs.append((i3, column))
+            first.append(_resample(projected, projected_arc, common))
+            second.append(_resample(chain[0], chain[1], common))
+            lengths.append((projected_arc[-1], chain[1][-1], radii[end]))
+    costs = np.full((len(c3.branches), len(ends2)), np.inf)
+    if pairs:
+        length3, length2, tip = np.array(lengths).T
+        rows, cols = np.array(pairs).T
+        first, second = np.array(first), np.array(second)
+        residual, angle = _turned_residual(first, second)
+        costs[rows, cols] = (0.5 * (_curve_distances(first, second) + residual) + TURN_PX_PER_RAD * np.abs(angle)
+                             + _coverage_cost(length3, length2, tip))
+    return costs
+
+
+def _spanned_tree(g2: SkeletonGraph, ends: list[int]):
+    """Junctions of the 2D tree spanned by ``ends`` and each end's chain from its junction.
+
+    Returns None when the ends are not connected or span no junction (a single path).
+    """
+    _, pred = csgraph.dijkstra(g2.adjacency, directed=True, indices=ends[0], return_predecessors=True)
+    paths = _paths_to(pred, ends[1:])
+    if any(path[0] != ends[0] for path in paths.values()):
+        return None
+    n = len(g2.positions)
+    steps = np.concatenate([np.sort(np.stack([path[:-1], path[1:]], axis=1), axis=1) for path in paths.values()])
+    steps = np.unique(steps[:, 0] * n + steps[:, 1])
+    degree = np.bincount(np.concatenate([steps // n, steps % n]), minlength=n)
+    junctions = np.flatnonzero(degree >= 3)
+    if len(junctions) == 0:
+        return None
+    chains = {}
+    for end, path in paths.items():
+        chains[end] = path[np.flatnonzero(degree[path] >= 3).max():]
+    first_path = next(iter(paths.values()))
+    chains[ends[0]] = first_path[:np.flatnonzero(degree[first_path] >= 3).min() + 1][::-1]
+    return junctions, chains
+
+
+def _nearest(g2: SkeletonGraph, nodes: np.ndarray, at: np.ndarray) -> int:
+    return int(nodes[np.argmin(np.sum((g2.positions[nodes] - at) ** 2, axis=1))])
+
+
+def _from_matched_ends(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification, P: np.ndarray,
+                       matched: dict, source: str) -> Correspondence | None:
+    """The correspondence read off the 2D tree spanned by the matched 2D ends (3D branch -> end)."""
+    if len(matched) < 3:
+        return None
+    spanned = _spanned_tree(g2, list(matched.values()))
+    if spanned is None:
+        return None
+    junctions2, chains = spanned
+    junction_pairs = {}
+    for j3 in np.asarray(c3.junction_nodes).tolist():
+        at = project(P, g3.positions[[j3]])[0]
+        starts = [chains[matched[i3]][0] for i3, b in enumerate(c3.branches) if b.junction == j3 and i3 in matched]
+        junction_pairs[int(j3)] = _nearest(g2, np.array(starts) if starts else junctions2, at)
+    trunk_pairs = []
+    for trunk in c3.trunks:
+        a2, b2 = junction_pairs.get(int(trunk.nodes[0])), junction_pairs.get(int(trunk.nodes[-1]))
+        if a2 is None or b2 is None or a2 == b2:
+            continue
+        trunk_pairs.append((np.asarray(trunk.nodes), g2.shortest_path(a2, b2)))
+    ends_of_preserved = {int(b.end): i2 for i2, b in enumerate(c2.branches)}
+    branch_pairs = [(i3, ends_of_preserved.get(end)) for i3, end in sorted(matched.items())]
+    branch_chains = {i3: chains[end] for i3, end in sorted(matched.items())}
+    return Correspondence(branch_pairs, trunk_pairs, junction_pairs, source, branch_chains)
+
+
+def _close_seconds(costs: np.ndarray, matched_columns: dict) -> list[tuple[int, int]]:
+    """(3D branch, 2D end column) swaps worth deforming with: a free end whose cost is within
+    :data:`AMBIGUOUS_PX` of the branch's chosen one, closest first, at most :data:`MAX_ALTERNATIVES`."""
+    taken = set(matched_columns.values())
+    found = []
+    for i3, column in matched_columns.items():
+        for other in np.argsort(costs[i3]).tolist():
+            if other != column and other not in taken and costs[i3, other] < costs[i3, column] + AMBIGUOUS_PX:
+                found.append((costs[i3, other] - costs[i3, column], i3, other))
+                break
+    return [(i3, other) for _, i3, other in sorted(found)[:MAX_ALTERNATIVES]]
+
+
+def match_by_projection(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
+                        P: np.ndarray) -> list[Correspondence]:
+    """Branches, junctions and trunks matched against the 3D tree projected through ``P``.
+
+    See the module docstring. Every 2D end node of the kept 2D graph (Algorithm 1's spurs
+    removed; its omitted branches kept) is a candidate partner of each 3D branch, at the
+    cost of :func:`_branch_costs`, and :data:`NO_PARTNER_PX` buys no partner. The 3D
+    junctions map to the junctions of the 2D tree spanned by the matched ends (nearest to
+    their projection), trunks to the 2D paths between those.
+
+    Returns
+    -------
+    list of Correspondence
+        The assignment of least cost first, then a variant for each branch whose second
+        best free end costs nearly as much (the two arms of a fork the 3D tree lacks, when
+        the deformation leaves the projection half-way between them): the deformation
+        energy decides. Empty when fewer than three 3D branches find a partner (no 2D
+        junction to anchor the trunks).
+    """
+    ends2 = np.flatnonzero(g2.degrees == 1)
+    n3 = len(c3.branches)
+    if len(ends2) == 0 or n3 == 0:
+        return []
+    costs = _branch_costs(g3, c3, g2, P, ends2)
+    no_partner = np.full((n3, n3), _FORBIDDEN)
+    np.fill_diagonal(no_partner, NO_PARTNER_PX)
+    rows, cols = linear_sum_assignment(np.hstack([np.where(np.isfinite(costs), costs, _FORBIDDEN), no_partner]))
+    columns = {int(r): int(c) for r, c in zip(rows, cols) if c < len(ends2) and costs[r, c] < NO_PARTNER_PX}
+    variants = [columns] + [{**columns, i3: other} for i3, other in _close_seconds(costs, columns)]
+    found = [_from_matched_ends(g3, c3, g2, c2, P, {i3: int(ends2[c]) for i3, c in v.items()}, "projection")
+             for v in variants]
+    return [c for c in found if c is not None]
+
+
+def candidate_score(energy: float, assigned_fraction: float, preop_points: np.ndarray, deformed_points: np.ndarray,
+                    edges: np.ndarray, alpha: float) -> float:
+    """Which deformed candidate to keep: the registration energy plus its 3D implausibility.
+
+    ``energy`` is eq. (6) after the deformation (on the assigned nodes). Added: the length
+    term of eq. (6) over every kept edge, TPS-filled nodes included (a vessel stretched or
+    compressed where no data held it), weighted by ``alpha`` as in eq. (6); and
+    :data:`UNASSIGNED_PX2` times the share of 3D nodes the candidate leaves unassigned, so
+    that leaving a branch without partner does not win by fitting less.
+    """
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    rest = np.linalg.norm(preop_points[edges[:, 0]] - preop_points[edges[:, 1]], axis=1)
+    now = np.linalg.norm(deformed_points[edges[:, 0]] - deformed_points[edges[:, 1]], axis=1)
+    stretch = float(np.mean(((now - rest) / np.maximum(rest, 1e-9)) ** 2)) if len(edges) else 0.0
+    return float(energy) + alpha * stretch + UNASSIGNED_PX2 * (1.0 - float(assigned_fraction))
