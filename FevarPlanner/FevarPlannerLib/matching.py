@@ -494,16 +494,36 @@ def _from_matched_ends(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph,
         at = project(P, g3.positions[[j3]])[0]
         starts = [chains[matched[i3]][0] for i3, b in enumerate(c3.branches) if b.junction == j3 and i3 in matched]
         junction_pairs[int(j3)] = _nearest(g2, np.array(starts) if starts else junctions2, at)
-    trunk_pairs = []
-    for trunk in c3.trunks:
-        a2, b2 = junction_pairs.get(int(trunk.nodes[0])), junction_pairs.get(int(trunk.nodes[-1]))
-        if a2 is None or b2 is None or a2 == b2:
-            continue
-        trunk_pairs.append((np.asarray(trunk.nodes), g2.shortest_path(a2, b2)))
+    trunk_pairs = _trunks_between(g3, c3, g2, junction_pairs)
     ends_of_preserved = {int(b.end): i2 for i2, b in enumerate(c2.branches)}
     branch_pairs = [(i3, ends_of_preserved.get(end)) for i3, end in sorted(matched.items())]
     branch_chains = {i3: chains[end] for i3, end in sorted(matched.items())}
     return Correspondence(branch_pairs, trunk_pairs, junction_pairs, source, branch_chains)
+
+
+def _trunks_between(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, junction_pairs: dict) -> list:
+    """3D trunks paired with the 2D paths between their junctions' 2D partners.
+
+    3D junctions sharing one 2D partner (renal arteries that leave the aorta apart in 3D and
+    at one point in the view) act as one: a trunk between them is not paired on its own but
+    runs on to the one of them farthest from the trunk's other end, so that eq. (5)
+    spreads the whole 3D chain over the 2D path.
+    """
+    pairs, seen = [], set()
+    for trunk in c3.trunks:
+        a3, b3 = int(trunk.nodes[0]), int(trunk.nodes[-1])
+        a2, b2 = junction_pairs.get(a3), junction_pairs.get(b3)
+        if a2 is None or b2 is None or a2 == b2 or (a2, b2) in seen or (b2, a2) in seen:
+            continue
+        seen.add((a2, b2))
+        a3 = _farthest(g3, [j for j, k in junction_pairs.items() if k == a2], g3.positions[b3])
+        b3 = _farthest(g3, [j for j, k in junction_pairs.items() if k == b2], g3.positions[a3])
+        pairs.append((g3.shortest_path(a3, b3), g2.shortest_path(a2, b2)))
+    return pairs
+
+
+def _farthest(graph: SkeletonGraph, nodes: list, at: np.ndarray) -> int:
+    return int(nodes[int(np.argmax(np.sum((graph.positions[nodes] - at) ** 2, axis=1)))])
 
 
 def _close_seconds(costs: np.ndarray, matched_columns: dict) -> list[tuple[int, int]]:
