@@ -65,10 +65,11 @@ ETA_S = 1
 ETA_T = 10
 _FORBIDDEN = 1e6
 #: Cost (px) of leaving a 3D branch without a 2D partner: a pairing whose projected branch
-#: and 2D path lie further apart than this on average is worse than none (the branch then
-#: follows its neighbours by TPS). Deformations of the protocol move an iliac tip up to
-#: about 25 px; the mean over the branch stays well below.
-NO_PARTNER_PX = 30.0
+#: and 2D path lie further apart than this (:func:`_branch_costs`) is worse than none (the
+#: branch then follows its neighbours by TPS). Measured on the phantoms: the right partner
+#: costs 1-10 px, up to 38 px for the iliacs of the strong-deformation and extra-branch
+#: cases given a misaligned ``P``; a wrong one 45-130 px.
+NO_PARTNER_PX = 45.0
 #: Cost (px) of a 2D path that covers none of its projected 3D branch; scaled by the share
 #: left uncovered.
 COVERAGE_PX = 15.0
@@ -256,18 +257,16 @@ def candidate_correspondences(g3: SkeletonGraph, c3: Classification, g2: Skeleto
                               c2: Classification, P: np.ndarray) -> list[Correspondence]:
     """Every consistent correspondence worth deforming with (duplicates removed).
 
-    First the match against the projected 3D tree (:func:`match_by_projection`); then, for
-    each trunk candidate, the tangent-similarity branch match (the paper's) and the
-    anatomical-label match where they differ from it.
+    For each trunk candidate, the tangent-similarity branch match (the paper's) and the
+    anatomical-label match where it differs; then the matches against the projected 3D tree
+    (:func:`match_by_projection`) that pair some 3D branch with another 2D end (a 2D branch
+    the 3D tree lacks taken for a main one, or a 3D branch the frame does not show). The
+    paper's match stays first (the pose refinement fits on the first).
     """
     found = {}
-    for projected in match_by_projection(g3, c3, g2, c2, P):
-        found.setdefault(projected.key(), projected)
     try:
         trunk_candidates = match_trunks(g3, c3, g2, c2, P)
     except ValueError:
-        if not found:
-            raise
         trunk_candidates = []
     for trunk_pairs, junction_pairs in trunk_candidates:
         for source, branch_pairs in (("tangent", match_branches(g3, c3, g2, c2, P, junction_pairs)),
@@ -276,7 +275,11 @@ def candidate_correspondences(g3: SkeletonGraph, c3: Classification, g2: Skeleto
                 continue
             candidate = _with_chains(Correspondence(branch_pairs, trunk_pairs, junction_pairs, source), c2)
             found.setdefault(candidate.key(), candidate)
+    for projected in match_by_projection(g3, c3, g2, c2, P):
+        found.setdefault(projected.key(), projected)
     if not found:
+        if not trunk_candidates:
+            match_trunks(g3, c3, g2, c2, P)  # raises, saying what is missing
         raise ValueError("no consistent branch correspondence between the 3D and 2D skeletons")
     return list(found.values())
 
