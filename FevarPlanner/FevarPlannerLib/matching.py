@@ -349,8 +349,28 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
 # Matching against the projected pre-operative tree (beyond the paper; module docstring)
 # ---------------------------------------------------------------------------------------
 
-def _resample(points: np.ndarray, arc: np.ndarray, at: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.interp(at, arc, points[:, d]) for d in range(points.shape[1])])
+class _Polylines:
+    """Several polylines stored end to end, for arc lengths and resampling in one pass each."""
+
+    def __init__(self, polylines: list):
+        sizes = np.array([len(p) for p in polylines])
+        self.first = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        self.last = self.first + sizes - 1
+        self.points = np.concatenate(polylines)
+        steps = np.sqrt((np.diff(self.points, axis=0) ** 2).sum(axis=1))
+        steps[self.last[:-1]] = 1.0  # a gap between consecutive polylines keeps the search inside each
+        self.arc = np.concatenate([[0.0], np.cumsum(steps)])
+        self.lengths = self.arc[self.last] - self.arc[self.first]
+
+    def resample(self, which: np.ndarray, at: np.ndarray) -> np.ndarray:
+        """Points of polyline ``which[k]`` at arc lengths ``at[k]`` (shape (k, m) -> (k, m, d))."""
+        base = self.arc[self.first[which]][:, None]
+        query = base + np.clip(at, 0.0, self.lengths[which][:, None])
+        i = np.searchsorted(self.arc, query, side="right") - 1
+        i = np.clip(i, self.first[which][:, None], np.maximum(self.last[which] - 1, self.first[which])[:, None])
+        step = self.arc[i + 1] - self.arc[i]
+        t = np.clip((query - self.arc[i]) / np.where(step > 0, step, 1.0), 0.0, 1.0)[..., None]
+        return self.points[i] + t * (self.points[i + 1] - self.points[i])
 
 
 def _point_to_polyline(points: np.ndarray, polylines: np.ndarray) -> np.ndarray:
@@ -371,7 +391,8 @@ def _curve_distances(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 
     ``first`` and ``second`` are (k, samples, 2): the first ``length`` of two curves each.
     """
-    return 0.5 * (_point_to_polyline(first, second).mean(axis=1) + _point_to_polyline(second, first).mean(axis=1))
+    both = _point_to_polyline(np.concatenate([first, second]), np.concatenate([second, first])).mean(axis=1)
+    return 0.5 * (both[:len(first)] + both[len(first):])
 
 
 def _turned_residual(first: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -398,71 +419,154 @@ def _coverage_cost(length3: np.ndarray, length2: np.ndarray, tip_radius: np.ndar
     return COVERAGE_PX * uncovered / np.maximum(length3, 1e-9)
 
 
-def _paths_to(predecessors: np.ndarray, targets) -> dict:
-    """Node chains from the Dijkstra source to each target (source first)."""
-    predecessors = predecessors.tolist()
-    paths = {}
-    for target in targets:
-        path = [int(target)]
-        while predecessors[path[-1]] >= 0:
-            path.append(predecessors[path[-1]])
-        paths[int(target)] = np.array(path[::-1], dtype=np.int64)
-    return paths
+class _ContractedGraph:
+    """A skeleton graph contracted to its key nodes, for shortest paths as node chains.
+
+    Key nodes are the end and junction nodes (degree other than 2) and any ``forced`` node;
+    each run of connection nodes between two key nodes becomes one weighted edge that
+    remembers its nodes. Dijkstra then runs on a few dozen key nodes instead of every pixel,
+    and a path is a handful of runs joined, not a walk node by node.
+    """
+
+    def __init__(self, graph: SkeletonGraph, forced=()):
+        adjacency, degrees = graph.adjacency, graph.degrees
+        is_key = (degrees > 0) & (degrees != 2)
+        is_key[np.asarray(forced, dtype=np.int64)] = True
+        self.keys = np.flatnonzero(is_key)
+        self.index = np.full(len(degrees), -1, dtype=np.int64)
+        self.index[self.keys] = np.arange(len(self.keys))
+        self.runs: dict = {}
+        rows = np.repeat(np.arange(len(degrees)), degrees)
+        cols, weights = adjacency.indices, adjacency.data
+        direct = is_key[rows] & is_key[cols] & (rows < cols)
+        for a, b, weight in zip(rows[direct].tolist(), cols[direct].tolist(), weights[direct].tolist()):
+            self._add(int(self.index[a]), int(self.index[b]), np.array([a, b]), weight)
+        inner = np.flatnonzero((degrees == 2) & ~is_key)
+        local = np.full(len(degrees), -1, dtype=np.int64)
+        local[inner] = np.arange(len(inner))
+        both = (local[rows] >= 0) & (local[cols] >= 0)
+        inner_adjacency = sp.csr_matrix((weights[both], (local[rows[both]], local[cols[both]])),
+                                        shape=(len(inner), len(inner)))
+        for run in self._runs(inner_adjacency):
+            nodes = inner[run]
+            first = self._key_neighbours(adjacency, is_key, nodes[0])
+            last = self._key_neighbours(adjacency, is_key, nodes[-1])
+            if len(nodes) == 1:
+                first, last = first[:1], first[1:]
+            if len(first) and len(last):
+                chain = np.concatenate([first[:1], nodes, last[:1]])
+                steps = np.diff(graph.positions[chain], axis=0)
+                self._add(int(self.index[first[0]]), int(self.index[last[0]]), chain,
+                          float(np.sqrt((steps ** 2).sum(axis=1)).sum()))
+        rows, cols, weights = [], [], []
+        for (a, b), (_, weight) in self.runs.items():
+            rows += [a, b]
+            cols += [b, a]
+            weights += [max(weight, 1e-9)] * 2
+        self.matrix = sp.csr_matrix((weights, (rows, cols)), shape=(len(self.keys), len(self.keys)))
+
+    @staticmethod
+    def _runs(inner_adjacency: sp.csr_matrix) -> list:
+        """Each run of connection nodes in order along it (local indices); closed loops dropped."""
+        if inner_adjacency.shape[0] == 0:
+            return []
+        _, run_of = csgraph.connected_components(inner_adjacency, directed=True)
+        tips = np.flatnonzero(np.diff(inner_adjacency.indptr) < 2)
+        _, first = np.unique(run_of[tips], return_index=True)
+        along = csgraph.dijkstra(inner_adjacency, directed=True, indices=tips[first], min_only=True)
+        local = np.flatnonzero(np.isfinite(along))
+        local = local[np.lexsort((along[local], run_of[local]))]
+        return np.split(local, np.flatnonzero(np.diff(run_of[local])) + 1)
+
+    @staticmethod
+    def _key_neighbours(adjacency: sp.csr_matrix, is_key: np.ndarray, node: int) -> np.ndarray:
+        neighbours = adjacency.indices[adjacency.indptr[node]:adjacency.indptr[node + 1]]
+        return neighbours[is_key[neighbours]]
+
+    def _add(self, a: int, b: int, chain: np.ndarray, weight: float) -> None:
+        if a == b:
+            return
+        pair, chain = ((a, b), chain) if a < b else ((b, a), chain[::-1])
+        if pair not in self.runs or weight < self.runs[pair][1]:
+            self.runs[pair] = (chain, weight)
+
+    def paths(self, source: int, targets) -> dict:
+        """Shortest node chains from ``source`` to each reachable key node of ``targets`` (source first)."""
+        start = int(self.index[source])
+        if start < 0:
+            raise ValueError(f"node {source} is not a key node of the contracted graph")
+        _, pred = csgraph.dijkstra(self.matrix, directed=True, indices=start, return_predecessors=True)
+        pred = pred.tolist()
+        found = {}
+        for target in targets:
+            hops = [int(self.index[target])]
+            if hops[0] < 0:
+                continue
+            while pred[hops[-1]] >= 0:
+                hops.append(pred[hops[-1]])
+            if hops[-1] != start:
+                continue
+            hops.reverse()
+            pieces = [self._oriented(a, b)[1:] for a, b in zip(hops[:-1], hops[1:])]
+            found[int(target)] = np.concatenate([[source]] + pieces).astype(np.int64)
+        return found
+
+    def _oriented(self, a: int, b: int) -> np.ndarray:
+        chain = self.runs[(a, b) if a < b else (b, a)][0]
+        return chain if a < b else chain[::-1]
 
 
-def _branch_costs(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray, ends2: np.ndarray):
+def _branch_starts(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray) -> dict:
+    """3D branch junction -> the kept 2D node nearest its projection (where its 2D paths start)."""
+    kept2 = np.flatnonzero(g2.degrees > 0)
+    return {j3: _nearest(g2, kept2, project(P, g3.positions[[j3]])[0])
+            for j3 in sorted({int(b.junction) for b in c3.branches})}
+
+
+def _branch_costs(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray, ends2: np.ndarray,
+                  starts: dict, contracted: _ContractedGraph):
     """Cost (px) of pairing each 3D branch with the 2D path to each 2D end, shape (branches, ends).
 
-    The path runs from the 2D node nearest the projected 3D junction. Cost: mean closest
-    distance between the projected branch and the path over their common arc length, plus
-    :func:`_coverage_cost`. Unreachable ends cost ``inf``.
+    The path runs from ``starts[junction]``, the 2D node nearest the projected 3D junction.
+    Cost: the mean of the closest distance (:func:`_curve_distances`) and of the distance
+    after turning the projection about its junction (:func:`_turned_residual`) between the
+    projected branch and the path over their common arc length, plus
+    :data:`TURN_PX_PER_RAD` per radian of that turn and :func:`_coverage_cost`.
+    Unreachable ends cost ``inf``.
     """
-    kept2 = np.flatnonzero(g2.degrees > 0)
-    starts = {}
-    for j3 in sorted({int(b.junction) for b in c3.branches}):
-        starts[j3] = _nearest(g2, kept2, project(P, g3.positions[[j3]])[0])
-    sources = sorted(set(starts.values()))
-    _, predecessors = csgraph.dijkstra(g2.adjacency, directed=True, indices=sources, return_predecessors=True)
-    chains = {}
-    for row, source in enumerate(sources):
-        for end, path in _paths_to(predecessors[row], ends2).items():
-            if len(path) > 1 and path[0] == source:
-                points = g2.positions[path]
-                chains[source, end] = (points, _cumulative_length(points))
+    keys, chains = [], []
+    for source in sorted(set(starts.values())):
+        for end, path in contracted.paths(source, ends2).items():
+            if len(path) > 1:
+                keys.append((source, end))
+                chains.append(g2.positions[path])
+    chain_row = {key: k for k, key in enumerate(keys)}
+    branches = [project(P, g3.positions[b.nodes]) for b in c3.branches]
+    bundle = _Polylines(branches + chains)
+    n3 = len(branches)
     radii = g2.radii if g2.radii is not None else np.zeros(len(g2.positions))
-    at = np.linspace(0.0, 1.0, _SAMPLES)
-    pairs, first, second, lengths = [], [], [], []
-    for i3, branch in enumerate(c3.branches):
-        projected = project(P, g3.positions[branch.nodes])
-        projected_arc = _cumulative_length(projected)
-        for column, end in enumerate(ends2.tolist()):
-            chain = chains.get((starts[int(branch.junction)], end))
-            if chain is None or projected_arc[-1] <= 0:
-                continue
-            common = min(projected_arc[-1], chain[1][-1]) * at
-            pairs.append((i3, column))
-            first.append(_resample(projected, projected_arc, common))
-            second.append(_resample(chain[0], chain[1], common))
-            lengths.append((projected_arc[-1], chain[1][-1], radii[end]))
-    costs = np.full((len(c3.branches), len(ends2)), np.inf)
+    pairs = [(i3, column, n3 + chain_row[(starts[int(b.junction)], int(end))]) for i3, b in enumerate(c3.branches)
+             for column, end in enumerate(ends2.tolist())
+             if (starts[int(b.junction)], int(end)) in chain_row and bundle.lengths[i3] > 0]
+    costs = np.full((n3, len(ends2)), np.inf)
     if pairs:
-        length3, length2, tip = np.array(lengths).T
-        rows, cols = np.array(pairs).T
-        first, second = np.array(first), np.array(second)
+        rows, cols, chain = np.array(pairs).T
+        length3, length2, tip = bundle.lengths[rows], bundle.lengths[chain], radii[ends2[cols]]
+        common = np.minimum(length3, length2)[:, None] * np.linspace(0.0, 1.0, _SAMPLES)
+        first, second = bundle.resample(rows, common), bundle.resample(chain, common)
         residual, angle = _turned_residual(first, second)
         costs[rows, cols] = (0.5 * (_curve_distances(first, second) + residual) + TURN_PX_PER_RAD * np.abs(angle)
                              + _coverage_cost(length3, length2, tip))
     return costs
 
 
-def _spanned_tree(g2: SkeletonGraph, ends: list[int]):
+def _spanned_tree(g2: SkeletonGraph, ends: list[int], contracted: _ContractedGraph):
     """Junctions of the 2D tree spanned by ``ends`` and each end's chain from its junction.
 
     Returns None when the ends are not connected or span no junction (a single path).
     """
-    _, pred = csgraph.dijkstra(g2.adjacency, directed=True, indices=ends[0], return_predecessors=True)
-    paths = _paths_to(pred, ends[1:])
-    if any(path[0] != ends[0] for path in paths.values()):
+    paths = contracted.paths(ends[0], ends[1:])
+    if len(paths) < len(ends) - 1:
         return None
     n = len(g2.positions)
     steps = np.concatenate([np.sort(np.stack([path[:-1], path[1:]], axis=1), axis=1) for path in paths.values()])
@@ -484,11 +588,11 @@ def _nearest(g2: SkeletonGraph, nodes: np.ndarray, at: np.ndarray) -> int:
 
 
 def _from_matched_ends(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification, P: np.ndarray,
-                       matched: dict, source: str) -> Correspondence | None:
+                       matched: dict, contracted: _ContractedGraph) -> Correspondence | None:
     """The correspondence read off the 2D tree spanned by the matched 2D ends (3D branch -> end)."""
     if len(matched) < 3:
         return None
-    spanned = _spanned_tree(g2, list(matched.values()))
+    spanned = _spanned_tree(g2, list(matched.values()), contracted)
     if spanned is None:
         return None
     junctions2, chains = spanned
@@ -497,14 +601,14 @@ def _from_matched_ends(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph,
         at = project(P, g3.positions[[j3]])[0]
         starts = [chains[matched[i3]][0] for i3, b in enumerate(c3.branches) if b.junction == j3 and i3 in matched]
         junction_pairs[int(j3)] = _nearest(g2, np.array(starts) if starts else junctions2, at)
-    trunk_pairs = _trunks_between(g3, c3, g2, junction_pairs)
+    trunk_pairs = _trunks_between(c3, g3, junction_pairs, contracted)
     ends_of_preserved = {int(b.end): i2 for i2, b in enumerate(c2.branches)}
     branch_pairs = [(i3, ends_of_preserved.get(end)) for i3, end in sorted(matched.items())]
     branch_chains = {i3: chains[end] for i3, end in sorted(matched.items())}
-    return Correspondence(branch_pairs, trunk_pairs, junction_pairs, source, branch_chains)
+    return Correspondence(branch_pairs, trunk_pairs, junction_pairs, "projection", branch_chains)
 
 
-def _trunks_between(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, junction_pairs: dict) -> list:
+def _trunks_between(c3: Classification, g3: SkeletonGraph, junction_pairs: dict, contracted: _ContractedGraph) -> list:
     """3D trunks paired with the 2D paths between their junctions' 2D partners.
 
     3D junctions sharing one 2D partner (renal arteries that leave the aorta apart in 3D and
@@ -519,9 +623,13 @@ def _trunks_between(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, ju
         if a2 is None or b2 is None or a2 == b2 or (a2, b2) in seen or (b2, a2) in seen:
             continue
         seen.add((a2, b2))
-        a3 = _farthest(g3, [j for j, k in junction_pairs.items() if k == a2], g3.positions[b3])
-        b3 = _farthest(g3, [j for j, k in junction_pairs.items() if k == b2], g3.positions[a3])
-        pairs.append((g3.shortest_path(a3, b3), g2.shortest_path(a2, b2)))
+        path2 = contracted.paths(a2, [b2]).get(b2)
+        if path2 is None:
+            continue
+        a3_far = _farthest(g3, [j for j, k in junction_pairs.items() if k == a2], g3.positions[b3])
+        b3_far = _farthest(g3, [j for j, k in junction_pairs.items() if k == b2], g3.positions[a3])
+        path3 = trunk.nodes if (a3_far, b3_far) == (a3, b3) else g3.shortest_path(a3_far, b3_far)
+        pairs.append((np.asarray(path3), path2))
     return pairs
 
 
@@ -565,13 +673,15 @@ def match_by_projection(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph
     n3 = len(c3.branches)
     if len(ends2) == 0 or n3 == 0:
         return []
-    costs = _branch_costs(g3, c3, g2, P, ends2)
+    starts = _branch_starts(g3, c3, g2, P)
+    contracted = _ContractedGraph(g2, forced=list(starts.values()))
+    costs = _branch_costs(g3, c3, g2, P, ends2, starts, contracted)
     no_partner = np.full((n3, n3), _FORBIDDEN)
     np.fill_diagonal(no_partner, NO_PARTNER_PX)
     rows, cols = linear_sum_assignment(np.hstack([np.where(np.isfinite(costs), costs, _FORBIDDEN), no_partner]))
     columns = {int(r): int(c) for r, c in zip(rows, cols) if c < len(ends2) and costs[r, c] < NO_PARTNER_PX}
     variants = [columns] + [{**columns, i3: other} for i3, other in _close_seconds(costs, columns)]
-    found = [_from_matched_ends(g3, c3, g2, c2, P, {i3: int(ends2[c]) for i3, c in v.items()}, "projection")
+    found = [_from_matched_ends(g3, c3, g2, c2, P, {i3: int(ends2[c]) for i3, c in v.items()}, contracted)
              for v in variants]
     return [c for c in found if c is not None]
 
