@@ -517,9 +517,13 @@ class _ContractedGraph:
 
 
 def _branch_starts(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray) -> dict:
-    """3D branch junction -> the kept 2D node nearest its projection (where its 2D paths start)."""
-    kept2 = np.flatnonzero(g2.degrees > 0)
-    return {j3: _nearest(g2, kept2, project(P, g3.positions[[j3]])[0])
+    """3D branch junction -> the 2D junction node nearest its projection (where its 2D paths start).
+
+    Any kept node where the 2D graph has no junction.
+    """
+    forks = np.flatnonzero(g2.degrees >= 3)
+    pool = forks if len(forks) else np.flatnonzero(g2.degrees > 0)
+    return {j3: _nearest(g2, pool, project(P, g3.positions[[j3]])[0])
             for j3 in sorted({int(b.junction) for b in c3.branches})}
 
 
@@ -541,7 +545,10 @@ def _branch_costs(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: n
                 keys.append((source, end))
                 chains.append(g2.positions[path])
     chain_row = {key: k for k, key in enumerate(keys)}
+    # each projected branch moved to start where its 2D paths start: a bend of the aorta
+    # carries a whole junction with its branches across the frame
     branches = [project(P, g3.positions[b.nodes]) for b in c3.branches]
+    branches = [q - q[0] + g2.positions[starts[int(b.junction)]] for q, b in zip(branches, c3.branches)]
     bundle = _Polylines(branches + chains)
     n3 = len(branches)
     radii = g2.radii if g2.radii is not None else np.zeros(len(g2.positions))
