@@ -13,7 +13,7 @@ target ``t_j = X M[:, j]``.
 Beyond the paper: both graphs also carry anatomical labels (graph.label_anatomy), and
 where the tangent matching and the labels disagree, or the trunk ranks are ambiguous,
 every consistent candidate is kept; the caller deforms with each and keeps the one with
-the lowest final energy (Algorithm 2 run once per candidate).
+the lowest final energy and 3D implausibility (Algorithm 2 run once per candidate).
 
 Matching against the projected pre-operative tree (:func:`match_by_projection`, beyond the
 paper). Algorithm 1 in 2D keeps the five longest branches, and a frame often shows
@@ -21,16 +21,20 @@ branches that the 3D tree lacks: the internal / external iliac fork below a comm
 accessory renal arteries, side branches off the aorta, spurs from a wide sac. Ranked by
 length, one of them is matched as a main vessel and a whole iliac lands on the wrong
 vessel. The rigid pre-alignment ``P`` says where each 3D branch must appear, so each 3D
-branch is scored against the 2D path from (the node nearest) its projected junction to
-every 2D end node of the kept 2D graph: mean closest distance between the two curves over
-their common arc length, plus the share of the projected branch that the 2D path does not
-cover (less about ``TIP_RADII`` radii: thinning eats a tip by about its radius). A path
-through a fork the 3D tree lacks continues along the arm closest to the projection. The
-Hungarian assignment (``linear_sum_assignment``) pairs 3D branches with distinct 2D ends,
-with a "no partner" column per 3D branch at :data:`NO_PARTNER_PX`; 2D ends left over stay
+branch is scored against the 2D path from the 2D junction nearest its projected junction
+to every 2D end node of the kept 2D graph (:func:`_branch_costs`): over their common arc
+length, the mean closest distance between the projected branch (moved to start there)
+and the path and the residual after turning it about the junction, the angle of that
+turn, and the share of the projected branch that the path does not cover (less
+``TIP_RADII`` radii: thinning eats a tip by about its radius). A path through a fork the
+3D tree lacks continues along the arm that continues the projection best. The Hungarian
+assignment (``linear_sum_assignment``) pairs 3D branches with distinct 2D ends, with a
+"no partner" column per 3D branch at :data:`NO_PARTNER_PX`; 2D ends left over stay
 unmatched. The junctions, trunks and branch chains are then read off the 2D tree spanned
 by the matched ends, so a 2D branch hanging off the wrong junction costs the stretch of
-aorta between the two junctions.
+aorta between the two junctions. These candidates join the paper's; the caller keeps the
+one of least :func:`candidate_score` (the energy after the deformation plus the 3D
+implausibility of the result).
 """
 
 from __future__ import annotations
