@@ -588,7 +588,10 @@ def _spanned_tree(g2: SkeletonGraph, ends: list[int], contracted: _ContractedGra
         return None
     chains = {}
     for end, path in paths.items():
-        chains[end] = path[np.flatnonzero(degree[path] >= 3).max():]
+        on_path = np.flatnonzero(degree[path] >= 3)
+        if len(on_path) == 0:  # only where a cycle the graph kept joins the ends
+            return None
+        chains[end] = path[on_path.max():]
     first_path = next(iter(paths.values()))
     chains[ends[0]] = first_path[:np.flatnonzero(degree[first_path] >= 3).min() + 1][::-1]
     return junctions, chains
