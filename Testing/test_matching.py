@@ -16,7 +16,7 @@ import pytest
 
 from FevarPlannerLib import evaluation, graph, matching, phantom, pipeline
 from FevarPlannerLib.phantom import Anatomy, Vessel
-from FevarPlannerLib.projection import project
+from FevarPlannerLib.projection import pixels_per_mm, project
 
 PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
               primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
@@ -53,7 +53,7 @@ def side_branch(anatomy, parent, index, direction, length, radius):
 def graph_2d(case, preop, mask):
     """The 2D side of pipeline._register_frame: skeleton graph with radii, Algorithm 1, smoothing."""
     P = case.P_true
-    g2 = pipeline._skeleton2d_graph(mask, 1.0 / pipeline._pixels_per_mm(P, preop.centre))
+    g2 = pipeline._skeleton2d_graph(mask, 1.0 / pixels_per_mm(P, preop.centre))
     c2 = pipeline._classify_2d(g2, P, preop.centre)
     return graph.smooth_positions(c2.graph, pipeline.SMOOTHING_ITERATIONS), c2
 
@@ -121,7 +121,7 @@ def test_wide_sac_spurs_are_pruned_by_the_local_radius(case, preop):
         positions = c.graph.positions[kept]
         return int(np.sum(np.min(np.linalg.norm(positions[:, None] - tips[None], axis=2), axis=1) < 15.0))
 
-    g2 = pipeline._skeleton2d_graph(mask, 1.0 / pipeline._pixels_per_mm(case.P_true, preop.centre))
+    g2 = pipeline._skeleton2d_graph(mask, 1.0 / pixels_per_mm(case.P_true, preop.centre))
     iota_only = graph.classify(g2, spur_radius_factor=0.0)
     by_radius = graph.classify(g2)
     assert ends_near_bumps(iota_only) >= 2
