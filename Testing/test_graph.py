@@ -401,3 +401,62 @@ def test_centring_rejects_a_2d_graph_and_an_empty_lumen():
     lumen = aaa_mask_3d(VOXEL)
     with pytest.raises(ValueError, match="lumen mask is empty"):
         centre_in_lumen(skeleton_graph_3d(lumen), lumen.with_array(np.zeros(lumen.shape, dtype=np.uint8)))
+
+
+# ---------------------------------------------------------------------------------------
+# Spurs judged against the local radius (departure 7)
+# ---------------------------------------------------------------------------------------
+
+def wide_sac_mask_2d(bump_height):
+    """A 2D AAA on a 1 px = 1 mm grid: aorta radius 10 with a sac of radius 24, renals and
+    iliacs; a round bump of radius 6 on the sac wall rising ``bump_height`` above it."""
+    rows, cols = 260, 200
+    uv = np.stack(np.meshgrid(np.arange(cols), np.arange(rows)), axis=-1).astype(float)
+    c = 100.0
+    segments = [(np.array([c, 10.0]), np.array([c, 190.0]), 10.0),
+                (np.array([c, 60.0]), np.array([c + 60.0, 70.0]), 3.5), (np.array([c, 66.0]), np.array([c - 60.0, 76.0]), 3.5),
+                (np.array([c, 190.0]), np.array([c + 45.0, 250.0]), 5.0), (np.array([c, 190.0]), np.array([c - 45.0, 250.0]), 5.0),
+                (np.array([c, 130.0]), np.array([c + 24.0 + bump_height - 6.0, 130.0]), 6.0)]
+    return draw_tubes(uv, segments, (np.array([c, 130.0]), 24.0))
+
+
+def test_radius_relative_spurs_prune_sac_bumps_and_keep_real_branches():
+    """The bump's spur is longer than iota but shorter than two sac radii: the radius rule
+    deletes it where iota alone keeps it; the renals and iliacs (more than three radii of
+    the aorta) are kept either way, and the five labels still land on them."""
+    from FevarPlannerLib import skeleton
+    mask = wide_sac_mask_2d(bump_height=6.0)
+    thin = skeleton.skeletonize_2d(mask)
+    with_radii = SkeletonGraph.from_image(thin, mask=mask)
+    plain = SkeletonGraph.from_image(thin)
+    assert with_radii.radii is not None and plain.radii is None
+    at_sac = node_at(with_radii, (100.0, 130.0))
+    assert with_radii.radii[at_sac] == pytest.approx(24.5, abs=1.0)
+    bump_tip = np.array([100.0 + 24.0 + 6.0, 130.0])
+    directions = {"left": np.array([1.0, 0.0]), "superior": np.array([0.0, -1.0])}
+
+    def reaches_bump(result):
+        ends = result.graph.positions[result.graph.degrees == 1]
+        return np.min(np.linalg.norm(ends - bump_tip, axis=1)) < 8.0
+
+    by_iota = classify(plain, iota=10.0, directions=directions)
+    by_radius = classify(with_radii, iota=10.0, directions=directions)
+    assert reaches_bump(by_iota) and not reaches_bump(by_radius)
+    assert len(by_radius.spur_nodes) > len(by_iota.spur_nodes)
+    label_anatomy(with_radii, by_radius, **directions)
+    tips = {"aorta": (100, 10), "renal_left": (160, 70), "renal_right": (40, 76), "iliac_left": (145, 250),
+            "iliac_right": (55, 250)}
+    for label, tip in tips.items():
+        assert np.linalg.norm(with_radii.positions[by_radius.branch(label).end] - tip) < 12.0, label
+
+
+def test_radii_follow_the_graph_through_its_transformations():
+    mask = y_mask_2d()
+    from FevarPlannerLib import skeleton
+    graph = SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), mask=mask)
+    assert np.all(graph.radii > 2.0) and np.all(graph.radii < 7.0)
+    smoothed = smooth_positions(graph, 5)
+    np.testing.assert_array_equal(smoothed.radii, graph.radii)
+    np.testing.assert_array_equal(graph.subgraph([3, 1]).radii, graph.radii[[3, 1]])
+    with pytest.raises(ValueError, match="does not match"):
+        SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), mask=mask[:-1])

@@ -10,7 +10,7 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from FevarPlannerLib.io import Volume
-from FevarPlannerLib.skeleton import clean_mask, grid_edges, skeletonize_2d, skeletonize_3d
+from FevarPlannerLib.skeleton import clean_mask, grid_edges, local_radius, skeletonize_2d, skeletonize_3d
 from fixtures import aaa_grid, aaa_mask_3d, draw_tubes, y_mask_2d
 
 def neighbour_count(skeleton):
@@ -175,3 +175,32 @@ def test_nonzero_linear_matches_flatnonzero():
     for shape, dtype in [((7, 5, 3), np.uint8), ((13, 11), bool), ((4, 6), np.float32)]:
         array = (rng.random(shape) > 0.9).astype(dtype)
         np.testing.assert_array_equal(nonzero_linear(array), np.flatnonzero(array))
+
+
+# ---------------------------------------------------------------------------------------
+# local_radius
+# ---------------------------------------------------------------------------------------
+
+def test_local_radius_is_the_distance_to_the_background():
+    """Against the exact distance transform: a disc, a bar, and points outside."""
+    mask = np.zeros((80, 120), dtype=bool)
+    rr, cc = np.ogrid[:80, :120]
+    mask |= (rr - 40) ** 2 + (cc - 30) ** 2 <= 15 ** 2
+    mask[30:41, 50:115] = True                      # a bar 11 rows thick
+    points = np.array([[40, 30], [35, 80], [30, 80], [5, 5], [40, 44]])
+    radii = local_radius(mask, points)
+    exact = ndi.distance_transform_edt(mask)[tuple(points.T)]
+    np.testing.assert_allclose(radii[:3], exact[:3], atol=1.5)
+    assert radii[0] == pytest.approx(15.0, abs=1.0) and radii[1] == pytest.approx(6.0, abs=0.5)
+    assert radii[3] == 0.0
+    assert abs(radii[4] - exact[4]) <= 0.75
+
+
+def test_local_radius_in_3d_uses_the_spacing():
+    mask = np.zeros((20, 30, 30), dtype=bool)
+    kk, jj, ii = np.ogrid[:20, :30, :30]
+    mask |= ((jj - 15) * 0.5) ** 2 + ((ii - 15) * 0.5) ** 2 <= 5.0 ** 2     # a rod along k, radius 5 mm
+    radii = local_radius(mask, np.array([[10, 15, 15]]), spacing=(2.0, 0.5, 0.5))
+    assert radii[0] == pytest.approx(5.25, abs=0.5)
+    with pytest.raises(ValueError, match="outside the mask"):
+        local_radius(mask, np.array([[20, 0, 0]]))

@@ -147,7 +147,9 @@ def preop_from_skeleton(skeleton_volume, timings: dict | None = None, lumen=None
     """
     timings = {} if timings is None else timings
     with _timed(timings, "preop_graph3d"):
-        c3 = graph.classify(graph.SkeletonGraph.from_volume(skeleton_volume), iota=IOTA_MM, directions=LPS_DIRECTIONS)
+        # with the lumen, spurs are also judged against the local radius (graph.spur_length)
+        g3 = graph.SkeletonGraph.from_volume(skeleton_volume, lumen=lumen)
+        c3 = graph.classify(g3, iota=IOTA_MM, directions=LPS_DIRECTIONS)
         # the repaired graph (gaps bridged, small loops broken, spurs isolated), its voxel
         # staircase smoothed away
         g3 = graph.smooth_positions(c3.graph, SMOOTHING_ITERATIONS)
@@ -192,7 +194,7 @@ def prepare_preop(case: Case, progress=None, segmenter: str = "classical", cache
 
 
 def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
-    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), pixel_size=mm_per_pixel)
+    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), pixel_size=mm_per_pixel, mask=mask)
 
 
 def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
@@ -236,7 +238,11 @@ def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.
 
 
 def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
-    """Algorithm 2 rows 6-16 for one correspondence; returns (kept positions, energy)."""
+    """Algorithm 2 rows 6-16 for one correspondence; returns (kept positions, energy, score).
+
+    The score (matching.candidate_score) picks between candidates: the energy plus the 3D
+    implausibility of the result.
+    """
     g3, c3 = preop.graph, preop.classification
     assignment = matching.soft_assign(g3, c3, g2, c2, P, correspondence)
     assigned = np.flatnonzero(assignment.assigned)
@@ -247,7 +253,9 @@ def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
     keep_assigned = assignment.assigned[preop.kept]
     filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], keep_assigned,
                                          preop.kept_adjacency)
-    return filled, float(result.energy_final)
+    score = matching.candidate_score(result.energy_final, keep_assigned.mean(), preop.centerline.points, filled,
+                                     preop.centerline.edges, alpha)
+    return filled, float(result.energy_final), score
 
 
 @functools.cache
@@ -308,7 +316,7 @@ def _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta) -> Frame
             candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
         with _timed(timings, "deformation"):
             trials = [(_deform_with(preop, g2, c2, P, c, alpha, beta), c) for c in candidates]
-            (deformed, energy), best = min(trials, key=lambda t: t[0][1])
+            (deformed, energy, _), best = min(trials, key=lambda t: t[0][2])
         source = f"{best.source} ({len(candidates)} candidate(s))"
     timings["intraop"] = sum(timings.values())
     return FrameResult(preop.centerline.with_points(deformed), P, g2, c2, energy, source, timings)

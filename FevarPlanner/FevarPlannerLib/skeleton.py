@@ -32,6 +32,7 @@ import warnings
 
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
 from skimage.morphology import skeletonize as _skimage_skeletonize
 
 from .io import Volume
@@ -41,6 +42,7 @@ __all__ = [
     "skeletonize_2d",
     "skeletonize_3d",
     "grid_edges",
+    "local_radius",
     "nonzero_linear",
     "as_binary",
     "bounding_box",
@@ -247,6 +249,57 @@ def grid_edges(indices: np.ndarray, shape, *, prune_triangles: bool = True) -> n
             first, second = first[~bypassed], second[~bypassed]
         pairs.append(np.stack([first, second], axis=1))
     return np.concatenate(pairs, axis=0) if pairs else np.empty((0, 2), dtype=np.int64)
+
+
+def _boundary(mask: np.ndarray) -> np.ndarray:
+    """Foreground elements with a face neighbour in the background (or on the array's edge)."""
+    inner = np.zeros_like(mask)
+    core = (slice(1, -1),) * mask.ndim
+    inner[core] = mask[core]
+    for axis in range(mask.ndim):
+        for shift in (-1, 1):
+            inner[core] &= np.roll(mask, shift, axis=axis)[core]
+    return mask & ~inner
+
+
+def local_radius(mask: np.ndarray, indices: np.ndarray, spacing=None) -> np.ndarray:
+    """Local vessel radius at grid points: their distance to the background of ``mask``.
+
+    The distance to the nearest boundary element plus half an element, found with a k-d
+    tree of the mask's boundary: on a 1024x1024 frame a few milliseconds, where a full
+    distance transform costs about 70.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray, 2D or 3D
+        Non-zero is vessel (the mask the skeleton was thinned from).
+    indices : numpy.ndarray of int, shape (n, d)
+        Grid indices (``(row, col)`` or ``(k, j, i)``) of the points, usually skeleton nodes.
+    spacing : sequence of float, optional
+        Element size per array axis (mm); the result is in the same unit. Default 1 (pixels).
+
+    Returns
+    -------
+    numpy.ndarray, shape (n,)
+        0 for points outside the mask.
+    """
+    binary = as_binary(mask)
+    indices = np.asarray(indices, dtype=np.int64).reshape(-1, binary.ndim)
+    spacing = np.ones(binary.ndim) if spacing is None else np.asarray(spacing, dtype=float)
+    if len(indices) == 0:
+        return np.zeros(0)
+    if np.any(indices < 0) or np.any(indices >= np.asarray(binary.shape)):
+        raise ValueError(f"local_radius: point indices outside the mask of shape {binary.shape}")
+    inside = binary[tuple(indices.T)]
+    radii = np.zeros(len(indices))
+    if not inside.any():
+        return radii
+    box = bounding_box(binary, pad=1)
+    start = np.array([b.start for b in box])
+    edge = np.argwhere(_boundary(np.pad(binary[box], 1))) - 1 + start
+    tree = cKDTree(edge * spacing)
+    radii[inside] = tree.query(indices[inside] * spacing)[0] + 0.5 * float(spacing.min())
+    return radii
 
 
 def _upsample_skeleton(coarse: np.ndarray, step: int, shape: tuple[int, ...]) -> np.ndarray:
