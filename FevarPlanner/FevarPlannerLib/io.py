@@ -52,10 +52,12 @@ __all__ = [
     "read_fluoro",
     "read_mask_2d",
     "Case",
+    "View",
     "CASE_INPUTS",
     "find_case_file",
     "load_case",
     "projection_for_frame",
+    "load_views",
 ]
 
 VOLUME_SUFFIXES = (".nrrd", ".nii.gz", ".nii", ".mha", ".mhd")
@@ -816,7 +818,9 @@ class Case:
 
     Only the most processed 3D input is read (``skeleton3d`` > ``aorta_mask`` > ``ct``);
     the other 3D fields stay None. ``paths`` names the files used, ``available`` every
-    input the folder and the flags offered.
+    input the folder and the flags offered. ``views`` holds every frame of the case as a
+    :class:`View`: the top-level one as ``main`` (first), then ``views/<name>/`` by name;
+    ``fluoro``, ``fluoro_mask`` and ``P`` are those of the first view.
     """
 
     case_dir: Path | None
@@ -829,6 +833,7 @@ class Case:
     paths: dict[str, Path] = field(default_factory=dict)
     available: dict[str, Path] = field(default_factory=dict)
     geometry: GeometrySource | None = None
+    views: list = field(default_factory=list)
 
     @property
     def stage_3d(self) -> str:
@@ -890,12 +895,12 @@ def _folder_listing(case_dir: Path | None, limit: int = 20) -> str:
     return f"the folder holds: {shown or 'nothing'}"
 
 
-def _require_inputs(case_dir: Path | None, available: dict[str, Path]) -> None:
+def _require_inputs(case_dir: Path | None, available: dict[str, Path], has_views: bool = False) -> None:
     where = case_dir if case_dir is not None else "case"
     if not any(name in available for name in PRECEDENCE_3D):
         raise InputError(f"{where}: no 3D input (skeleton3d.*, aorta_mask.* or ct/ / ct.nrrd|.nii.gz|.mha); "
                          f"{_folder_listing(case_dir)}")
-    if "fluoro" not in available and "fluoro_mask" not in available:
+    if "fluoro" not in available and "fluoro_mask" not in available and not has_views:
         raise InputError(f"{where}: no fluoroscopy frame (fluoro.dcm or fluoro.png|.jpg|.tif) and no "
                          f"fluoro_mask.png; "
                          f"{_folder_listing(case_dir)}")
@@ -987,12 +992,12 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
     flags = {"ct": ct, "aorta_mask": aorta_mask, "skeleton3d": skeleton3d, "fluoro": fluoro,
              "fluoro_mask": fluoro_mask, "geometry": geometry}
     available = _gather_inputs(case_dir, flags)
-    _require_inputs(case_dir, available)
+    _require_inputs(case_dir, available, has_views=bool(_view_folders(case_dir)))
     stage = next(name for name in PRECEDENCE_3D if name in available)
     volumes = {name: None for name in PRECEDENCE_3D}
     volumes[stage] = _READERS_3D[stage](available[stage])
     paths = {stage: available[stage]}
-    mask_2d = None
+    mask_2d = frame_2d = P = None
     if "fluoro" in available:
         frame_2d = read_fluoro(available["fluoro"], frame=frame)
         paths["fluoro"] = available["fluoro"]
@@ -1001,7 +1006,107 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
         paths["fluoro_mask"] = available["fluoro_mask"]
         if "fluoro" not in available:
             frame_2d = frame_from_mask(mask_2d, available["fluoro_mask"])
-    P, paths["geometry"], source = _projection_for_case(case_dir, available, frame_2d, volumes[stage])
+    views = load_views(case_dir, volumes[stage])
+    if frame_2d is not None:
+        P, paths["geometry"], source = _projection_for_case(case_dir, available, frame_2d, volumes[stage])
+        main_paths = {name: paths[name] for name in VIEW_INPUTS if name in paths}
+        views.insert(0, View(MAIN_VIEW, frame_2d, mask_2d, P, main_paths, source))
     return Case(case_dir=case_dir, ct=volumes["ct"], aorta_mask=volumes["aorta_mask"],
-                skeleton3d=volumes["skeleton3d"], fluoro=frame_2d, fluoro_mask=mask_2d, P=P,
-                paths=paths, available=available, geometry=source)
+                skeleton3d=volumes["skeleton3d"], fluoro=views[0].fluoro, fluoro_mask=views[0].fluoro_mask,
+                P=views[0].P, paths=paths, available=available, geometry=views[0].geometry, views=views)
+
+
+# --------------------------------------------------------------------------- several views (views/<name>/)
+
+#: The folder of a case that holds its further views, one sub-folder per view.
+VIEWS_FOLDER = "views"
+#: The name of the view given by the case folder's own frame.
+MAIN_VIEW = "main"
+#: The inputs a view folder may hold (CASE_INPUTS' names, same stems and suffixes).
+VIEW_INPUTS = ("fluoro", "fluoro_mask", "geometry")
+
+
+@dataclass
+class View:
+    """One frame of the intra-operative anatomy, with its own pose (DESIGN.md section 4).
+
+    Attributes
+    ----------
+    name : str
+        ``main`` for the case folder's own frame, else the ``views/<name>/`` folder name.
+    fluoro : Fluoro
+        The frame (a stand-in drawn from the mask when the view holds only a mask).
+    fluoro_mask : numpy.ndarray of bool or None
+        The given vessel mask on the frame's grid.
+    P : numpy.ndarray, shape (3, 4)
+        Projection matrix from the view's ``geometry.json``, else from its DICOM C-arm tags.
+    paths : dict
+        The files read (``fluoro``, ``fluoro_mask``, ``geometry``).
+    geometry : GeometrySource or None
+        Where ``P`` came from and what was assumed (:func:`_projection_for_case`).
+    """
+
+    name: str
+    fluoro: Fluoro
+    fluoro_mask: np.ndarray | None
+    P: np.ndarray
+    paths: dict = field(default_factory=dict)
+    geometry: GeometrySource | None = None
+
+    @property
+    def has_frame(self) -> bool:
+        """True when the view holds a real frame (not a stand-in drawn from its mask)."""
+        return "fluoro" in self.paths
+
+
+def _view_folders(case_dir: Path | None) -> list[Path]:
+    folder = Path(case_dir) / VIEWS_FOLDER if case_dir is not None else None
+    if folder is None or not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.is_dir())
+
+
+def _read_view(folder: Path, reference: Volume, frame: int) -> View:
+    """One ``views/<name>/`` folder: frame and/or mask, and its geometry, as at the top level."""
+    available = {}
+    for name in VIEW_INPUTS:
+        found = find_case_file(folder, *CASE_INPUTS[name])
+        if found is not None:
+            available[name] = found
+    if "fluoro" not in available and "fluoro_mask" not in available:
+        raise InputError(f"{folder}: view without a frame (fluoro.dcm or fluoro.png|.jpg|.tif) or a "
+                         f"fluoro_mask.png; {_folder_listing(folder)}")
+    paths, mask = {}, None
+    image = read_fluoro(available["fluoro"], frame=frame) if "fluoro" in available else None
+    if image is not None:
+        paths["fluoro"] = available["fluoro"]
+    if "fluoro_mask" in available:
+        mask = read_mask_2d(available["fluoro_mask"], shape=image.shape if image is not None else None)
+        paths["fluoro_mask"] = available["fluoro_mask"]
+        if image is None:
+            image = frame_from_mask(mask, available["fluoro_mask"])
+    P, paths["geometry"], source = _projection_for_case(folder, available, image, reference)
+    return View(folder.name, image, mask, P, paths, source)
+
+
+def load_views(case_dir, reference: Volume, frame: int = 0) -> list[View]:
+    """The further views of a case folder, ``views/<name>/`` in name order (none: ``[]``).
+
+    Each folder holds ``fluoro.dcm`` or ``fluoro.png|.jpg|.tif`` and/or ``fluoro_mask.png``
+    and optionally ``geometry.json``, with the top level's rules; without ``geometry.json``
+    its P comes from the DICOM C-arm tags with the isocentre at the centre of ``reference``.
+    ``frame`` picks the frame of multi-frame DICOM files (the top-level ``frame`` option
+    applies to the case folder's own frame only).
+
+    Raises
+    ------
+    InputError
+        A view named ``main`` (the top-level frame's name), a view without a frame or a
+        mask, or any of the top level's errors for its files.
+    """
+    views = []
+    for folder in _view_folders(case_dir):
+        if folder.name == MAIN_VIEW:
+            raise InputError(f"{folder}: the view name {MAIN_VIEW!r} belongs to the case folder's own frame")
+        views.append(_read_view(folder, reference, frame))
+    return views

@@ -15,6 +15,7 @@ free of anything that does not depend on the frame (paper Algorithm 2):
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import time
 from contextlib import contextmanager
@@ -22,17 +23,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
+from scipy import ndimage
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
 from threadpoolctl import ThreadpoolController
 
 from . import baselines, deformation, evaluation, export, graph, matching, planning, quality, skeleton
 from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
 from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
-from .io import Case, InputError, load_case
+from .io import MAIN_VIEW, Case, InputError, View, load_case
 from .projection import image_directions, pixels_per_mm, project, view_label
 
-__all__ = ["METHODS", "Preoperative", "FrameResult", "PlanResult", "preop_from_skeleton", "preop_from_lumen",
-           "build_preop", "prepare_preop", "picture_title", "register_frame", "run_case", "plan_case", "write_outputs"]
+__all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "FrameResult", "PlanResult", "preop_from_skeleton",
+           "preop_from_lumen", "build_preop", "prepare_preop", "picture_title", "frame_visibility", "register_frame",
+           "register_views", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
 #: Laplacian smoothing passes over both skeletons (graph.smooth_positions), which takes out
@@ -74,8 +80,64 @@ class Preoperative:
 
 
 @dataclass
+class Visibility:
+    """What part of the image plane one frame shows (partial visibility).
+
+    Attributes
+    ----------
+    shape : (rows, cols)
+        The frame's pixel grid.
+    exposed : (row_min, row_max, col_min, col_max)
+        The exposed rectangle (inclusive pixel indices): the frame less its collimated bands.
+    clipped_border : list of str
+        Sides of ``exposed`` ("top", "bottom", "left", "right") that the vessel mask runs into.
+    margin_px : dict
+        Per clipped side, the vessel half-width there (px): within it the 2D skeleton is
+        the thinning's artefact of the cut (it bends or forks towards the corners), so
+        projections closer to the border than this get no data term.
+    """
+
+    shape: tuple
+    exposed: tuple
+    clipped_border: list
+    margin_px: dict
+
+    def shows(self, uv: np.ndarray) -> np.ndarray:
+        """True for the 2D points (u, v) inside the part of the frame that shows vessels."""
+        r0, r1, c0, c1 = self.exposed
+        m = {side: self.margin_px.get(side, 0.0) for side in _SIDES}
+        u, v = uv[:, 0], uv[:, 1]
+        return ((v >= r0 - 0.5 + m["top"]) & (v <= r1 + 0.5 - m["bottom"])
+                & (u >= c0 - 0.5 + m["left"]) & (u <= c1 + 0.5 - m["right"]))
+
+    def to_dict(self, nodes_outside: int | None = None) -> dict:
+        data = {"clipped_border": list(self.clipped_border), "exposed_rows_cols": list(map(int, self.exposed)),
+                "margin_px": {k: round(float(v), 2) for k, v in self.margin_px.items()}}
+        if nodes_outside is not None:
+            data["nodes_outside"] = int(nodes_outside)
+        return data
+
+
+@dataclass
+class ViewFrame:
+    """One view's share of a registration (several views: :func:`register_views`)."""
+
+    name: str
+    P: np.ndarray
+    skeleton2d: graph.SkeletonGraph
+    classification2d: graph.Classification | None
+    visibility: Visibility
+    nodes_outside: int = 0
+    correspondence: str = ""
+
+
+@dataclass
 class FrameResult:
-    """One frame's registration: the deformed kept nodes and how they were found."""
+    """One registration: the deformed kept nodes and how they were found.
+
+    ``P``, ``skeleton2d`` and ``classification2d`` are those of the first view; ``views``
+    holds every view, ``warnings`` what the plausibility checks changed or doubted.
+    """
 
     deformed: Centerline
     P: np.ndarray
@@ -84,11 +146,18 @@ class FrameResult:
     energy: float | None
     correspondence: str
     timings: dict
+    views: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
 
 
 @dataclass
 class PlanResult:
-    """Everything a caller shows or writes about one case (see docs/DESIGN.md section 4)."""
+    """Everything a caller shows or writes about one case (see docs/DESIGN.md section 4).
+
+    ``P``, ``skeleton2d_*``, ``fluoro_image`` and ``errors`` are the first view's; ``views``
+    has one dict per view (name, projection matrix, 2D error, visibility, inputs) and
+    ``warnings`` what the plausibility checks replaced or doubted.
+    """
 
     method: str
     preop: Centerline
@@ -104,13 +173,19 @@ class PlanResult:
     qc: quality.QCData | None = None
     geometry: dict | None = None
     drr: np.ndarray | None = None
+    views: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs}
+        extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs,
+                 "warnings": list(self.warnings)}
         if self.errors is not None:
             extra["errors"] = self.errors
         if self.geometry is not None:
             extra["geometry"] = self.geometry
+        if self.views:
+            extra["views"] = [{k: v for k, v in view.items() if k != "visibility"} for view in self.views]
+            extra["visibility"] = {view["name"]: view["visibility"] for view in self.views}
         return export.build_result_dict(self.method, self.preop, self.deformed, self.path, self.timings, **extra)
 
 
@@ -237,25 +312,352 @@ def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.
     return fit.P if abs(fit.rotation_deg) <= MAX_POSE_ROTATION_DEG else P
 
 
-def _deform_with(preop: Preoperative, g2, c2, P, correspondence, alpha, beta):
-    """Algorithm 2 rows 6-16 for one correspondence; returns (kept positions, energy, score).
+def _frame_projection(preop: Preoperative, view: "_ViewState", P: np.ndarray) -> None:
+    """Project the pre-operative kept nodes through ``P``: which of them the frame shows."""
+    view.P = P
+    view.visible = view.visibility.shows(project(P, preop.graph.positions))
 
-    The score (matching.candidate_score) picks between candidates: the energy plus the 3D
-    implausibility of the result.
+
+@dataclass
+class _ViewState:
+    """The per-view working data of :func:`register_views`."""
+
+    name: str
+    P: np.ndarray
+    g2: graph.SkeletonGraph
+    c2: graph.Classification | None
+    visibility: Visibility
+    visible: np.ndarray | None = None
+    candidates: list = field(default_factory=list)
+    unclassified: str | None = None      # why Algorithm 1 failed on this view (then c2 is None)
+
+
+# --------------------------------------------------------------------------- partial visibility
+
+_SIDES = ("top", "bottom", "left", "right")
+#: A border row or column whose grey values vary by less than this fraction of the frame's
+#: range (1st to 99th percentile) is a collimator (shutter) band: it shows no anatomy.
+FLAT_BAND_FRACTION = 0.01
+#: The vessel mask runs into a border when at least this many of its pixels lie on it.
+MIN_BORDER_PIXELS = 2
+
+
+def _collimated_bands(image: np.ndarray) -> dict:
+    """Number of flat (shutter) rows / columns on each side of a raw frame."""
+    image = np.asarray(image, dtype=float)
+    low, high = np.percentile(image, [1, 99])
+    limit = FLAT_BAND_FRACTION * max(high - low, 1e-12)
+    flat_rows, flat_cols = image.std(axis=1) < limit, image.std(axis=0) < limit
+
+    def run(flags):
+        return int(np.argmin(flags)) if not flags.all() else len(flags)
+
+    return {"top": run(flat_rows), "bottom": run(flat_rows[::-1]), "left": run(flat_cols),
+            "right": run(flat_cols[::-1])}
+
+
+def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Visibility:
+    """Where a frame shows anatomy and where its vessels run out of it.
+
+    Parameters
+    ----------
+    mask2d : (rows, cols) bool
+        The vessel mask.
+    image : (rows, cols) array, optional
+        The raw frame; flat bands along its borders are collimator shutters
+        (:data:`FLAT_BAND_FRACTION`) and are excluded from the exposed rectangle. Without it
+        the whole frame is exposed.
+
+    Returns
+    -------
+    Visibility
+        The exposed rectangle, the sides of it that the vessel mask touches (the vessel
+        continues beyond them unseen) and the vessel half-width at each such side.
+    """
+    mask = np.asarray(mask2d, dtype=bool)
+    rows, cols = mask.shape
+    has_image = image is not None and np.shape(image) == mask.shape
+    bands = _collimated_bands(image) if has_image else dict.fromkeys(_SIDES, 0)
+    r0, r1 = bands["top"], rows - 1 - bands["bottom"]
+    c0, c1 = bands["left"], cols - 1 - bands["right"]
+    if r0 > r1 or c0 > c1:
+        r0, r1, c0, c1 = 0, rows - 1, 0, cols - 1
+    shown = mask[r0:r1 + 1, c0:c1 + 1]
+    # distance to the nearest background pixel inside the exposed rectangle (its edges
+    # repeated outwards): at a side the vessel runs into, the vessel's half-width there
+    half_width = ndimage.distance_transform_edt(np.pad(shown, 1, mode="edge"))[1:-1, 1:-1]
+    sides = {"top": (0, slice(None)), "bottom": (-1, slice(None)), "left": (slice(None), 0),
+             "right": (slice(None), -1)}
+    clipped, margin = [], {}
+    for side, index in sides.items():
+        on_border = shown[index]
+        if np.count_nonzero(on_border) >= MIN_BORDER_PIXELS:
+            clipped.append(side)
+            margin[side] = float(half_width[index][on_border].max())
+    return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin)
+
+
+# --------------------------------------------------------------------------- deformation over views
+
+#: Most combinations of per-view candidate correspondences deformed (the first in order).
+MAX_CANDIDATE_COMBINATIONS = 16
+#: Length (mm) of the seen vessel next to an unseen piece whose direction that piece keeps.
+TANGENT_MM = 15.0
+
+
+def _carry_unseen(preop: Preoperative, moved: np.ndarray, assigned: np.ndarray, visible: list) -> np.ndarray:
+    """Move each unassigned piece that a frame border cuts rigidly with the vessel it hangs from.
+
+    A piece of kept nodes without a 2D target in any view that holds a node no view shows
+    (outside every frame, in a collimated band, or within the vessel's half-width of a
+    border it runs out of, where thinning is unreliable) and hangs from one place of the
+    assigned tree has no data term: the length and smoothness terms of eq. 6 are smallest
+    when it keeps its shape (a rigid motion), and it turns with
+    the direction of the last :data:`TANGENT_MM` of the vessel it hangs from, so that a
+    vessel leaving the frame goes on the way it left instead of the TPS extrapolating it.
+    Changes ``moved`` in place and returns the carried graph nodes.
+    """
+    g3 = preop.graph
+    n = len(g3.positions)
+    free = np.zeros(n, dtype=bool)
+    free[preop.kept] = ~assigned[preop.kept]
+    unseen = free & ~np.logical_or.reduce(visible)
+    if not unseen.any():
+        return np.empty(0, dtype=np.int64)
+    edges = g3.edges()
+    inner = edges[free[edges[:, 0]] & free[edges[:, 1]]]
+    adjacency = scipy.sparse.coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(n, n))
+    _, component = csgraph.connected_components(adjacency, directed=False)
+    links = edges[free[edges[:, 0]] != free[edges[:, 1]]]
+    links = np.where(free[links[:, :1]], links, links[:, ::-1])          # (free node, assigned node)
+    links = links[assigned[links[:, 1]]]
+    pair = edges[assigned[edges[:, 0]] & assigned[edges[:, 1]]]
+    length = np.linalg.norm(g3.positions[pair[:, 0]] - g3.positions[pair[:, 1]], axis=1)
+    assigned_graph = scipy.sparse.coo_matrix((length, (pair[:, 0], pair[:, 1])), shape=(n, n)).tocsr()
+    carried = []
+    for label in np.unique(component[unseen]):
+        piece = np.flatnonzero(free & (component == label))
+        anchors = np.unique(links[np.isin(links[:, 0], piece), 1])
+        if len(anchors) == 0:
+            continue
+        if len(anchors) > 1:
+            apart = csgraph.dijkstra(assigned_graph, directed=False, indices=anchors[0], limit=TANGENT_MM)
+            if not np.isfinite(apart[anchors]).all():
+                continue                                    # hangs between two seen parts: the TPS
+        distance = csgraph.dijkstra(assigned_graph, directed=False, indices=anchors, min_only=True, limit=TANGENT_MM)
+        near = np.flatnonzero(np.isfinite(distance) & (distance > 0))
+        anchor_before, anchor_after = g3.positions[anchors].mean(axis=0), moved[anchors].mean(axis=0)
+        rotation = np.eye(3)
+        if len(near):
+            rotation = _rotation_between(anchor_before - g3.positions[near].mean(axis=0),
+                                         anchor_after - moved[near].mean(axis=0))
+        moved[piece] = anchor_after + (g3.positions[piece] - anchor_before) @ rotation.T
+        carried.append(piece)
+    return np.concatenate(carried) if carried else np.empty(0, dtype=np.int64)
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation turning direction ``a`` into direction ``b``."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis, cos = np.cross(a, b), float(a @ b)
+    sin = np.linalg.norm(axis)
+    if sin < 1e-12:
+        return np.eye(3)
+    k = axis / sin
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sin * K + (1 - cos) * K @ K
+
+
+def _view_data(nodes: np.ndarray, assignment, visible: np.ndarray, P: np.ndarray, positions: np.ndarray):
+    """(targets, weights) of one view for the deformation ``nodes``.
+
+    Weights are 0 where the view has no target (unassigned, or not shown by the frame) and
+    otherwise scaled so that S_D stays the mean squared distance over the view's assigned
+    nodes (eq. 6).
+    """
+    has_target = assignment.assigned[nodes] & visible[nodes]
+    targets = np.where(has_target[:, None], assignment.targets[nodes], project(P, positions[nodes]))
+    count = np.count_nonzero(has_target)
+    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
+    return targets, weights
+
+
+#: Most passes of nearest-point targets for a view without its own classification (ICP-like);
+#: the passes stop earlier once the nodes move less than CLOSEST_POINT_SETTLED_MM on average.
+CLOSEST_POINT_PASSES = 10
+CLOSEST_POINT_SETTLED_MM = 0.05
+#: A nearest 2D skeleton point further than this many times the median nearest distance of
+#: the view is an outlier (another vessel, a part the 2D skeleton lacks) and gives no target.
+CLOSEST_POINT_OUTLIER = 5.0
+
+
+def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
+    """(targets, weights) of a view without a classification: the nearest 2D skeleton points.
+
+    ``estimate`` are the current kept positions; their projections through the view's P
+    find the nearest node of its (smoothed) 2D skeleton; weights as in :func:`_view_data`.
+    """
+    positions = np.array(preop.graph.positions, dtype=float)
+    positions[preop.kept] = estimate
+    uv = project(view.P, positions[nodes])
+    distance, index = cKDTree(view.g2.positions).query(uv)
+    usable = view.visible[nodes]
+    limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
+    has_target = usable & (distance <= limit)
+    count = np.count_nonzero(has_target)
+    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
+    return np.where(has_target[:, None], view.g2.positions[index], uv), weights
+
+
+def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
+    """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
+
+    Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
+    term averaged over the views moves them; the TPS fills the rest (row 16). A view whose
+    correspondence is None (no classification) takes the nearest 2D skeleton points of the
+    kept positions ``estimate`` as targets instead. The score (matching.candidate_score)
+    picks between candidates: the energy plus the 3D implausibility of the result.
     """
     g3, c3 = preop.graph, preop.classification
-    assignment = matching.soft_assign(g3, c3, g2, c2, P, correspondence)
-    assigned = np.flatnonzero(assignment.assigned)
-    result = deformation.deform_assigned(g3.positions[assigned], assignment.targets[assigned],
-                                         _induced_edges(g3, assigned), P, alpha=alpha, beta=beta)
+    classified = [(v, c) for v, c in zip(views, correspondences) if c is not None]
+    assignments = {v.name: matching.soft_assign(g3, c3, v.g2, v.c2, v.P, c) for v, c in classified}
+    has_target = [assignments[v.name].assigned & v.visible for v, _ in classified]
+    nodes = np.flatnonzero(np.logical_or.reduce(has_target))
+    data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
+            else _closest_point_data(v, nodes, preop, estimate) for v in views]
+    extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
+    (targets, weights), edges = data[0], _induced_edges(g3, nodes)
+    if not np.any(weights) and not extra:
+        raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
+    weights_arg = None if np.all(weights == 1.0) else weights
+    result = deformation.deform_assigned(g3.positions[nodes], targets, edges, views[0].P, alpha=alpha, beta=beta,
+                                         weights=weights_arg, **extra)
     moved = np.array(g3.positions, dtype=float)
-    moved[assigned] = result.points
-    keep_assigned = assignment.assigned[preop.kept]
-    filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], keep_assigned,
+    moved[nodes] = result.points
+    in_deformation = np.zeros(len(g3.positions), dtype=bool)
+    in_deformation[nodes] = True
+    assigned_fraction = in_deformation[preop.kept].mean()
+    in_deformation[_carry_unseen(preop, moved, in_deformation, [v.visible for v in views])] = True
+    filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], in_deformation[preop.kept],
                                          preop.kept_adjacency)
-    score = matching.candidate_score(result.energy_final, keep_assigned.mean(), preop.centerline.points, filled,
+    score = matching.candidate_score(result.energy_final, assigned_fraction, preop.centerline.points, filled,
                                      preop.centerline.edges, alpha)
     return filled, float(result.energy_final), score
+
+
+# --------------------------------------------------------------------------- never worse than SV
+
+#: Largest relative change of a vessel's length that a deformation may make: vessels barely
+#: stretch, and the length term (eq. 6) holds a right match to about 1 %.
+LENGTH_TOLERANCE = 0.05
+#: A vessel's 2D fit may be this much worse than the undeformed (SV) one before the result
+#: counts as worse than SV: one pixel, the 2D skeleton's own resolution.
+FIT_TOLERANCE_PX = 1.0
+
+
+@dataclass
+class _Vessel:
+    label: str
+    nodes: np.ndarray          # kept-node indices
+    edges: np.ndarray          # kept-node edges inside the vessel
+    attachments: np.ndarray    # (k, 2) edges (vessel node, other node)
+
+
+def _vessels(centerline: Centerline) -> list:
+    labels = np.asarray(centerline.labels)
+    edges = centerline.edges
+    vessels = []
+    for label in dict.fromkeys(centerline.labels):
+        member = labels == label
+        inner = edges[member[edges[:, 0]] & member[edges[:, 1]]]
+        cut = edges[member[edges[:, 0]] != member[edges[:, 1]]]
+        cut = np.where(member[cut[:, :1]], cut, cut[:, ::-1])
+        vessels.append(_Vessel(str(label), np.flatnonzero(member), inner, cut))
+    return vessels
+
+
+def _length(points: np.ndarray, edges: np.ndarray) -> float:
+    return float(np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1).sum()) if len(edges) else 0.0
+
+
+def _fit_px(points: np.ndarray, nodes: np.ndarray, views: list, kept: np.ndarray) -> float:
+    """Mean over the views of the mean 2D distance (px) of the shown projected ``nodes`` to the skeleton."""
+    fits = []
+    for v in views:
+        shown = nodes[v.visible[kept[nodes]]]
+        if len(shown):
+            uv = project(v.P, points[shown])
+            fits.append(evaluation.point_to_graph(uv, v.g2.positions, v.g2.edges()).mean())
+    return float(np.mean(fits)) if fits else 0.0
+
+
+def _judge(points, vessel: _Vessel, preop_points, sv_fit: float, views, kept) -> tuple[str | None, float]:
+    """Why ``points`` are implausible for ``vessel`` (None if plausible), and its 2D fit."""
+    fit = _fit_px(points, vessel.nodes, views, kept)
+    rest = _length(preop_points, vessel.edges)
+    change = _length(points, vessel.edges) / rest - 1.0 if rest > 0 else 0.0
+    if abs(change) > LENGTH_TOLERANCE:
+        return f"length changed by {100 * change:+.1f}% (limit {100 * LENGTH_TOLERANCE:g}%)", fit
+    if fit > sv_fit + FIT_TOLERANCE_PX:
+        return f"2D fit {fit:.1f} px, worse than the undeformed {sv_fit:.1f} px", fit
+    return None, fit
+
+
+def _attached(option: np.ndarray, base: np.ndarray, vessel: _Vessel) -> np.ndarray:
+    """``option``'s positions of ``vessel`` moved rigidly so that it stays joined to ``base``."""
+    if not len(vessel.attachments):
+        return option[vessel.nodes]
+    outer = vessel.attachments[:, 1]
+    return option[vessel.nodes] + (base[outer] - option[outer]).mean(axis=0)
+
+
+SV_NAME = "the undeformed pre-operative shape (SV)"
+
+
+def _replaced(result: np.ndarray, option: np.ndarray, vessel: _Vessel) -> np.ndarray:
+    """``result`` with ``vessel`` taken from ``option``: the aorta as a whole tree, any other
+    vessel moved rigidly so that it stays joined to ``result``."""
+    if vessel.label == "aorta":
+        return option.copy()
+    moved = result.copy()
+    moved[vessel.nodes] = _attached(option, result, vessel)
+    return moved
+
+
+def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, views: list) -> tuple:
+    """Check each vessel of ``result`` against the undeformed (SV) start; replace implausible ones.
+
+    A matched vessel (every label but "other") is implausible when its length changed by
+    more than :data:`LENGTH_TOLERANCE` or its 2D fit (all views) is worse than SV's by more
+    than :data:`FIT_TOLERANCE_PX`. It is replaced by the plausible alternative with the best
+    2D fit: the same vessel from another registration (``alternatives()`` returns
+    ``[(positions, name), ...]``: other candidate correspondences, each view alone), or SV,
+    moved rigidly with its junction; the aorta by a whole alternative or SV. Returns
+    (positions, warnings).
+    """
+    alternatives = functools.cache(alternatives)
+    sv = preop.centerline.points
+    # "other" vessels (SMA, coeliac, internal iliacs) have no 2D partner: the TPS moves them
+    vessels = [v for v in _vessels(preop.centerline) if v.label != "other"]
+    vessels.sort(key=lambda v: v.label != "aorta")
+    result, warnings = result.copy(), []
+    for vessel in vessels:
+        sv_fit = _fit_px(sv, vessel.nodes, views, preop.kept)
+        reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept)
+        if reason is None:
+            continue
+        options = list(alternatives()) + [(sv, SV_NAME)]
+        best, best_fit, best_name = None, np.inf, None
+        for points, name in options:
+            moved = _replaced(result, points, vessel)
+            why, fit = _judge(moved, vessel, sv, sv_fit, views, preop.kept)
+            if why is None and fit < best_fit:
+                best, best_fit, best_name = moved, fit, name
+        if best is None:            # SV moved with its junction may fit worse than SV in place
+            best, best_name = _replaced(result, sv, vessel), SV_NAME
+        result = best
+        warnings.append(f"{vessel.label}: {reason}; replaced by {best_name}")
+    return result, warnings
 
 
 @functools.cache
@@ -265,7 +667,8 @@ def _threadpools() -> ThreadpoolController:
 
 
 def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, method: str = "proposed",
-                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
+                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0,
+                   image: np.ndarray | None = None, name: str = "main") -> FrameResult:
     """Register the pre-operative skeleton to one frame's 2D vessel mask (the per-frame part).
 
     Parameters
@@ -283,43 +686,164 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
         known to be misaligned by more than about 10 px (the robustness curves).
     alpha, beta : float
         Weights of the length and smoothness terms (eq. 6).
+    image : (rows, cols) array, optional
+        The raw frame, to find collimated borders (:func:`frame_visibility`).
+    name : str
+        The view's name in the result.
+    """
+    return register_views(preop, [(mask2d, P)], names=[name], images=[image], method=method,
+                          refine_pose=refine_pose, alpha=alpha, beta=beta)
+
+
+def register_views(preop: Preoperative, frames, *, names=None, images=None, method: str = "proposed",
+                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
+    """Register the pre-operative skeleton to several frames of the same anatomy at once.
+
+    Each view gets its own 2D skeleton graph, classification, candidate correspondences and
+    soft assignment (eqs. 3-5) to the same 3D nodes; one deformation (eq. 6) minimises the
+    length and smoothness terms with the data term averaged over the views, so that views
+    at different C-arm angles fix the depth that one view leaves open. A node gets no data
+    term in a view that does not show it (outside the frame, in a collimated band, beyond a
+    border the vessel runs out of: :func:`frame_visibility`). Each vessel of the result is
+    then checked against the undeformed start (:func:`_never_worse_than_sv`). A view whose
+    2D skeleton cannot be classified is left out with a warning while another one remains.
+
+    Parameters
+    ----------
+    preop : Preoperative
+    frames : sequence of (mask2d, P)
+        Vessel mask and projection matrix of each view.
+    names : sequence of str, optional
+        View names (default "main", "view2", ...).
+    images : sequence of arrays or None, optional
+        Raw frames, for the collimator detection.
+    method, refine_pose, alpha, beta
+        As in :func:`register_frame`. ``icp-tps`` uses the first view only.
+
+    Returns
+    -------
+    FrameResult
+        ``P``, ``skeleton2d`` and ``classification2d`` of the first view; ``views`` of all.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    frames = list(frames)
+    if not frames:
+        raise ValueError("register_views: no view given")
+    names = list(names) if names is not None else ["main"] + [f"view{k + 1}" for k in range(1, len(frames))]
+    images = list(images) if images is not None else [None] * len(frames)
+    if len(names) != len(frames) or len(images) != len(frames) or len(set(names)) != len(names):
+        raise ValueError("register_views: need one distinct name (and one image or None) per view")
     # small matrices: BLAS threads only cost time here (10x in L-BFGS on 2 cores)
     with _threadpools().limit(limits=1, user_api="blas"):
-        return _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta)
+        return _register_views(preop, frames, names, images, method, refine_pose, alpha, beta)
 
 
-def _register_frame(preop, mask2d, P, method, refine_pose, alpha, beta) -> FrameResult:
-    timings = {}
+def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -> _ViewState:
+    """One view's 2D side: skeleton graph, classification (Alg. 1), pose, visibility."""
     with _timed(timings, "skeleton2d"):
         g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
-    c2 = None
+    c2 = unclassified = None
     if refine_pose or method == "proposed":
         with _timed(timings, "graph2d"):
-            c2 = _classify_2d(g2, P, preop.centre)
+            try:
+                c2 = _classify_2d(g2, P, preop.centre)
+                g2 = c2.graph
+            except ValueError as exc:        # e.g. a lateral view: vessels overlap, ends merge
+                unclassified = str(exc)
             # pixel staircase smoothed away: eq. (4) compares path lengths along it
-            g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
-    if refine_pose:
+            g2 = graph.smooth_positions(g2, SMOOTHING_ITERATIONS)
+    if refine_pose and c2 is not None:
         with _timed(timings, "pose_refinement"):
             P = _refined_projection(preop, g2, c2, P)
+    view = _ViewState(name, P, g2, c2, frame_visibility(mask2d, image), unclassified=unclassified)
+    _frame_projection(preop, view, P)
+    return view
+
+
+def _alternatives(preop, views, trials, best, alpha, beta) -> list:
+    """The registrations to fall back on: the other candidate combinations and, with several
+    views, each view alone with its chosen correspondence."""
+    found = [(positions, f"candidate {k + 1}") for k, ((positions, _, _), combo) in enumerate(trials) if combo is not best]
+    if len(views) > 1:
+        found += [(_deform_with(preop, [view], (chosen,), alpha, beta)[0], f"view {view.name} alone")
+                  for view, chosen in zip(views, best) if chosen is not None]
+    return found
+
+
+def _full_combination(views, combo) -> tuple:
+    """A combination over the classified views, with None for each unclassified one."""
+    chosen = iter(combo)
+    return tuple(None if v.c2 is None else next(chosen) for v in views)
+
+
+def _with_unclassified_views(preop, views, combo, deformed, alpha, beta):
+    """Add the views without a classification: passes of nearest-point targets (from the last
+    result) beside the classified views' assignments, until the nodes settle."""
+    full = _full_combination(views, combo)
+    energy = None
+    for _ in range(CLOSEST_POINT_PASSES):
+        previous = deformed
+        deformed, energy, _ = _deform_with(preop, views, full, alpha, beta, estimate=deformed)
+        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
+            break
+    return deformed, energy, full
+
+
+def _register_views(preop, frames, names, images, method, refine_pose, alpha, beta) -> FrameResult:
+    timings = {}
+    views, warnings, failures = [], [], []
+    for (mask2d, P), name, image in zip(frames, names, images):
+        try:
+            views.append(_prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings))
+        except ValueError as exc:
+            # one unreadable view (vessels overlapping at a steep angle) must not sink the others
+            failures.append(exc)
+            warnings.append(f"view {name} not used: {exc}")
+    if not views:
+        raise ValueError(f"view {names[0]}: {failures[0]}" if len(frames) > 1 else str(failures[0])) from failures[0]
     points = preop.centerline.points
     energy, source = None, method
     if method == "rigid":
         deformed = points
     elif method == "icp-tps":
+        if len(views) > 1:
+            warnings.append(f"icp-tps registers one frame: used view {views[0].name} only")
         with _timed(timings, "registration"):
-            deformed = baselines.icp_tps(points, preop.centerline.edges, g2.positions, P).points
+            deformed = baselines.icp_tps(points, preop.centerline.edges, views[0].g2.positions, views[0].P).points
     else:
+        classified = [v for v in views if v.c2 is not None]
+        if not classified:
+            raise ValueError(views[0].unclassified if len(views) == 1 else
+                             f"no view could be classified (view {views[0].name}: {views[0].unclassified})")
         with _timed(timings, "matching"):
-            candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
+            for view in views:
+                view.candidates = [None] if view.c2 is None else matching.candidate_correspondences(
+                    preop.graph, preop.classification, view.g2, view.c2, view.P)
+        combinations = list(itertools.islice(itertools.product(*[v.candidates for v in classified]),
+                                             MAX_CANDIDATE_COMBINATIONS))
         with _timed(timings, "deformation"):
-            trials = [(_deform_with(preop, g2, c2, P, c, alpha, beta), c) for c in candidates]
+            trials = [(_deform_with(preop, classified, combo, alpha, beta), combo) for combo in combinations]
             (deformed, energy, _), best = min(trials, key=lambda t: t[0][2])
-        source = f"{best.source} ({len(candidates)} candidate(s))"
+            if len(classified) < len(views):
+                deformed, energy, best = _with_unclassified_views(preop, views, best, deformed, alpha, beta)
+                trials = [(result, _full_combination(views, combo)) for result, combo in trials]
+                warnings += [f"view {v.name}: no anatomical classification ({v.unclassified}); registered to "
+                             f"its nearest 2D skeleton points" for v in views if v.c2 is None]
+        with _timed(timings, "plausibility"):
+            deformed, doubts = _never_worse_than_sv(
+                deformed, lambda: _alternatives(preop, views, trials, best, alpha, beta), preop, views)
+        warnings += doubts
+        source = "; ".join(f"{c.source} ({len(v.candidates)} candidate(s))" if c is not None else "nearest points"
+                           for v, c in zip(views, best))
     timings["intraop"] = sum(timings.values())
-    return FrameResult(preop.centerline.with_points(deformed), P, g2, c2, energy, source, timings)
+    outside = [int(np.count_nonzero(~v.visible[preop.kept])) for v in views]
+    frames_out = [ViewFrame(v.name, v.P, v.g2, v.c2, v.visibility, n_out,
+                            (c.source if c is not None else "nearest points") if method == "proposed" else method)
+                  for v, n_out, c in zip(views, outside, best if method == "proposed" else [None] * len(views))]
+    first = views[0]
+    return FrameResult(preop.centerline.with_points(deformed), first.P, first.g2, first.c2, energy, source, timings,
+                       frames_out, warnings)
 
 
 def _read_ground_truth(case: Case) -> Centerline | None:
@@ -332,13 +856,38 @@ def _read_ground_truth(case: Case) -> Centerline | None:
         raise InputError(f"{path}: unreadable ground truth ({exc})") from None
 
 
-def _vessel_mask(case: Case, progress=None, prior=None) -> np.ndarray:
-    if case.fluoro_mask is not None:
-        return case.fluoro_mask
+def _vessel_mask(frame, progress=None, prior=None) -> np.ndarray:
+    """The given vessel mask of a case or view, or the frame segmented."""
+    if frame.fluoro_mask is not None:
+        return frame.fluoro_mask
     from . import segmentation
 
     _report(progress, 0.4, "segmenting vessels in the frame")
-    return segmentation.segment_fluoro(case.fluoro.image, prior)
+    return segmentation.segment_fluoro(frame.fluoro.image, prior)
+
+
+def _case_views(case: Case) -> list[View]:
+    """The case's views (io.load_case), or its one frame for a Case built by hand."""
+    if case.views:
+        return list(case.views)
+    return [View(MAIN_VIEW, case.fluoro, case.fluoro_mask, case.P,
+                 {k: case.paths[k] for k in ("fluoro", "fluoro_mask") if k in case.paths})]
+
+
+def _view_summary(view: View, frame: ViewFrame, deformed: Centerline) -> dict:
+    """result.json's entry for one view: pose, 2D error, visibility, files.
+
+    ``2d_px`` is over the nodes whose projection the frame shows (a node outside it has no
+    2D evidence to be measured against); ``2d_all_px`` over every node, the paper's measure.
+    """
+    skeleton = (frame.skeleton2d.positions, frame.skeleton2d.edges())
+    errors = evaluation.evaluate(deformed, None, frame.P, *skeleton)
+    shown = frame.visibility.shows(project(frame.P, deformed.points))
+    fit = evaluation.error_2d(deformed.points[shown], frame.P, *skeleton) if shown.any() else None
+    return {"name": view.name, "projection_matrix": np.asarray(frame.P).tolist(), "2d_px": fit,
+            "2d_all_px": errors["2d_px"],
+            "correspondence": frame.correspondence, "inputs": {k: str(v) for k, v in view.paths.items()},
+            "visibility": frame.visibility.to_dict(frame.nodes_outside)}
 
 
 def _drr_volume(case: Case):
@@ -355,26 +904,40 @@ def _preop_of(case: Case, preop, progress, segmenter, cache) -> Preoperative:
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
              target: str = "renal_left", refine_pose: bool = False, alpha: float = 500.0,
              beta: float = 10.0, segmenter: str = "classical", preop=None, cache=False, drr="auto") -> PlanResult:
-    """Run the whole job on a loaded case: pre-op graph, frame registration, path, errors.
+    """Run the whole job on a loaded case: pre-op graph, registration to every view, path, errors.
 
-    ``segmenter`` ("classical", "unet" or "threshold") segments a case that holds only a CT. ``preop``
-    (a :class:`Preoperative` or a :class:`cache.PreopModel`) skips the pre-operative work;
-    ``cache`` keeps it on disk (:func:`prepare_preop`). ``drr``: render the geometry check
-    (:mod:`drr`) always (True), never (False) or when ``P`` came from C-arm tags ("auto").
+    Every view of the case (``case.views``: the top-level frame and ``views/<name>/``) takes
+    part in one registration (:func:`register_views`). ``segmenter`` ("classical",
+    "unet" or "threshold") segments a case that holds only a CT. ``preop`` (a :class:`Preoperative`
+    or a :class:`cache.PreopModel`) skips the pre-operative work; ``cache`` keeps it on disk
+    (:func:`prepare_preop`). ``drr``: render the geometry check (:mod:`drr`) of the first
+    view always (True), never (False) or when its ``P`` came from C-arm tags ("auto").
     """
     planning.check_labels(start, target)
     t0 = time.perf_counter()
     _report(progress, 0.0, "pre-operative skeleton graph")
     preop = _preop_of(case, preop, progress, segmenter, cache)
     timings = dict(preop.timings)
-    prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
-    qc = quality.QCData(case.ct, case.aorta_mask, case.fluoro.image, None, prior)
+    views = _case_views(case)
+    by_name = {view.name: view for view in views}
+    priors = [quality.FluoroPrior.from_centerline(preop.centerline, view.P) for view in views]
+    qc = quality.QCData(case.ct, case.aorta_mask, views[0].fluoro.image, None, priors[0])
     quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
     with _timed(timings, "segmentation2d"):
-        qc.mask2d = mask2d = _vessel_mask(case, progress, prior)
-    quality.check_frame_mask(mask2d, prior, qc, frame=case.fluoro.image)
-    _report(progress, 0.5, f"registering ({method})")
-    frame = register_frame(preop, mask2d, case.P, method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
+        masks = [_vessel_mask(view, progress, prior) for view, prior in zip(views, priors)]
+    qc.mask2d = masks[0]
+    for view, mask, prior in zip(views, masks, priors):
+        try:
+            quality.check_frame_mask(mask, prior, qc, frame=view.fluoro.image if view.has_frame else None)
+        except quality.QualityError as exc:
+            if view is views[0]:
+                raise
+            raise quality.QualityError(f"view {view.name}: {exc}", qc) from None
+    _report(progress, 0.5, f"registering ({method}, {len(views)} view(s))")
+    frame = register_views(preop, [(mask, view.P) for mask, view in zip(masks, views)],
+                           names=[view.name for view in views],
+                           images=[view.fluoro.image if view.has_frame else None for view in views],
+                           method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
     _report(progress, 0.85, "planning the catheter path")
@@ -391,12 +954,13 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
         _report(progress, 0.9, "rendering the DRR geometry check")
         with _timed(timings, "drr"):
             drr_image = drr_module.check_drr(_drr_volume(case), case.P, case.fluoro.shape)
+    summaries = [_view_summary(by_name[vf.name], vf, frame.deformed) for vf in frame.views]
     timings["total"] = time.perf_counter() - t0
     _report(progress, 1.0, "done")
     return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
-                      sk_edges, case.fluoro.image, timings, errors,
+                      sk_edges, views[0].fluoro.image, timings, errors,
                       {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
-                      qc=qc, geometry=geometry, drr=drr_image)
+                      qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings))
 
 
 def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
