@@ -517,15 +517,21 @@ def _base_deformation(rng: np.random.Generator, out_of_plane_deg: tuple = (3.0, 
         renal_tilt_deg=tuple(_signed(rng, 1.0, 8.0) for _ in SIDES))
 
 
+def _out_of_plane_direction(rng: np.random.Generator) -> float:
+    """A bend direction at least half out of an AP frame's plane: within 45 degrees of 0 or 180."""
+    return float(rng.choice([0.0, 180.0]) + rng.uniform(-45.0, 45.0))
+
+
 def _out_of_plane(rng: np.random.Generator, severity: float) -> Deformation:
-    """Bends of ``severity`` degrees at the bifurcation and along each iliac, in random directions.
+    """Bends of ``severity`` degrees at the bifurcation and along each iliac, forwards or
+    backwards and obliquely (:func:`_out_of_plane_direction`), so that severity means depth.
 
     The aorta bends only in the frontal plane (90 degrees), so at severity 0 nothing moves in depth.
     """
     return Deformation(aorta_bend_deg=float(rng.uniform(1.0, 4.0)), aorta_dir_deg=90.0,
-                       bifurcation_bend_deg=severity, bifurcation_dir_deg=float(rng.uniform(0.0, 360.0)),
+                       bifurcation_bend_deg=severity, bifurcation_dir_deg=_out_of_plane_direction(rng),
                        iliac_bend_deg=(severity, severity),
-                       iliac_dir_deg=tuple(float(v) for v in rng.uniform(0.0, 360.0, size=2)))
+                       iliac_dir_deg=(_out_of_plane_direction(rng), _out_of_plane_direction(rng)))
 
 
 def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, Deformation, list, dict]:
