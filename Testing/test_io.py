@@ -429,3 +429,87 @@ def test_mask_only_case_gets_a_stand_in_frame(case_dir):
     assert case.fluoro.shape == mask.shape
     assert np.array_equal(case.fluoro_mask, mask)
     assert case.fluoro.image[mask].max() < case.fluoro.image[~mask].min()
+
+
+# --------------------------------------------------------------------------- refusing before reading
+
+def test_special_files_are_refused_from_stat_without_opening(tmp_path):
+    import os
+
+    os.mkfifo(tmp_path / "pipe.nrrd")
+    with pytest.raises(InputError, match="named pipe"):
+        io.read_volume(tmp_path / "pipe.nrrd")          # would block for ever if opened
+    (tmp_path / "dev.dcm").symlink_to("/dev/zero")
+    with pytest.raises(InputError, match="character device"):
+        io.read_fluoro(tmp_path / "dev.dcm")
+    (tmp_path / "broken.png").symlink_to(tmp_path / "absent.png")
+    with pytest.raises(InputError, match="broken link"):
+        io.read_fluoro(tmp_path / "broken.png")
+
+
+def test_header_limits_come_before_allocation(tmp_path, monkeypatch):
+    io.write_volume(tmp_path / "m.nrrd", mask_volume())
+    monkeypatch.setenv("FEVAR_MAX_VOXELS", str(5 * 6 * 7 - 1))
+    with pytest.raises(InputError, match=r"7 x 6 x 5 voxels exceeds the limit of 209 voxels .*FEVAR_MAX_VOXELS"):
+        io.read_mask(tmp_path / "m.nrrd")
+    monkeypatch.setenv("FEVAR_MAX_VOXELS", str(5 * 6 * 7))
+    assert io.read_mask(tmp_path / "m.nrrd").shape == (5, 6, 7)
+    monkeypatch.setenv("FEVAR_MAX_VOXELS", "lots")
+    with pytest.raises(InputError, match="FEVAR_MAX_VOXELS='lots': not a number"):
+        io.read_mask(tmp_path / "m.nrrd")
+
+
+def test_detached_data_must_lie_beside_its_header(tmp_path):
+    (tmp_path / "case").mkdir()
+    (tmp_path / "data.raw").write_bytes(bytes(8))
+    header = "NRRD0004\ntype: uint8\ndimension: 3\nsizes: 2 2 2\nencoding: raw\ndata file: {}\n"
+    (tmp_path / "case" / "m.nrrd").write_text(header.format("../data.raw"))
+    with pytest.raises(InputError, match=r"m.nrrd: its detached data file .*outside the folder of its header"):
+        io.read_volume(tmp_path / "case" / "m.nrrd")
+    (tmp_path / "case" / "data.raw").write_bytes(bytes([0, 1, 0, 0, 0, 0, 0, 0]))
+    (tmp_path / "case" / "m.nrrd").write_text(header.format("data.raw"))
+    assert io.read_volume(tmp_path / "case" / "m.nrrd").array.sum() == 1
+
+
+def test_swap_folder_replaces_a_set_whole_and_modes_follow_the_umask(tmp_path):
+    import os
+
+    old = tmp_path / "out"
+    old.mkdir()
+    (old / "a.txt").write_text("old")
+    new = tmp_path / ".staging"
+    new.mkdir()
+    (new / "b.txt").write_text("new")
+    io.swap_folder(new, old)
+    assert sorted(p.name for p in old.iterdir()) == ["b.txt"] and not new.exists()
+    previous = os.umask(0o077)
+    try:
+        io.write_text_atomic(tmp_path / "f.txt", "x")
+        assert io.output_mode() == 0o600 and io.output_mode(folder=True) == 0o700
+    finally:
+        os.umask(previous)
+    assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o600
+    io.write_text_atomic(tmp_path / "g.txt", "x")
+    assert (tmp_path / "g.txt").stat().st_mode & 0o777 == 0o666 & ~previous
+
+
+def test_dicom_tags_are_checked_as_numbers_naming_the_tag(tmp_path):
+    io.write_fluoro_dicom(tmp_path / "f.dcm", fluoro_frames(), CARM)
+    ds = pydicom.dcmread(tmp_path / "f.dcm")
+    ds.DistanceSourceToDetector = "NaN"
+    ds.save_as(tmp_path / "f.dcm")
+    with pytest.raises(InputError) as excinfo:
+        io.read_fluoro(tmp_path / "f.dcm")
+    assert_one_line_naming(excinfo, tmp_path / "f.dcm", "DistanceSourceToDetector (0018,1110)", "nan")
+
+
+def test_json_inputs_refuse_deep_nesting_and_points_that_are_not_numbers(tmp_path):
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(InputError, match="nested too deeply"):
+        io.read_json_file(tmp_path / "deep.json")
+    (tmp_path / "gt.json").write_text(json.dumps({"intraop_centerline": {"points": [[0, 0, "1"]]}}))
+    with pytest.raises(InputError, match=r"key 'intraop_centerline.points\[0\]' must be 3 numbers"):
+        io.read_ground_truth(tmp_path / "gt.json")
+    (tmp_path / "gt.json").write_text(json.dumps({"intraop_centerline": {"points": [[0, 0, 1], [0, 1, 1]],
+                                                                         "edges": [[0, 1]]}}))
+    assert io.read_ground_truth(tmp_path / "gt.json").points.shape == (2, 3)

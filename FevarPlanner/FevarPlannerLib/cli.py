@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from . import RESEARCH_USE_STATEMENT, __version__
@@ -29,6 +31,8 @@ class ProgressBar:
     """
 
     HEARTBEAT_S = 10.0
+    #: The bar that last drew a terminal line it did not end (so an error starts on a new line).
+    open_line = None
 
     def __init__(self, stream=None, width: int = 30, enabled: bool = True, tty: bool | None = None):
         self.stream = stream if stream is not None else sys.stderr
@@ -51,7 +55,16 @@ class ProgressBar:
         self.stream.write(line)
         if fraction >= 1.0:
             self.stream.write("\n")
+        ProgressBar.open_line = self if fraction < 1.0 else None
         self.stream.flush()
+
+    @classmethod
+    def end_open_line(cls) -> None:
+        """End a progress line left open, so that what follows starts on a line of its own."""
+        if cls.open_line is not None:
+            cls.open_line.stream.write("\n")
+            cls.open_line.stream.flush()
+            cls.open_line = None
 
     def _line(self, fraction: float, message: str, elapsed: float) -> None:
         decile = int(fraction * 10)
@@ -68,9 +81,21 @@ class ProgressBar:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Warnings as one line on stderr: ``fevar-planner: note: ...`` (no source location)."""
-    text = str(message).splitlines()[0] if str(message) else category.__name__
-    print(f"fevar-planner: note: {text}", file=sys.stderr if file is None else file)
+    """Our warnings as one line on stderr: ``fevar-planner: note: ...`` (no source location).
+
+    Warnings of other libraries (numpy, pydicom, torch, ...) are not shown: stderr holds one
+    line per thing the user should act on.
+    """
+    if not category.__module__.startswith(__package__ or "FevarPlannerLib"):
+        return
+    ProgressBar.end_open_line()
+    print(f"fevar-planner: note: {_one_line(str(message) or category.__name__)}", file=sys.stderr if file is None else file)
+
+
+def _one_line(message: str) -> str:
+    """The first line of ``message``, printable whatever bytes a file name held."""
+    first = message.strip().splitlines()[0] if message.strip() else "unknown error"
+    return first.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def _add_case_overrides(parser: argparse.ArgumentParser) -> None:
@@ -107,6 +132,7 @@ def _cmd_plan(args) -> int:
                        fluoro_mask=args.fluoro_mask, geometry=args.geometry, frame=args.frame,
                        start=args.start, target=args.target, refine_pose=args.refine_pose, segmenter=args.segmenter,
                        cache=args.cache, drr=args.drr)
+    ProgressBar.end_open_line()
     _print_summary(result, args.out)
     return 0
 
@@ -217,6 +243,7 @@ def _cmd_benchmark(args) -> int:
 def _cmd_train_unet(args) -> int:
     from .segmentation import train_unet
 
+    _check_not_an_input(args.out, list(args.cases))
     bar = ProgressBar(enabled=not args.quiet)
     path = train_unet(args.cases, args.out, iterations=args.iterations, seed=args.seed, lr=args.lr, crop=args.crop,
                       base=args.base, max_channels=args.max_channels, pixel_mm=args.pixel_mm, resume=args.resume,
@@ -231,6 +258,7 @@ def _cmd_segment(args) -> int:
     from .io import read_ct, write_volume
     from .segmentation import load_unet, mask_surface, segment_ct, write_surface_vtp
 
+    _check_not_an_input(args.out, [args.ct] + ([args.model] if args.model is not None else []))
     bar = ProgressBar(enabled=not args.quiet)
     bar(0.0, f"reading {args.ct}")
     ct = read_ct(args.ct)
@@ -290,8 +318,23 @@ def _cmd_track(args) -> int:
     return 0
 
 
+def _output_path(text: str) -> Path:
+    """An ``--out`` value: any path but the empty one (which would mean the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path")
+    return Path(text)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with usage errors on one line (exit code 2), like every other bad input."""
+
+    def error(self, message):
+        ProgressBar.end_open_line()
+        self.exit(2, f"fevar-planner: error: {self.prog}: {_one_line(message)}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fevar-planner", description=DESCRIPTION, epilog=EPILOG,
+    parser = _Parser(prog="fevar-planner", description=DESCRIPTION, epilog=EPILOG,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"fevar-planner {__version__}. {RESEARCH_USE_STATEMENT}",
                         help="print the version and the research-use statement, then exit")
@@ -301,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan = sub.add_parser("plan", help="register a case and plan the catheter path", epilog=EPILOG)
     plan.add_argument("case", type=Path, help="case folder: ct/ or ct.nrrd, fluoro.dcm or fluoro.png, "
                                               "optional masks and geometry.json (docs/DESIGN.md section 4)")
-    plan.add_argument("--out", type=Path, required=True, help="output folder (result.json, .vtp, .mrk.json, PNGs)")
+    plan.add_argument("--out", type=_output_path, required=True, help="output folder (result.json, .vtp, .mrk.json, PNGs)")
     _add_planning_options(plan)
     plan.add_argument("--refine-pose", action="store_true",
                       help="correct the frame's in-plane pose first (for a frame known to be misaligned)")
@@ -386,21 +429,61 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv=None) -> int:
-    """Entry point of the ``fevar-planner`` console script."""
-    import warnings
+def _check_not_an_input(out: Path, inputs) -> None:
+    """Refuse an output file that is an input, lies inside an input folder, or is not a plain file."""
+    from .io import InputError, display_path
 
+    target = Path(os.path.realpath(out))
+    for given in inputs:
+        source = Path(os.path.realpath(given))
+        if target == source or (source.is_dir() and source in target.parents):
+            raise InputError(f"{display_path(out)}: --out would overwrite or write inside the input "
+                             f"{display_path(given)}")
+    if os.path.lexists(out) and not Path(out).is_file():
+        raise InputError(f"{display_path(out)}: --out exists and is not a regular file")
+
+
+def _quiet_libraries() -> None:
+    """ITK and VTK print their warnings straight to stderr, several lines each: keep them off
+    the command line's stderr, which holds one line per problem (the readers check inputs
+    themselves)."""
+    import SimpleITK as sitk
+    from vtkmodules.vtkCommonCore import vtkObject
+
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)
+    vtkObject.GlobalWarningDisplayOff()
+
+
+def _error_message(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        from .io import display_path
+
+        return f"{display_path(exc.filename)}: {exc.strerror}"
+    return str(exc) or type(exc).__name__
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``fevar-planner`` console script.
+
+    Bad input ends with exit code 2 and one line on stderr (after ending any progress line).
+    Our own warnings (input notes, geometry assumptions) are printed as one-line notes;
+    other libraries' warnings are not shown.
+    """
     args = build_parser().parse_args(argv)
-    previous = warnings.showwarning
-    warnings.showwarning = _show_warning
-    try:
-        return args.func(args)
-    except (ValueError, OSError) as exc:
-        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"fevar-planner: error: {message}", file=sys.stderr)
-        return 2
-    finally:
-        warnings.showwarning = previous
+    _quiet_libraries()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = _show_warning
+        try:
+            return args.func(args)
+        except (ValueError, OSError, MemoryError, RecursionError) as exc:
+            ProgressBar.end_open_line()
+            print(f"fevar-planner: error: {_one_line(_error_message(exc))}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            ProgressBar.end_open_line()
+            print("fevar-planner: error: interrupted; the outputs were left as they were", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -9,9 +9,13 @@ never leaves a half-written output behind.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import hashlib
+import json
 import os
 import shutil
+import stat
 import tempfile
 import warnings
 from dataclasses import dataclass, field
@@ -33,7 +37,16 @@ from .projection import (CArmGeometry, GeometryAssumptionWarning, GeometrySource
 
 __all__ = [
     "InputError",
+    "InputWarning",
     "check_readable",
+    "check_input_file",
+    "check_inside",
+    "display_path",
+    "max_voxels",
+    "read_json_file",
+    "read_ground_truth",
+    "swap_folder",
+    "output_mode",
     "Volume",
     "read_volume",
     "write_volume",
@@ -63,14 +76,54 @@ __all__ = [
 VOLUME_SUFFIXES = (".nrrd", ".nii.gz", ".nii", ".mha", ".mhd")
 DICOM_SUFFIXES = (".dcm", ".dicom")
 RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-#: Refuse 2D frames larger than this many pixels (a 10k x 10k frame), before decoding them.
+#: Refuse 2D frames larger than this many pixels (a 10k x 10k frame), before decoding them;
+#: the environment variable FEVAR_MAX_FRAME_PIXELS raises it.
 MAX_FRAME_PIXELS = 100_000_000
+#: Refuse 3D images of more voxels than this (a 1024 x 1024 x 400 CT), read from the header
+#: before anything is allocated; the environment variable FEVAR_MAX_VOXELS raises it.
+MAX_VOXELS = 400_000_000
+#: A text image header (NRRD, MetaImage) larger than this is not a header.
+MAX_HEADER_BYTES = 1_000_000
+#: JSON inputs (geometry.json, gt.json) larger than this are refused unread.
+MAX_JSON_BYTES = 64_000_000
 #: BT.601 luma weights, as used to turn RGB frames into grey.
 LUMA_WEIGHTS = np.array([0.299, 0.587, 0.114])
 
 
 class InputError(ValueError):
     """Bad input: the message names the file and the problem (one line)."""
+
+
+class InputWarning(UserWarning):
+    """Input accepted with a caveat the user should hear of (the CLI prints it, result.json keeps it)."""
+
+
+def display_path(path) -> str:
+    """``path`` as printable text: bytes that are not UTF-8 appear as ``\\xNN`` escapes."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
+def _env_limit(name: str, default: int) -> int:
+    text = os.environ.get(name, "").strip()
+    if not text:
+        return default
+    try:
+        value = int(float(text))
+    except ValueError:
+        raise InputError(f"environment variable {name}={text!r}: not a number") from None
+    if value <= 0:
+        raise InputError(f"environment variable {name}={text!r}: must be positive")
+    return value
+
+
+def max_voxels() -> int:
+    """The 3D size limit: :data:`MAX_VOXELS`, or the environment variable ``FEVAR_MAX_VOXELS``."""
+    return _env_limit("FEVAR_MAX_VOXELS", MAX_VOXELS)
+
+
+def max_frame_pixels() -> int:
+    """The 2D size limit: :data:`MAX_FRAME_PIXELS`, or ``FEVAR_MAX_FRAME_PIXELS``."""
+    return _env_limit("FEVAR_MAX_FRAME_PIXELS", MAX_FRAME_PIXELS)
 
 
 @dataclass
@@ -146,22 +199,157 @@ class Volume:
         return cls(sitk.GetArrayFromImage(image), image.GetSpacing(), image.GetOrigin(), image.GetDirection())
 
 
-def check_readable(path: Path) -> None:
-    if not path.exists():
-        raise InputError(f"{path}: no such file")
-    if path.is_file() and path.stat().st_size == 0:
-        raise InputError(f"{path}: file is empty (0 bytes)")
+_SPECIAL_FILES = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+                  (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def _special_kind(mode: int) -> str | None:
+    return next((what for test, what in _SPECIAL_FILES if test(mode)), None)
+
+
+def check_readable(path: Path, folder_ok: bool = True) -> os.stat_result:
+    """Refuse what cannot be read as an input, from ``stat`` alone (nothing is opened).
+
+    A missing path or broken link, a named pipe, device or socket (reading one could block
+    for ever or never end), a 0-byte file, a folder where a file is expected and a name
+    that is not valid UTF-8 (SimpleITK cannot take it) raise :class:`InputError`.
+    """
+    path = Path(path)
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        if os.path.islink(path):
+            raise InputError(f"{display_path(path)}: a broken link (to {display_path(os.readlink(path))})") from None
+        raise InputError(f"{display_path(path)}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{display_path(path)}: cannot open ({exc.strerror})") from None
+    kind = _special_kind(info.st_mode)
+    if kind is not None:
+        raise InputError(f"{display_path(path)}: is {kind}, not a file; refusing to read from it")
+    if stat.S_ISDIR(info.st_mode) and not folder_ok:
+        raise InputError(f"{display_path(path)}: is a folder, expected a file")
+    if stat.S_ISREG(info.st_mode) and info.st_size == 0:
+        raise InputError(f"{display_path(path)}: file is empty (0 bytes)")
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{display_path(path)}: the file name is not valid UTF-8 (the image readers cannot "
+                         f"open it); rename it") from None
+    return info
+
+
+def check_input_file(path) -> os.stat_result:
+    """:func:`check_readable` for a path that must be a regular file."""
+    return check_readable(path, folder_ok=False)
+
+
+def check_inside(path, folder, what: str) -> None:
+    """Refuse ``path`` if it resolves (through links) to a place outside ``folder``."""
+    target = Path(os.path.realpath(path))
+    root = Path(os.path.realpath(folder))
+    if target != root and root not in target.parents:
+        raise InputError(f"{display_path(path)}: leads to {display_path(target)}, outside {what} "
+                         f"{display_path(folder)}; give it explicitly with its flag to use it")
+
+
+def _read_head(path: Path, limit: int) -> bytes:
+    with open(path, "rb") as handle:
+        return handle.read(limit + 1)
+
+
+def _nrrd_fields(path: Path) -> dict[str, str] | None:
+    """The fields of an NRRD header (lower-case keys), or None if ``path`` is not NRRD."""
+    head = _read_head(path, MAX_HEADER_BYTES)
+    if not head.startswith(b"NRRD000"):
+        return None
+    end = head.find(b"\n\n")
+    if end < 0:
+        end = head.find(b"\r\n\r\n")
+    if end < 0 and len(head) > MAX_HEADER_BYTES:
+        raise InputError(f"{display_path(path)}: NRRD header larger than {MAX_HEADER_BYTES} bytes (no blank line "
+                         f"ends it)")
+    text = head[: end if end >= 0 else len(head)].decode("latin-1")
+    fields = {}
+    for line in text.splitlines()[1:]:
+        if line.startswith("#") or ":" not in line:
+            continue
+        key, _, value = line.partition(":")
+        fields[key.strip().lower()] = value.lstrip("=").strip()
+    return fields
+
+
+def _metaimage_fields(path: Path) -> dict[str, str] | None:
+    """The fields of a MetaImage (.mha / .mhd) header (lower-case keys), or None if not one."""
+    if path.suffix.lower() not in (".mha", ".mhd"):
+        return None
+    head = _read_head(path, MAX_HEADER_BYTES)
+    fields = {}
+    for raw in head.split(b"\n"):
+        key, sep, value = raw.decode("latin-1").partition("=")
+        if not sep:
+            break
+        fields[key.strip().lower()] = value.strip()
+        if key.strip().lower() == "elementdatafile":
+            return fields
+    if len(head) > MAX_HEADER_BYTES:
+        raise InputError(f"{display_path(path)}: MetaImage header larger than {MAX_HEADER_BYTES} bytes")
+    return fields
+
+
+def _check_detached_data(path: Path) -> None:
+    """Refuse a detached header whose data file lies outside the header's folder or is not a file."""
+    data_files = []
+    nrrd = _nrrd_fields(path)
+    if nrrd is not None:
+        name = nrrd.get("data file", nrrd.get("datafile"))
+        if name is not None:
+            data_files.append(("data file", name))
+    meta = _metaimage_fields(path)
+    if meta is not None and meta.get("elementdatafile", "LOCAL").upper() != "LOCAL":
+        data_files.append(("ElementDataFile", meta["elementdatafile"]))
+    for key, name in data_files:
+        if name.split()[0].upper() == "LIST" or len(name.split()) > 1 or "%" in name:
+            raise InputError(f"{display_path(path)}: '{key}' names several data files ({name[:60]}); "
+                             f"only one detached data file is supported")
+        target = path.parent / name
+        try:
+            check_inside(target, path.parent, "the folder of its header")
+            check_input_file(target)
+        except InputError as exc:
+            raise InputError(f"{display_path(path)}: its detached data file ('{key}: {name}') is refused: "
+                             f"{exc}") from None
+
+
+def _check_image_header(path: Path) -> None:
+    """Read a 3D image's header only and refuse sizes over :func:`max_voxels` or a broken grid."""
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError as exc:
+        raise InputError(f"{display_path(path)}: cannot read volume ({_last_line(exc)})") from None
+    if reader.GetDimension() != 3:
+        raise InputError(f"{display_path(path)}: expected a 3D volume, got {reader.GetDimension()}D")
+    size = reader.GetSize()
+    voxels = int(np.prod(np.array(size, dtype=object))) * reader.GetNumberOfComponents()
+    if voxels > max_voxels():
+        raise InputError(f"{display_path(path)}: image of {' x '.join(map(str, size))} voxels exceeds the limit of "
+                         f"{max_voxels()} voxels (set FEVAR_MAX_VOXELS to raise it)")
+    from .plausibility import check_grid
+
+    check_grid(path, reader.GetSpacing(), reader.GetOrigin(), reader.GetDirection())
 
 
 def read_volume(path) -> Volume:
     """Read a 3D NRRD / NIfTI / MHA file into a :class:`Volume` (LPS, as SimpleITK reports)."""
     path = Path(path)
-    check_readable(path)
+    check_input_file(path)
+    _check_detached_data(path)
+    _check_image_header(path)
     try:
         image = sitk.ReadImage(str(path))
     except RuntimeError as exc:
-        first = str(exc).strip().splitlines()[-1] if str(exc).strip() else "unreadable"
-        raise InputError(f"{path}: cannot read volume ({first})") from None
+        raise InputError(f"{path}: cannot read volume ({_last_line(exc)})") from None
     if image.GetDimension() != 3:
         raise InputError(f"{path}: expected a 3D volume, got {image.GetDimension()}D")
     if image.GetNumberOfComponentsPerPixel() != 1:
@@ -180,9 +368,31 @@ def write_volume(path, volume: Volume, compress: bool = True) -> None:
         sitk.WriteImage(volume.to_sitk(), str(tmp), compress)
 
 
+def _current_umask() -> int:
+    """The process umask, read without changing it (Linux), else set and restored."""
+    try:
+        with open("/proc/self/status") as handle:
+            for line in handle:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def output_mode(folder: bool = False) -> int:
+    """The mode a new file (0666) or folder (0777) gets under the current umask."""
+    return (0o777 if folder else 0o666) & ~_current_umask()
+
+
 @contextlib.contextmanager
 def atomic_path(path, suffix: str | None = None):
-    """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds."""
+    """Yield a temporary path beside ``path``; rename it onto ``path`` if the block succeeds.
+
+    The file gets the mode of a newly created file under the umask (``mkstemp`` makes 0600).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
@@ -191,6 +401,7 @@ def atomic_path(path, suffix: str | None = None):
     tmp = Path(tmp)
     try:
         yield tmp
+        os.chmod(tmp, output_mode())
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -208,12 +419,51 @@ def write_text_atomic(path, text: str) -> None:
     write_bytes_atomic(path, text.encode("utf-8"))
 
 
+_RENAME_EXCHANGE = 2
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd = -100
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    code = ctypes.get_errno()
+    if code in (errno.EINVAL, errno.ENOSYS, errno.EPERM):
+        return False
+    raise OSError(code, os.strerror(code), str(b))
+
+
+def swap_folder(new: Path, folder: Path) -> None:
+    """Put the complete folder ``new`` in the place of ``folder`` and delete the old one.
+
+    Where the system can, the two are exchanged in one step, so ``folder`` always holds
+    either the old or the new set. Elsewhere the old one is moved aside first and deleted
+    only once the new one is in place.
+    """
+    new, folder = Path(new), Path(folder)
+    if not os.path.lexists(folder):
+        os.replace(new, folder)
+        return
+    if _exchange(new, folder):
+        shutil.rmtree(new)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+    os.replace(folder, old)
+    os.replace(new, folder)
+    shutil.rmtree(old)
+
+
 @contextlib.contextmanager
 def atomic_folder(folder):
     """Yield a temporary folder beside ``folder``; it replaces ``folder`` if the block succeeds.
 
-    An existing ``folder`` is moved aside first and deleted only once the new one is in
-    place, so a failure leaves the old content untouched.
+    The old content stays in place until the new set is complete (:func:`swap_folder`), so
+    a failure or a killed process leaves it untouched. The new folder gets the umask's mode.
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -221,14 +471,9 @@ def atomic_folder(folder):
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
+        os.chmod(tmp, output_mode(folder=True))
         yield tmp
-        old = None
-        if folder.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
-            os.replace(folder, old)
-        os.replace(tmp, folder)
-        if old is not None:
-            shutil.rmtree(old)
+        swap_folder(tmp, folder)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
@@ -476,15 +721,25 @@ def read_ct(path) -> Volume:
 
 
 def _read_dicom_series(folder: Path) -> Volume:
-    files, series_uid = _pick_dicom_series(folder)
-    _check_slice_geometry(folder, files, series_uid)
+    slices, series_uid, ignored = _pick_dicom_series(folder)
+    _check_slice_geometry(folder, slices, series_uid, ignored)
+    files = [item.file for item in slices]
+    rows, cols = _tag_int(slices[0].header, "Rows", slices[0].file), _tag_int(slices[0].header, "Columns",
+                                                                                slices[0].file)
+    if rows * cols * len(files) > max_voxels():
+        raise InputError(f"{display_path(folder)}: CT series of {cols} x {rows} x {len(files)} voxels exceeds the "
+                         f"limit of {max_voxels()} voxels (set FEVAR_MAX_VOXELS to raise it)")
     reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(list(files))
+    reader.SetFileNames([str(f) for f in files])
     try:
         image = reader.Execute()
     except RuntimeError as exc:
-        raise InputError(f"{folder}: cannot read DICOM series {series_uid} ({_last_line(exc)})") from None
-    return Volume.from_sitk(image)
+        raise InputError(f"{display_path(folder)}: cannot read DICOM series {series_uid} ({_last_line(exc)})") from None
+    volume = Volume.from_sitk(image)
+    from .plausibility import check_grid
+
+    check_grid(folder, volume.spacing, volume.origin, volume.direction.ravel())
+    return volume
 
 
 def _last_line(exc: Exception) -> str:
@@ -492,66 +747,230 @@ def _last_line(exc: Exception) -> str:
     return text.splitlines()[-1] if text else type(exc).__name__
 
 
-def _pick_dicom_series(folder: Path) -> tuple[tuple[str, ...], str]:
-    """The file names (sorted by GDCM along the slice normal) of the longest series in ``folder``."""
-    series_ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
-    if not series_ids:
-        raise InputError(f"{folder}: no DICOM series found in the folder")
-    files = {uid: sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), uid) for uid in series_ids}
-    chosen = max(sorted(series_ids), key=lambda uid: len(files[uid]))
-    if len(series_ids) > 1:
-        others = ", ".join(f"{uid} ({len(files[uid])} slices)" for uid in sorted(series_ids) if uid != chosen)
-        warnings.warn(f"{folder}: {len(series_ids)} DICOM series found; using {chosen} "
-                      f"({len(files[chosen])} slices), ignoring {others}", stacklevel=3)
-    return files[chosen], chosen
+@dataclass
+class _Slice:
+    file: Path
+    header: pydicom.Dataset
 
 
-SLICE_GEOMETRY_TAGS = ["ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "Rows", "Columns"]
+#: Header fields read from every file of a CT folder (pixels are not read).
+SLICE_TAGS = ["SOPClassUID", "SOPInstanceUID", "SeriesInstanceUID", "SeriesDescription", "Modality",
+              "ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "Rows", "Columns",
+              "BitsAllocated", "SamplesPerPixel", "RescaleSlope", "RescaleIntercept", "NumberOfFrames"]
+#: Transfer syntaxes whose pixel data is stored uncompressed (its size is known from the header).
+_NATIVE_SYNTAXES = {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2"}
 
 
-def _read_slice_header(file: str) -> pydicom.Dataset:
+def _tag_text(ds: pydicom.Dataset, keyword: str) -> str:
+    element = ds.get(keyword)
+    return "" if element is None else str(element)
+
+
+def _tag_number(ds: pydicom.Dataset, keyword: str, file, default=None, kind=float):
+    """A numeric tag as ``kind``, refusing text, NaN and infinity with the file and tag named."""
     try:
-        return pydicom.dcmread(file, stop_before_pixels=True, specific_tags=SLICE_GEOMETRY_TAGS)
-    except Exception as exc:  # any parser failure of a foreign file is bad input
-        raise InputError(f"{file}: not a readable DICOM file ({_last_line(exc)})") from None
+        value = ds.get(keyword)
+    except Exception as exc:  # pydicom converts lazily and raises many types on a malformed value
+        raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) is malformed "
+                         f"({_last_line(exc)})") from None
+    if value is None or value == "":
+        if default is None:
+            raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) is missing")
+        return default
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) is not a number "
+                         f"({str(value)[:40]!r})") from None
+    if not np.isfinite(number):
+        raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) is {number}")
+    if kind is int and number != int(number):
+        raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) is not an integer "
+                         f"({number})")
+    return kind(number)
 
 
-def _header_vector(ds: pydicom.Dataset, keyword: str, size: int, file: str) -> np.ndarray:
-    value = ds.get(keyword)
-    if value is None or len(value) != size:
-        raise InputError(f"{file}: missing or malformed {keyword}")
-    return np.array([float(v) for v in value])
+def _tag_int(ds: pydicom.Dataset, keyword: str, file, default=None) -> int:
+    return _tag_number(ds, keyword, file, default, kind=int)
 
 
-def _check_slice_geometry(folder: Path, files, series_uid: str) -> None:
-    """Refuse series whose slices do not form one regular grid (missing or uneven slices)."""
-    if len(files) < 2:
-        raise InputError(f"{folder}: DICOM series {series_uid} has only {len(files)} slice; a CT needs at least 2")
-    headers = [_read_slice_header(f) for f in files]
-    orientations = np.array([_header_vector(h, "ImageOrientationPatient", 6, f) for h, f in zip(headers, files)])
-    positions = np.array([_header_vector(h, "ImagePositionPatient", 3, f) for h, f in zip(headers, files)])
-    in_plane = {(int(h.get("Rows", 0)), int(h.get("Columns", 0)),
-                 tuple(np.round(_header_vector(h, "PixelSpacing", 2, f), 6))) for h, f in zip(headers, files)}
+def _tag_id(keyword: str) -> str:
+    tag = Tag(keyword)
+    return f"{tag.group:04X},{tag.element:04X}"
+
+
+def _header_vector(ds: pydicom.Dataset, keyword: str, size: int, file) -> np.ndarray:
+    try:
+        value = ds.get(keyword)
+        numbers = None if value is None or len(value) != size else [float(v) for v in value]
+    except (TypeError, ValueError):
+        numbers = None
+    if numbers is None:
+        raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) is missing or malformed "
+                         f"(expected {size} numbers)")
+    if not np.all(np.isfinite(numbers)):
+        raise InputError(f"{display_path(file)}: DICOM tag {keyword} ({_tag_id(keyword)}) holds NaN or infinity")
+    return np.array(numbers)
+
+
+def _scan_entry(folder: Path, entry: os.DirEntry) -> tuple[_Slice | None, str | None]:
+    """One entry of a CT folder: a slice, or None and why it is ignored. Corrupt DICOM raises."""
+    path = folder / entry.name
+    shown = display_path(entry.name)
+    try:
+        info = os.stat(path)
+    except OSError:
+        return None, f"{shown} (a broken link)"
+    if stat.S_ISDIR(info.st_mode):
+        return None, f"{shown}/ (a folder)"
+    if not stat.S_ISREG(info.st_mode):
+        return None, f"{shown} ({_special_kind(info.st_mode) or 'not a file'}, not opened)"
+    check_inside(path, folder, "the CT folder")
+    if info.st_size == 0:
+        return None, f"{shown} (empty, 0 bytes)"
+    with open(path, "rb") as handle:
+        magic = handle.read(132)[128:132]
+    if magic != b"DICM":
+        return None, f"{shown} (not DICOM)"
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{display_path(path)}: a DICOM file whose name is not valid UTF-8 (the DICOM reader "
+                         f"cannot open it); rename it") from None
+    try:
+        header = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=SLICE_TAGS)
+    except Exception as exc:  # any parser failure of a file that says it is DICOM: corrupt
+        raise InputError(f"{display_path(path)}: corrupt DICOM file ({_last_line(exc)})") from None
+    if "SOPClassUID" not in header and "Modality" not in header:
+        raise InputError(f"{display_path(path)}: corrupt DICOM file (no SOP class or modality in its header)")
+    if "Rows" not in header or "ImagePositionPatient" not in header:
+        what = _tag_text(header, "Modality") or "no image"
+        return None, f"{shown} (not an image slice: Modality {what})"
+    _check_pixel_bytes(path, header, info.st_size)
+    return _Slice(path, header), None
+
+
+def _check_pixel_bytes(path: Path, header: pydicom.Dataset, size: int) -> None:
+    """Refuse an uncompressed slice too short to hold its own pixels (a truncated file)."""
+    syntax = str(getattr(header.file_meta, "TransferSyntaxUID", "")) if hasattr(header, "file_meta") else ""
+    if syntax not in _NATIVE_SYNTAXES:
+        return
+    need = (_tag_int(header, "Rows", path) * _tag_int(header, "Columns", path)
+            * _tag_int(header, "SamplesPerPixel", path, default=1) * _tag_int(header, "NumberOfFrames", path, default=1)
+            * _tag_int(header, "BitsAllocated", path, default=16) // 8)
+    if size < need:
+        raise InputError(f"{display_path(path)}: truncated DICOM slice ({size} bytes, its pixel data alone "
+                         f"needs {need})")
+
+
+def _pick_dicom_series(folder: Path) -> tuple[list[_Slice], str, list[str]]:
+    """The slices of the longest image series in ``folder``, the series UID and the ignored files.
+
+    Only regular files are opened, and only their headers. Files that are not DICOM images
+    (notes, ``.DS_Store``, structured reports) are ignored with an :class:`InputWarning`;
+    so is a second series, naming the one chosen.
+    """
+    try:
+        entries = sorted(os.scandir(folder), key=lambda e: os.fsencode(e.name))
+    except OSError as exc:
+        raise InputError(f"{display_path(folder)}: cannot list the folder ({exc.strerror})") from None
+    series: dict[str, list[_Slice]] = {}
+    ignored = []
+    for entry in entries:
+        item, reason = _scan_entry(folder, entry)
+        if item is None:
+            ignored.append(reason)
+        else:
+            series.setdefault(_tag_text(item.header, "SeriesInstanceUID"), []).append(item)
+    if not series:
+        raise InputError(f"{display_path(folder)}: no DICOM series found in the folder"
+                         + (f" (it holds {_listing(ignored)})" if ignored else " (it is empty)"))
+    chosen = max(sorted(series), key=lambda uid: len(series[uid]))
+    if ignored:
+        warnings.warn(f"{display_path(folder)}: ignored {len(ignored)} file(s) that are not CT slices: "
+                      f"{_listing(ignored)}", InputWarning, stacklevel=3)
+    if len(series) > 1:
+        others = ", ".join(f"{uid} ({len(series[uid])} slices, {_describe(series[uid])})"
+                           for uid in sorted(series) if uid != chosen)
+        warnings.warn(f"{display_path(folder)}: {len(series)} DICOM series found; using {chosen} "
+                      f"({len(series[chosen])} slices, {_describe(series[chosen])}), the one with most slices, "
+                      f"and ignoring {others}; if the CT is another one, put it in a folder of its own "
+                      f"and pass that with --ct", InputWarning, stacklevel=3)
+    _check_modality_and_units(series[chosen])
+    return series[chosen], chosen, ignored
+
+
+def _listing(items, limit: int = 5) -> str:
+    shown = ", ".join(items[:limit])
+    return shown + (f" and {len(items) - limit} more" if len(items) > limit else "")
+
+
+def _describe(slices: list[_Slice]) -> str:
+    header = slices[0].header
+    return f"{_tag_text(header, 'Modality') or 'no modality'} '{_tag_text(header, 'SeriesDescription')}'"
+
+
+def _check_modality_and_units(slices: list[_Slice]) -> None:
+    """Every slice says CT and carries a finite, non-zero rescale (HU = slope * stored + intercept)."""
+    for item in slices:
+        modality = _tag_text(item.header, "Modality")
+        if modality != "CT":
+            raise InputError(f"{display_path(item.file)}: Modality (0008,0060) is {modality or 'empty'!r}; the CT "
+                             f"series must be a CT (HU values)")
+        slope = _tag_number(item.header, "RescaleSlope", item.file, default=1.0)
+        _tag_number(item.header, "RescaleIntercept", item.file, default=0.0)
+        if slope == 0:
+            raise InputError(f"{display_path(item.file)}: DICOM tag RescaleSlope (0028,1053) is 0 (every HU value "
+                             f"would be the intercept)")
+
+
+def _check_slice_geometry(folder: Path, slices: list[_Slice], series_uid: str, ignored=()) -> None:
+    """Refuse series whose slices do not form one regular grid; sort ``slices`` along the normal.
+
+    Missing, uneven, duplicate and sheared slices are named; files the scan ignored (empty
+    or not DICOM) are listed with a missing-slice error, as they may be the missing slices.
+    """
+    where = display_path(folder)
+    if len(slices) < 2:
+        raise InputError(f"{where}: DICOM series {series_uid} has only {len(slices)} slice; a CT needs at least 2")
+    orientations = np.array([_header_vector(s.header, "ImageOrientationPatient", 6, s.file) for s in slices])
+    in_plane = {(_tag_int(s.header, "Rows", s.file), _tag_int(s.header, "Columns", s.file),
+                 tuple(np.round(_header_vector(s.header, "PixelSpacing", 2, s.file), 6))) for s in slices}
+    for rows, cols, spacing in in_plane:
+        if rows < 1 or cols < 1 or min(spacing) <= 0:
+            raise InputError(f"{where}: slices of series {series_uid} have {rows}x{cols} pixels of "
+                             f"PixelSpacing (0028,0030) {list(spacing)}; both must be positive")
     if np.abs(orientations - orientations[0]).max() > 1e-4:
-        raise InputError(f"{folder}: slices of series {series_uid} have different orientations")
+        raise InputError(f"{where}: slices of series {series_uid} have different orientations")
     if len(in_plane) > 1:
-        raise InputError(f"{folder}: slices of series {series_uid} differ in size or pixel spacing")
+        raise InputError(f"{where}: slices of series {series_uid} differ in size or pixel spacing")
     normal = np.cross(orientations[0, :3], orientations[0, 3:])
+    if np.linalg.norm(normal) < 0.5:
+        raise InputError(f"{display_path(slices[0].file)}: ImageOrientationPatient (0020,0037) is not two "
+                         f"orthogonal unit vectors")
+    positions = np.array([_header_vector(s.header, "ImagePositionPatient", 3, s.file) for s in slices])
+    order = np.argsort(positions @ normal, kind="stable")
+    slices[:] = [slices[i] for i in order]
+    positions = positions[order]
     steps = np.diff(positions, axis=0)
     along = steps @ normal
-    step = float(np.median(np.abs(along)))
-    if step < 1e-6:
-        raise InputError(f"{folder}: several slices of series {series_uid} share one position")
+    duplicate = np.flatnonzero(np.abs(along) < 1e-6)
+    if len(duplicate):
+        first, second = slices[duplicate[0]].file, slices[duplicate[0] + 1].file
+        raise InputError(f"{where}: duplicate slices in series {series_uid}: {display_path(first.name)} and "
+                         f"{display_path(second.name)} share ImagePositionPatient {positions[duplicate[0]].tolist()}")
+    step = float(np.median(along))
     sideways = np.linalg.norm(steps - np.outer(along, normal), axis=1)
     if sideways.max() > max(0.01, 0.01 * step):
-        raise InputError(f"{folder}: slices of series {series_uid} are sheared (gantry tilt of "
+        raise InputError(f"{where}: slices of series {series_uid} are sheared (gantry tilt of "
                          f"{np.degrees(np.arctan2(sideways.max(), step)):.2f} deg); resample them first")
-    worst = int(np.argmax(np.abs(np.abs(along) - step)))
-    if abs(abs(along[worst]) - step) > max(0.01, 0.01 * step):
-        gap = abs(along[worst])
+    worst = int(np.argmax(np.abs(along - step)))
+    if abs(along[worst] - step) > max(0.01, 0.01 * step):
+        gap = along[worst]
         problem = "missing slices" if gap > 1.5 * step else "inconsistent slice spacing"
-        raise InputError(f"{folder}: {problem} in series {series_uid} ({gap:.4g} mm between slices "
-                         f"{worst + 1} and {worst + 2} where the spacing is {step:.4g} mm)")
+        also = f"; the folder also holds {_listing(list(ignored))}" if ignored and problem == "missing slices" else ""
+        raise InputError(f"{where}: {problem} in series {series_uid} ({gap:.4g} mm between slices "
+                         f"{worst + 1} and {worst + 2} where the spacing is {step:.4g} mm){also}")
 
 
 def read_mask(path) -> Volume:
@@ -638,7 +1057,7 @@ def read_fluoro(path, frame: int = 0) -> Fluoro:
     path = Path(path)
     check_readable(path)
     if path.is_dir():
-        raise InputError(f"{path}: is a folder; expected a fluoroscopy image file")
+        raise InputError(f"{display_path(path)}: is a folder; expected a fluoroscopy image file")
     if _is_dicom_file(path):
         fluoro = _read_fluoro_dicom(path, frame)
     elif path.suffix.lower() in RASTER_SUFFIXES:
@@ -660,8 +1079,9 @@ def _check_frame_index(path: Path, frame: int, n_frames: int) -> int:
 def _check_frame_size(path: Path, rows: int, cols: int) -> None:
     if rows <= 0 or cols <= 0:
         raise InputError(f"{path}: image has no pixels ({rows}x{cols})")
-    if rows * cols > MAX_FRAME_PIXELS:
-        raise InputError(f"{path}: image of {rows}x{cols} pixels is larger than the {MAX_FRAME_PIXELS} pixel limit")
+    if rows * cols > max_frame_pixels():
+        raise InputError(f"{display_path(path)}: image of {rows}x{cols} pixels is larger than the limit of "
+                         f"{max_frame_pixels()} pixels (set FEVAR_MAX_FRAME_PIXELS to raise it)")
 
 
 def _luminance(rgb: np.ndarray) -> np.ndarray:
@@ -675,9 +1095,9 @@ def _read_fluoro_dicom(path: Path, frame: int) -> Fluoro:
         raise InputError(f"{path}: not a readable DICOM file ({_last_line(exc)})") from None
     if "PixelData" not in ds:
         raise InputError(f"{path}: DICOM file holds no pixel data")
-    rows, cols = int(ds.get("Rows") or 0), int(ds.get("Columns") or 0)
+    rows, cols = _tag_int(ds, "Rows", path, default=0), _tag_int(ds, "Columns", path, default=0)
     _check_frame_size(path, rows, cols)
-    n_frames = int(ds.get("NumberOfFrames") or 1)
+    n_frames = _tag_int(ds, "NumberOfFrames", path, default=1)
     frame = _check_frame_index(path, frame, n_frames)
     try:
         pixels = decode_dicom_pixels(ds, index=frame)
@@ -688,43 +1108,48 @@ def _read_fluoro_dicom(path: Path, frame: int) -> Fluoro:
     if image.shape != (rows, cols):
         raise InputError(f"{path}: decoded frame is {image.shape}, expected {rows}x{cols}")
     if ds.get("PhotometricInterpretation") == "MONOCHROME1":
-        image = _invert_stored_range(ds, image)
-    slope, intercept = float(ds.get("RescaleSlope") or 1.0), float(ds.get("RescaleIntercept") or 0.0)
+        image = _invert_stored_range(ds, image, path)
+    slope = _tag_number(ds, "RescaleSlope", path, default=1.0)
+    intercept = _tag_number(ds, "RescaleIntercept", path, default=0.0)
     image = (image * slope + intercept).astype(np.float32)
     carm, missing = _carm_from_dataset(ds, path)
-    return Fluoro(image=image, pixel_spacing=_dicom_pixel_spacing(ds), carm=carm, path=path,
+    return Fluoro(image=image, pixel_spacing=_dicom_pixel_spacing(ds, path), carm=carm, path=path,
                   frame=frame, n_frames=n_frames, missing_tags=missing)
 
 
-def _invert_stored_range(ds: pydicom.Dataset, image: np.ndarray) -> np.ndarray:
+def _invert_stored_range(ds: pydicom.Dataset, image: np.ndarray, path: Path) -> np.ndarray:
     """MONOCHROME1 -> MONOCHROME2: mirror the stored values in their representable range."""
-    bits = int(ds.get("BitsStored") or ds.get("BitsAllocated") or 16)
-    if int(ds.get("PixelRepresentation") or 0) == 1:
+    bits = _tag_int(ds, "BitsStored", path, default=0) or _tag_int(ds, "BitsAllocated", path, default=16)
+    if _tag_int(ds, "PixelRepresentation", path, default=0) == 1:
         low, high = -(2 ** (bits - 1)), 2 ** (bits - 1) - 1
     else:
         low, high = 0, 2 ** bits - 1
     return (low + high - image).astype(np.float32)
 
 
-def _dicom_pixel_spacing(ds: pydicom.Dataset) -> tuple[float, float] | None:
+def _dicom_pixel_spacing(ds: pydicom.Dataset, path: Path) -> tuple[float, float] | None:
     for keyword in ("ImagerPixelSpacing", "PixelSpacing"):
-        value = ds.get(keyword)
-        if value is not None and len(value) == 2:
-            return float(value[0]), float(value[1])
+        if ds.get(keyword) not in (None, ""):
+            spacing = _header_vector(ds, keyword, 2, path)
+            if spacing.min() <= 0:
+                raise InputError(f"{display_path(path)}: DICOM tag {keyword} ({_tag_id(keyword)}) must be positive, "
+                                 f"got {spacing.tolist()}")
+            return float(spacing[0]), float(spacing[1])
     return None
 
 
 def _carm_from_dataset(ds: pydicom.Dataset, path: Path) -> tuple[CArmGeometry | None, tuple[str, ...]]:
     """The C-arm geometry of the tags, or ``(None, missing tag names)``."""
-    missing = tuple(tag for tag in CARM_TAGS if ds.get(tag) in (None, "") or
-                    (tag == "ImagerPixelSpacing" and len(ds.get(tag)) != 2))
+    missing = tuple(tag for tag in CARM_TAGS if ds.get(tag) in (None, ""))
     if missing:
         return None, missing
-    carm = CArmGeometry(sid=float(ds.DistanceSourceToDetector), sod=float(ds.DistanceSourceToPatient),
-                        pixel_spacing=(float(ds.ImagerPixelSpacing[0]), float(ds.ImagerPixelSpacing[1])),
-                        primary_angle=float(ds.PositionerPrimaryAngle),
-                        secondary_angle=float(ds.PositionerSecondaryAngle),
-                        rows=int(ds.Rows), cols=int(ds.Columns))
+    spacing = _header_vector(ds, "ImagerPixelSpacing", 2, path)
+    carm = CArmGeometry(sid=_tag_number(ds, "DistanceSourceToDetector", path),
+                        sod=_tag_number(ds, "DistanceSourceToPatient", path),
+                        pixel_spacing=(float(spacing[0]), float(spacing[1])),
+                        primary_angle=_tag_number(ds, "PositionerPrimaryAngle", path),
+                        secondary_angle=_tag_number(ds, "PositionerSecondaryAngle", path),
+                        rows=_tag_int(ds, "Rows", path), cols=_tag_int(ds, "Columns", path))
     if not (0 < carm.sod < carm.sid) or min(carm.pixel_spacing) <= 0:
         raise InputError(f"{path}: inconsistent C-arm tags (need 0 < DistanceSourceToPatient={carm.sod} < "
                          f"DistanceSourceToDetector={carm.sid} and positive ImagerPixelSpacing)")
@@ -733,7 +1158,7 @@ def _carm_from_dataset(ds: pydicom.Dataset, path: Path) -> tuple[CArmGeometry | 
 
 def _read_fluoro_raster(path: Path, frame: int) -> Fluoro:
     try:
-        with Image.open(path) as opened:
+        with _pillow_without_its_size_limit(), Image.open(path) as opened:
             _check_frame_size(path, opened.height, opened.width)
             n_frames = int(getattr(opened, "n_frames", 1))
             frame = _check_frame_index(path, frame, n_frames)
@@ -745,6 +1170,17 @@ def _read_fluoro_raster(path: Path, frame: int) -> Fluoro:
         raise InputError(f"{path}: not a readable image ({_last_line(exc)})") from None
     return Fluoro(image=image, pixel_spacing=None, carm=None, path=path, frame=frame, n_frames=n_frames,
                   missing_tags=CARM_TAGS)
+
+
+@contextlib.contextmanager
+def _pillow_without_its_size_limit():
+    """Let :func:`_check_frame_size` apply our limit (FEVAR_MAX_FRAME_PIXELS) instead of Pillow's."""
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None
+    try:
+        yield
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
 
 
 def _raster_to_grey(image: Image.Image) -> np.ndarray:
@@ -799,16 +1235,27 @@ def find_case_file(case_dir, stem: str, suffixes) -> Path | None:
     """The first ``case_dir/stem + suffix`` that exists (``"/"`` = a folder), or None.
 
     When several exist, the first in ``suffixes`` order is used and a warning names the others.
+
+    Every candidate that exists is checked from ``stat`` alone: a broken link, a folder
+    named like a file, a pipe or device, an empty file, or a link leading out of the case
+    folder raises :class:`InputError` instead of being skipped or read.
     """
     case_dir = Path(case_dir)
     found = []
     for suffix in suffixes:
         candidate = case_dir / stem if suffix == "/" else case_dir / f"{stem}{suffix}"
-        if (candidate.is_dir() if suffix == "/" else candidate.is_file()):
-            found.append(candidate)
+        if not os.path.lexists(candidate):
+            continue
+        if suffix == "/":
+            if not candidate.is_dir():
+                continue
+        else:
+            check_input_file(candidate)
+        check_inside(candidate, case_dir, "the case folder")
+        found.append(candidate)
     if len(found) > 1:
-        warnings.warn(f"{case_dir}: several {stem} inputs ({', '.join(p.name for p in found)}); "
-                      f"using {found[0].name}", stacklevel=2)
+        warnings.warn(f"{display_path(case_dir)}: several {stem} inputs ({', '.join(p.name for p in found)}); "
+                      f"using {found[0].name}", InputWarning, stacklevel=2)
     return found[0] if found else None
 
 
@@ -882,8 +1329,9 @@ def _gather_inputs(case_dir: Path | None, flags: dict[str, Path | None]) -> dict
                 if found is not None:
                     chosen[name] = found
     for name, path in chosen.items():
-        if not path.exists():
-            raise InputError(f"{path}: no such file (given for {name})")
+        if not os.path.lexists(path):
+            raise InputError(f"{display_path(path)}: no such file (given for {name})")
+        check_readable(path, folder_ok=name == "ct")
     return chosen
 
 
@@ -988,7 +1436,8 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
     if case_dir is not None:
         case_dir = Path(case_dir)
         if not case_dir.is_dir():
-            raise InputError(f"{case_dir}: case folder does not exist")
+            raise InputError(f"{display_path(case_dir)}: case folder does not exist")
+        check_readable(case_dir)
     flags = {"ct": ct, "aorta_mask": aorta_mask, "skeleton3d": skeleton3d, "fluoro": fluoro,
              "fluoro_mask": fluoro_mask, "geometry": geometry}
     available = _gather_inputs(case_dir, flags)
@@ -996,6 +1445,10 @@ def load_case(case_dir=None, *, ct=None, aorta_mask=None, skeleton3d=None, fluor
     stage = next(name for name in PRECEDENCE_3D if name in available)
     volumes = {name: None for name in PRECEDENCE_3D}
     volumes[stage] = _READERS_3D[stage](available[stage])
+    if stage == "skeleton3d":
+        from .plausibility import check_skeleton_is_thin
+
+        check_skeleton_is_thin(volumes[stage], available[stage])
     paths = {stage: available[stage]}
     mask_2d = frame_2d = P = None
     if "fluoro" in available:
@@ -1110,3 +1563,62 @@ def load_views(case_dir, reference: Volume, frame: int = 0) -> list[View]:
             raise InputError(f"{folder}: the view name {MAIN_VIEW!r} belongs to the case folder's own frame")
         views.append(_read_view(folder, reference, frame))
     return views
+
+
+# --------------------------------------------------------------------------- JSON inputs
+
+def read_json_file(path, what: str = "JSON"):
+    """Parse a JSON input; size, encoding, syntax and nesting problems raise :class:`InputError`."""
+    path = Path(path)
+    info = check_input_file(path)
+    if info.st_size > MAX_JSON_BYTES:
+        raise InputError(f"{display_path(path)}: {what} file of {info.st_size} bytes exceeds the "
+                         f"{MAX_JSON_BYTES}-byte limit")
+    try:
+        text = path.read_bytes().decode("utf-8")
+        return json.loads(text)
+    except UnicodeDecodeError:
+        raise InputError(f"{display_path(path)}: {what} file is not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{display_path(path)}: not valid {what} ({exc.msg} at line {exc.lineno} "
+                         f"column {exc.colno})") from None
+    except RecursionError:
+        raise InputError(f"{display_path(path)}: {what} nested too deeply to be a {what} file") from None
+    except OSError as exc:
+        raise InputError(f"{display_path(path)}: cannot read ({exc.strerror})") from None
+
+
+def _json_points(value, path: Path, key: str) -> np.ndarray:
+    """``value`` as an (n, 3) array of finite numbers, or :class:`InputError` naming ``key``."""
+    if not isinstance(value, list) or not value:
+        raise InputError(f"{display_path(path)}: key '{key}' must be a non-empty list of [x, y, z] points")
+    for i, point in enumerate(value):
+        if (not isinstance(point, list) or len(point) != 3
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in point)):
+            raise InputError(f"{display_path(path)}: key '{key}[{i}]' must be 3 numbers, got {str(point)[:40]}")
+    points = np.array(value, dtype=float)
+    if not np.all(np.isfinite(points)):
+        raise InputError(f"{display_path(path)}: key '{key}' holds NaN or infinite values")
+    return points
+
+
+def read_ground_truth(path, key: str = "intraop_centerline"):
+    """The ground-truth centreline ``key`` of a phantom's ``gt.json``, validated."""
+    from .centerline import Centerline
+
+    path = Path(path)
+    data = read_json_file(path, "ground-truth JSON")
+    if not isinstance(data, dict) or not isinstance(data.get(key), dict):
+        raise InputError(f"{display_path(path)}: key '{key}' missing or not an object")
+    entry = data[key]
+    points = _json_points(entry.get("points"), path, f"{key}.points")
+    edges = entry.get("edges", [])
+    if (not isinstance(edges, list) or not all(isinstance(e, list) and len(e) == 2 and
+                                               all(isinstance(i, int) and 0 <= i < len(points) for i in e)
+                                               for e in edges)):
+        raise InputError(f"{display_path(path)}: key '{key}.edges' must be pairs of node indices below {len(points)}")
+    labels = entry.get("labels", [])
+    if not isinstance(labels, list) or not all(isinstance(v, str) for v in labels) or (
+            labels and len(labels) != len(points)):
+        raise InputError(f"{display_path(path)}: key '{key}.labels' must be one string per point")
+    return Centerline(points, np.array(edges, dtype=np.int64).reshape(-1, 2), list(labels))

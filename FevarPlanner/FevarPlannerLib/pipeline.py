@@ -16,8 +16,11 @@ from __future__ import annotations
 
 import functools
 import itertools
-import json
+import os
+import shutil
+import tempfile
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,11 +32,12 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 from threadpoolctl import ThreadpoolController
 
-from . import baselines, deformation, evaluation, export, graph, matching, planning, quality, skeleton
+from . import (baselines, deformation, evaluation, export, graph, io, matching, planning, plausibility, quality,
+               skeleton)
 from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
 from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
-from .io import MAIN_VIEW, Case, InputError, View, load_case
+from .io import MAIN_VIEW, Case, InputError, View, display_path, load_case
 from .projection import image_directions, pixels_per_mm, project, view_label
 
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "FrameResult", "PlanResult", "preop_from_skeleton",
@@ -848,12 +852,10 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
 
 def _read_ground_truth(case: Case) -> Centerline | None:
     path = Path(case.case_dir) / "gt.json" if case.case_dir is not None else None
-    if path is None or not path.is_file():
+    if path is None or not os.path.lexists(path):
         return None
-    try:
-        return Centerline.from_dict(json.loads(path.read_text())["intraop_centerline"])
-    except (OSError, ValueError, KeyError) as exc:
-        raise InputError(f"{path}: unreadable ground truth ({exc})") from None
+    io.check_inside(path, case.case_dir, "the case folder")
+    return io.read_ground_truth(path)
 
 
 def _vessel_mask(frame, progress=None, prior=None) -> np.ndarray:
@@ -916,28 +918,35 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     planning.check_labels(start, target)
     t0 = time.perf_counter()
     _report(progress, 0.0, "pre-operative skeleton graph")
-    preop = _preop_of(case, preop, progress, segmenter, cache)
+    with _blamed_on(case.paths.get(case.stage_3d)):
+        preop = _preop_of(case, preop, progress, segmenter, cache)
     timings = dict(preop.timings)
     views = _case_views(case)
     by_name = {view.name: view for view in views}
     priors = [quality.FluoroPrior.from_centerline(preop.centerline, view.P) for view in views]
     qc = quality.QCData(case.ct, case.aorta_mask, views[0].fluoro.image, None, priors[0])
-    quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
+    with _blamed_on(case.paths.get(case.stage_3d)):
+        quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
+    masks = []
     with _timed(timings, "segmentation2d"):
-        masks = [_vessel_mask(view, progress, prior) for view, prior in zip(views, priors)]
+        for view, prior in zip(views, priors):
+            with _blamed_on(_view_frame_path(view)):
+                masks.append(_vessel_mask(view, progress, prior))
     qc.mask2d = masks[0]
     for view, mask, prior in zip(views, masks, priors):
         try:
-            quality.check_frame_mask(mask, prior, qc, frame=view.fluoro.image if view.has_frame else None)
+            with _blamed_on(_view_frame_path(view)):
+                quality.check_frame_mask(mask, prior, qc, frame=view.fluoro.image if view.has_frame else None)
         except quality.QualityError as exc:
             if view is views[0]:
                 raise
             raise quality.QualityError(f"view {view.name}: {exc}", qc) from None
     _report(progress, 0.5, f"registering ({method}, {len(views)} view(s))")
-    frame = register_views(preop, [(mask, view.P) for mask, view in zip(masks, views)],
-                           names=[view.name for view in views],
-                           images=[view.fluoro.image if view.has_frame else None for view in views],
-                           method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
+    with _blamed_on(_view_frame_path(views[0])):
+        frame = register_views(preop, [(mask, view.P) for mask, view in zip(masks, views)],
+                               names=[view.name for view in views],
+                               images=[view.fluoro.image if view.has_frame else None for view in views],
+                               method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
     _report(progress, 0.85, "planning the catheter path")
@@ -945,7 +954,8 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
         path = planning.plan_path(frame.deformed, start=start, target=target)
     sk_edges = frame.skeleton2d.edges()
     gt = _read_ground_truth(case)
-    errors = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions, sk_edges)
+    with _blamed_on(Path(case.case_dir) / "gt.json" if gt is not None else None):
+        errors = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions, sk_edges)
     geometry = case.geometry.to_dict() if case.geometry is not None else None
     drr_image = None
     if (drr is True or (drr == "auto" and geometry and geometry["source"] == "dicom-tags")) and _drr_volume(case) is not None:
@@ -963,22 +973,68 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
                       qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings))
 
 
+def _view_frame_path(view: View):
+    """The file a view's frame problems are named after: its vessel mask, else its frame."""
+    paths = getattr(view, "paths", None) or {}
+    return paths.get("fluoro_mask", paths.get("fluoro"))
+
+
+@contextmanager
+def _blamed_on(path):
+    """Turn a plain ``ValueError`` of the block (a skeleton without its branches, a flat frame)
+    into an :class:`InputError` naming the input file it came from."""
+    try:
+        yield
+    except ValueError as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if path is None or display_path(path) in message:
+            raise
+        if isinstance(exc, InputError) and type(exc) is not InputError:
+            # a subclass (quality.QualityError) carries more than its message: renamed in place
+            exc.args = (f"{display_path(path)}: {message}",)
+            raise
+        raise InputError(f"{display_path(path)}: {message}") from None
+
+
 def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
     """Load a case folder (docs/DESIGN.md section 4), run it, and write the outputs if ``out_dir``.
 
     ``overrides`` are the case-file flags (``ct``, ``aorta_mask``, ``skeleton3d``, ``fluoro``,
     ``fluoro_mask``, ``geometry``, ``frame``) and the options of :func:`run_case`.
+
+    The plausibility gates (:mod:`plausibility`) run around the work: start / target and the
+    output folder before anything is read, the anatomy's projection once the case is
+    loaded, the frame's vessel tree and the result before anything is written. Their
+    warnings, and those of the readers (:class:`io.InputWarning`), land in
+    ``result.warnings``.
     """
     load_keys = {"ct", "aorta_mask", "skeleton3d", "fluoro", "fluoro_mask", "geometry", "frame"}
-    case = load_case(case_dir, **{k: v for k, v in overrides.items() if k in load_keys and v is not None})
+    plausibility.check_start_target(overrides.get("start") or "iliac_right", overrides.get("target") or "renal_left")
+    if out_dir is not None:
+        files = [overrides[k] for k in sorted(load_keys - {"frame"}) if overrides.get(k) is not None]
+        check_output_folder(out_dir, folders=[case_dir] if case_dir is not None else [], files=files)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", io.InputWarning)
+        case = load_case(case_dir, **{k: v for k, v in overrides.items() if k in load_keys and v is not None})
+    notes = [str(w.message) for w in caught if issubclass(w.category, io.InputWarning)]
+    for recorded in caught:      # passed on as they came: the CLI shows ours as notes
+        warnings.warn_explicit(recorded.message, recorded.category, recorded.filename, recorded.lineno)
+    plausibility.check_anatomy_in_view(case.P, _anatomy_points(case), case.fluoro.shape, case.paths.get("geometry", case_dir))
     try:
         result = run_case(case, method=method, progress=progress,
                           **{k: v for k, v in overrides.items() if k not in load_keys})
     except quality.QualityError as failure:    # the QC picture first, so the user sees why
         if out_dir is not None and failure.qc is not None:
-            Path(out_dir).mkdir(parents=True, exist_ok=True)
-            quality.write_segmentation_qc(Path(out_dir) / "segmentation_qc.png", failure.qc, str(failure))
+            _write_failure_qc(Path(out_dir), failure)
         raise
+    frame_path = case.paths.get("fluoro_mask", case.paths.get("fluoro"))
+    plausibility.check_anatomy_in_view(result.P, result.preop.points, case.fluoro.shape, case.paths.get("geometry", case_dir))
+    plausibility.check_vessel_tree(result.skeleton2d_points, result.skeleton2d_edges, result.P, result.preop.points,
+                                   frame_path)
+    gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
+    for note in gate_notes:
+        warnings.warn(note, io.InputWarning, stacklevel=2)
+    result.warnings.extend(notes + gate_notes)
     if out_dir is not None:
         write_outputs(result, out_dir)
     return result
@@ -1005,12 +1061,101 @@ def picture_title(result: PlanResult) -> str:
     return text
 
 
-def write_outputs(result: PlanResult, out_dir) -> dict:
-    """Write result.json, deformed_centerline.vtp, path.mrk.json and overlay.png into ``out_dir``."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {name: out_dir / name for name in
-             ("deformed_centerline.vtp", "path.mrk.json", "overlay.png", "result.json")}
+#: Foreground voxels sampled to check the anatomy's projection before any work.
+_ANATOMY_SAMPLES = 4000
+
+
+def _anatomy_points(case: Case) -> np.ndarray:
+    """LPS points of the loaded 3D input: foreground voxels of a mask / skeleton, or the CT's centre."""
+    volume = case.reference_volume
+    if case.stage_3d == "ct":
+        return volume.center_lps()[None]
+    kji = np.argwhere(volume.array)
+    step = max(1, len(kji) // _ANATOMY_SAMPLES)
+    return volume.index_to_lps(kji[::step])
+
+
+#: The files :func:`write_outputs` writes (``segmentation_qc.png`` when the segmentation QC
+#: ran); a folder holding only these, or a ``result.json``, or nothing may be replaced.
+OUTPUT_NAMES = ("deformed_centerline.vtp", "path.mrk.json", "overlay.png", "result.json")
+QC_NAME = "segmentation_qc.png"
+DRR_NAME = "drr_check.png"
+
+
+def _write_failure_qc(out_dir: Path, failure) -> None:
+    """The QC picture of a failed segmentation gate, without touching a previous output set.
+
+    A new or empty output folder gets it as its only file (swapped in whole); a folder that
+    holds a previous set keeps it unchanged and the picture goes beside it, as
+    ``<out>.segmentation_qc.png``.
+    """
+    if os.path.isdir(out_dir) and os.listdir(out_dir):
+        beside = out_dir.parent / f"{out_dir.name}.{QC_NAME}"
+        quality.write_segmentation_qc(beside, failure.qc, str(failure))
+        failure.args = (str(failure).replace(f"see {QC_NAME}", f"see {display_path(beside)}"),)
+        return
+    with io.atomic_folder(out_dir) as staging:
+        quality.write_segmentation_qc(staging / QC_NAME, failure.qc, str(failure))
+
+
+def check_output_folder(out_dir, folders=(), files=()) -> Path:
+    """Refuse an output folder that would overwrite or mix with something else, before any work.
+
+    Refused: ``out_dir`` equal to, inside or containing an input (the case folder or any
+    input file's folder); an existing file or special file in its place; a folder that
+    holds anything but a previous output set (a ``result.json``) or nothing.
+    """
+    out = Path(out_dir)
+    shown = display_path(out)
+    if str(out).strip() == "":
+        raise InputError("--out: empty path")
+    try:
+        str(out).encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{shown}: the output folder's name is not valid UTF-8 (the writers cannot take it); "
+                         f"choose another name") from None
+    target = Path(os.path.realpath(out))
+    inputs = [(Path(f), Path(f)) for f in folders] + [(Path(f), Path(f) if Path(f).is_dir() else Path(f).parent)
+                                                      for f in files]
+    for given, folder in inputs:
+        folder = Path(os.path.realpath(folder))
+        if target == folder:
+            relation = "is the folder of"
+        elif folder in target.parents:
+            relation = "lies inside the folder of"
+        elif target in folder.parents:
+            relation = "contains"
+        else:
+            continue
+        raise InputError(f"{shown}: the output folder {relation} the input {display_path(given)}; choose a folder "
+                         f"apart from the inputs")
+    if os.path.lexists(out):
+        if not out.is_dir():
+            raise InputError(f"{shown}: exists and is not a folder")
+        entries = sorted(os.listdir(out))
+        foreign = [name for name in entries if not _looks_like_an_output(out / name)]
+        if entries and "result.json" not in entries and not set(entries) <= set(OUTPUT_NAMES + (QC_NAME, DRR_NAME)):
+            foreign = entries
+        if foreign:
+            raise InputError(f"{shown}: the folder holds files that are not a FevarPlanner output set "
+                             f"({', '.join(display_path(n) for n in foreign[:3])}{', ...' if len(foreign) > 3 else ''})"
+                             f", which replacing the set would delete; choose a new or empty folder")
+    elif not out.parent.is_dir() and out.parent.exists():
+        raise InputError(f"{shown}: its parent {display_path(out.parent)} is not a folder")
+    return out
+
+
+#: Suffixes of the files an output set is made of; anything else in an output folder (a
+#: subfolder, notes) was put there by someone else and is not deleted by a new set.
+OUTPUT_SUFFIXES = (".vtp", ".json", ".png")
+
+
+def _looks_like_an_output(path: Path) -> bool:
+    return path.is_file() and not path.is_symlink() and path.suffix in OUTPUT_SUFFIXES
+
+
+def _write_output_set(result: PlanResult, folder: Path) -> dict:
+    paths = {name: folder / name for name in OUTPUT_NAMES}
     export.write_centerline_vtp(paths["deformed_centerline.vtp"], result.deformed)
     export.write_path_markups(paths["path.mrk.json"], result.path.points)
     colors, names = PALETTE, export.ROLE_NAMES
@@ -1023,14 +1168,40 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
                           layers=layers, title=picture_title(result), P=result.P,
                           anchor=result.deformed.points.mean(axis=0))
     if result.qc is not None:
-        quality.write_segmentation_qc(out_dir / "segmentation_qc.png", result.qc)
+        paths[QC_NAME] = folder / QC_NAME
+        quality.write_segmentation_qc(paths[QC_NAME], result.qc)
     if result.drr is not None:
         from . import drr
 
-        paths["drr_check.png"] = out_dir / "drr_check.png"
+        paths[DRR_NAME] = folder / DRR_NAME
         notes = (result.geometry or {}).get("assumptions", [])
-        drr.write_drr_check(paths["drr_check.png"], result.fluoro_image, result.drr,
+        drr.write_drr_check(paths[DRR_NAME], result.fluoro_image, result.drr,
                             title=f"geometry check, {picture_title(result)}", notes=notes)
-    # result.json last: its presence means every other output is complete
     export.write_result_json(paths["result.json"], result.to_dict())
     return paths
+
+
+def write_outputs(result: PlanResult, out_dir) -> dict:
+    """Write result.json, deformed_centerline.vtp, path.mrk.json and overlay.png into ``out_dir``.
+
+    The whole set is written into a temporary folder beside ``out_dir`` and swapped in at
+    the end (:func:`io.swap_folder`): until then a previous set stays as it was, and a
+    failure (a full disk) or a killed process never leaves a half-written or mixed folder.
+    Files and the folder get the modes the umask gives new ones. Returns the final paths.
+    """
+    out_dir = Path(out_dir)
+    check_output_folder(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.writing.", dir=out_dir.parent))
+    try:
+        os.chmod(staging, io.output_mode(folder=True))
+        written = _write_output_set(result, staging)
+        io.swap_folder(staging, out_dir)
+    except OSError as exc:
+        where = display_path(exc.filename) if exc.filename else display_path(out_dir)
+        raise InputError(f"{where}: cannot write the outputs ({exc.strerror or exc}); {display_path(out_dir)} "
+                         f"was left as it was") from None
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return {name: out_dir / path.name for name, path in written.items()}

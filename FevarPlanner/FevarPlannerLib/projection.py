@@ -185,8 +185,20 @@ def source_position(P: np.ndarray) -> np.ndarray:
     return -np.linalg.solve(P[:, :3], P[:, 3])
 
 
+#: Largest magnitude accepted for an entry of P; P is defined up to scale, so a P whose
+#: entries exceed it (a P times 1e300) is refused rather than overflowing in the maths.
+MAX_P_ENTRY = 1e12
+
+
 def validate_projection_matrix(P, name: str = "projection matrix") -> np.ndarray:
-    """Return ``P`` as a float (3, 4) array or raise ``ValueError`` saying what is wrong."""
+    """Return ``P`` as a float (3, 4) array or raise ``ValueError`` saying what is wrong.
+
+    Refused: anything that is not 3x4 numbers (text, booleans, nesting), NaN or infinity,
+    entries beyond :data:`MAX_P_ENTRY` or all below its inverse (badly scaled), and a
+    singular 3x3 part.
+    """
+    if isinstance(P, (list, tuple)):
+        _check_json_matrix(P, name)
     try:
         P = np.asarray(P, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -195,9 +207,27 @@ def validate_projection_matrix(P, name: str = "projection matrix") -> np.ndarray
         raise ValueError(f"{name}: expected a 3x4 matrix, got shape {P.shape}")
     if not np.all(np.isfinite(P)):
         raise ValueError(f"{name}: contains NaN or infinite values")
-    if abs(np.linalg.det(P[:, :3])) < 1e-12 * max(1.0, np.abs(P[:, :3]).max() ** 3):
+    largest = float(np.abs(P).max())
+    if largest < 1.0 / MAX_P_ENTRY:
+        raise ValueError(f"{name}: degenerate (every entry is below {1.0 / MAX_P_ENTRY:g})")
+    if largest > MAX_P_ENTRY:
+        raise ValueError(f"{name}: badly scaled (largest entry {largest:.3g}; P is defined up to scale, divide it "
+                         f"so that its entries lie within 1e-12..1e12)")
+    rows = P[:, :3] / np.maximum(np.linalg.norm(P[:, :3], axis=1, keepdims=True), 1e-300)
+    if abs(np.linalg.det(rows)) < 1e-9:
         raise ValueError(f"{name}: degenerate (its 3x3 part is singular)")
     return P
+
+
+def _check_json_matrix(rows, name: str) -> None:
+    """Refuse a nested list that is not 3 rows of 4 plain numbers, naming the offending entry."""
+    if len(rows) != 3 or not all(isinstance(row, (list, tuple)) and len(row) == 4 for row in rows):
+        raise ValueError(f"{name}: expected a 3x4 matrix (3 rows of 4 numbers)")
+    for i, row in enumerate(rows):
+        for j, value in enumerate(row):
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise ValueError(f"{name}: entry [{i}][{j}] is {type(value).__name__} {str(value)[:20]!r}, "
+                                 f"not a number")
 
 
 def image_directions(P: np.ndarray, at: np.ndarray, step_mm: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
@@ -288,14 +318,16 @@ def patient_motion(P: np.ndarray, at, translation_px=(0.0, 0.0), rotation_deg: f
 
 def read_geometry_json(path) -> np.ndarray:
     """Read ``{"projection_matrix": [[4], [4], [4]]}`` and return a validated ``P``."""
+    from .io import display_path, read_json_file
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read geometry JSON ({exc})") from None
+    data = read_json_file(path, "geometry JSON")
     if not isinstance(data, dict) or "projection_matrix" not in data:
-        raise ValueError(f"{path}: no 'projection_matrix' key")
-    return validate_projection_matrix(data["projection_matrix"], name=str(path))
+        raise ValueError(f"{display_path(path)}: no 'projection_matrix' key")
+    if not isinstance(data["projection_matrix"], list):
+        raise ValueError(f"{display_path(path)}: key 'projection_matrix' must be a list of 3 rows of 4 numbers")
+    return validate_projection_matrix(data["projection_matrix"], name=f"{display_path(path)}: key "
+                                                                       f"'projection_matrix'")
 
 
 def write_geometry_json(path, P: np.ndarray, **extra) -> None:

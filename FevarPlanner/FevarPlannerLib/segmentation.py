@@ -20,6 +20,7 @@ LPS millimetres.
 from __future__ import annotations
 
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -295,6 +296,29 @@ def _save_checkpoint(path: Path, model: UNet, optimizer, iteration: int, rng: np
         torch.save(state, tmp)
 
 
+def _load_checkpoint(path) -> dict:
+    """A checkpoint's tensors and plain values; code hidden in the file is refused, not run.
+
+    ``torch.load(weights_only=True)`` unpickles only tensors, containers and numbers, so a
+    crafted ``.pt`` that would call a function on loading raises :class:`InputError`.
+    """
+    path = Path(path)
+    io.check_input_file(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        globals_named = [line.strip() for line in str(exc).splitlines() if "global" in line.lower()]
+        if not globals_named:
+            raise InputError(f"{path}: not a readable PyTorch checkpoint (UnpicklingError)") from None
+        raise InputError(f"{path}: refused to load: the checkpoint holds Python objects other than tensors "
+                         f"and plain values, which could run code ({globals_named[0][:100]})") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable PyTorch checkpoint ({type(exc).__name__})") from None
+    if not isinstance(state, dict):
+        raise InputError(f"{path}: not a FevarPlanner UNet checkpoint (holds a {type(state).__name__})")
+    return state
+
+
 def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, momentum: float = 0.9,
                batch_size: int = 1, seed: int = 0, resume=None, progress=None, crop: int = 128,
                base: int = 8, depth: int = 6, max_channels: int = 64, pixel_mm: float = DEFAULT_PIXEL_MM,
@@ -337,7 +361,7 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
     optimizer = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum)
     iteration, losses = 0, []
     if resume is not None:
-        state = torch.load(resume, map_location="cpu", weights_only=False)
+        state = _load_checkpoint(resume)
         model = UNet(**state["model_config"])
         model.load_state_dict(state["model_state"])
         optimizer = torch.optim.SGD(model.parameters(), lr=state["settings"]["lr"],
@@ -394,13 +418,15 @@ def load_unet(path=None) -> UNet:
     trained with are attached as ``model.settings``.
     """
     path = Path(path) if path is not None else default_model_path()
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"{path}: UNet weights not found (train them with "
                          f"`fevar-planner train-unet`, see Resources/Models/README.md)")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = _load_checkpoint(path)
         model = UNet(**state["model_config"])
         model.load_state_dict(state["model_state"])
+    except InputError:
+        raise
     except (RuntimeError, KeyError, TypeError, ValueError, EOFError) as exc:
         raise InputError(f"{path}: not a FevarPlanner UNet checkpoint ({type(exc).__name__})") from None
     model.settings = dict(state.get("settings", {}))

@@ -1,0 +1,230 @@
+"""Plausibility gates: refuse inputs and results that cannot be right, before and after registration.
+
+Format checks (io) say whether a file can be read; these gates ask what a surgeon would ask
+of what was read:
+
+* before any work: start and target different and known; voxel spacing in a human range;
+  a skeleton one voxel thin; the anatomy in front of the X-ray source and projecting into
+  the frame (eq. 1);
+* before the result is written: a frame that shows a vessel tree at the scale of the
+  projected pre-operative one (not noise); the registered vessels about as long as the
+  pre-operative ones; no node further from the pre-operative tree than the deformation
+  model moves anatomy.
+
+A failed gate raises :class:`io.InputError` (exit code 2 in the CLI) with the file and
+the reason; a doubtful result that can still be used gives a warning (a string), which
+:func:`pipeline.plan_case` puts in ``result.json`` under ``"warnings"`` and on stderr.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .centerline import ANATOMY_LABELS
+from .io import InputError, display_path
+from .projection import depth, project
+
+__all__ = [
+    "SPACING_RANGE_MM",
+    "check_grid",
+    "check_skeleton_is_thin",
+    "check_start_target",
+    "check_anatomy_in_view",
+    "check_vessel_tree",
+    "result_warnings",
+]
+
+#: Voxel sizes of a human CT, mm: finer is a micro-CT, coarser is not an image of vessels.
+SPACING_RANGE_MM = (0.1, 10.0)
+#: In a one-voxel-thin skeleton only junctions have more than two 26-neighbours; a
+#: skeleton with more such voxels than this fraction is a solid mask.
+MAX_THICK_FRACTION = 0.2
+#: Share of the anatomy that must project inside the frame.
+MIN_FRACTION_IN_FRAME = 0.5
+#: The frame's largest vessel component must span this share of the projected
+#: pre-operative tree's extent (a frame of noise gives scattered fragments).
+MIN_TREE_EXTENT_FRACTION = 0.5
+#: This share of the projected pre-operative nodes must lie near the frame's 2D skeleton,
+#: "near" being :data:`NEAR_FRACTION_OF_EXTENT` of the projected tree's extent. Measured on
+#: six random phantoms: 1.00 on every one (0.83-1.00 at half that distance); on a frame of
+#: pure noise, whose vesselness fills the frame with one wiggly piece: 0.27.
+MIN_NODES_NEAR_SKELETON = 0.5
+NEAR_FRACTION_OF_EXTENT = 0.1
+#: The deformation model (bending of a stiff-wired aorta, the iliacs straightening) moves
+#: no node further than this from the pre-operative tree, mm; beyond it the result is refused.
+#: On six random phantoms the largest move of any method was 27 mm; a frame of pure noise
+#: segmented with the pre-operative prior moved a node 60 mm.
+MAX_NODE_SHIFT_MM = 45.0
+#: A node further than this is reported as a warning, mm.
+WARN_NODE_SHIFT_MM = 30.0
+#: Relative change of a vessel's length that is reported: a wire does not stretch arteries
+#: by tens of percent. Only a warning, since the ICP-TPS baseline is known to change lengths
+#: (up to +145 % on phantoms) and its result is still wanted for comparison.
+WARN_LENGTH_CHANGE = 0.25
+#: The proposed method keeps lengths through its length term (eq. 6, S_L): at most 22 % change
+#: on the six phantoms; beyond this its result is refused (a noise frame gave +45 %).
+MAX_LENGTH_CHANGE_PROPOSED = 0.4
+
+#: Vessel names that may be start or target of a path (every anatomy label but the aorta).
+PATH_VESSELS = tuple(label for label in ANATOMY_LABELS if label != "aorta")
+
+
+def check_grid(path, spacing, origin, direction) -> None:
+    """Refuse a 3D grid with non-finite geometry or voxels outside :data:`SPACING_RANGE_MM`."""
+    spacing = np.asarray(spacing, dtype=float)
+    where = display_path(path)
+    if not (np.all(np.isfinite(spacing)) and np.all(np.isfinite(origin)) and np.all(np.isfinite(direction))):
+        raise InputError(f"{where}: voxel spacing, origin or direction holds NaN or infinity")
+    low, high = SPACING_RANGE_MM
+    for axis, value in zip("ijk", spacing):
+        if not low <= value <= high:
+            raise InputError(f"{where}: voxel spacing {value:g} mm along {axis} is outside the {low:g}-{high:g} mm "
+                             f"of a human CT")
+    matrix = np.asarray(direction, dtype=float).reshape(3, 3)
+    if abs(np.linalg.det(matrix)) < 1e-6:
+        raise InputError(f"{where}: the direction matrix is singular")
+
+
+def check_skeleton_is_thin(volume, path) -> None:
+    """Refuse a ``skeleton3d`` that is a solid mask (thinning it as a graph would take hours).
+
+    Counts each foreground voxel's 26-neighbours; in a one-voxel-thin curve only junctions
+    have more than two.
+    """
+    mask = np.asarray(volume.array, dtype=bool)
+    kernel = np.ones((3, 3, 3), dtype=np.uint8)
+    kernel[1, 1, 1] = 0
+    neighbours = ndi.convolve(mask.astype(np.uint8), kernel, mode="constant")[mask]
+    fraction = float(np.mean(neighbours > 2))
+    if fraction > MAX_THICK_FRACTION:
+        raise InputError(f"{display_path(path)}: not a one-voxel-thin skeleton ({fraction:.0%} of its "
+                         f"{int(mask.sum())} voxels have more than two neighbours); give a lumen mask as "
+                         f"aorta_mask instead")
+
+
+def check_start_target(start: str, target: str) -> None:
+    """Refuse an unknown start or target vessel, or the same one for both (before any work)."""
+    for flag, name in (("--start", start), ("--target", target)):
+        if name not in PATH_VESSELS:
+            raise InputError(f"{flag} {name!r}: not a vessel a path can start or end in "
+                             f"({', '.join(PATH_VESSELS)})")
+    if start == target:
+        raise InputError(f"--start and --target are both {start!r}: a path needs two different vessels")
+
+
+def check_anatomy_in_view(P, points, frame_shape, source) -> None:
+    """Refuse a ``P`` that puts the anatomy behind the X-ray source or off the frame (eq. 1).
+
+    Parameters
+    ----------
+    P : (3, 4)
+    points : (n, 3)
+        LPS points of the anatomy (nodes, or foreground voxels).
+    frame_shape : (rows, cols)
+    source : path-like or str
+        Where ``P`` came from (geometry.json or the frame's C-arm tags), for the message.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    where = display_path(source)
+    w = depth(P, points)
+    if not np.all(w > 0):
+        behind = float(np.mean(w <= 0))
+        raise InputError(f"{where}: the projection puts {behind:.0%} of the anatomy behind the X-ray source "
+                         f"(negative depth); P is wrong or its sign is flipped")
+    uv = project(P, points)
+    rows, cols = frame_shape
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= cols - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= rows - 0.5)
+    if np.mean(inside) < MIN_FRACTION_IN_FRAME:
+        centre = np.round(np.median(uv, axis=0), 1).tolist()
+        raise InputError(f"{where}: the anatomy projects outside the {cols}x{rows} frame ({np.mean(inside):.0%} "
+                         f"inside, centre at (u, v) = {centre} px)")
+
+
+def _components(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    n = len(points)
+    if len(edges) == 0:
+        return np.arange(n)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def _extent(points: np.ndarray) -> float:
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+
+
+def check_vessel_tree(skeleton_points, skeleton_edges, P, preop_points, frame) -> None:
+    """Refuse a frame whose 2D skeleton holds no vessel tree at the scale of the projected pre-op tree.
+
+    The largest connected piece of the 2D skeleton must span :data:`MIN_TREE_EXTENT_FRACTION`
+    of the projected pre-operative tree's extent; a frame of noise segments into short
+    scattered fragments and fails it.
+    """
+    points = np.asarray(skeleton_points, dtype=float).reshape(-1, 2)
+    expected = _extent(project(P, preop_points))
+    if len(points) == 0:
+        raise InputError(f"{display_path(frame)}: no vessels found in the frame")
+    labels = _components(points, np.asarray(skeleton_edges, dtype=np.int64).reshape(-1, 2))
+    largest = np.bincount(labels).argmax()
+    span = _extent(points[labels == largest])
+    if span < MIN_TREE_EXTENT_FRACTION * expected:
+        raise InputError(f"{display_path(frame)}: no usable vessel tree in the frame (its largest vessel piece spans "
+                         f"{span:.0f} px of the {expected:.0f} px the pre-operative tree covers; "
+                         f"{labels.max() + 1} pieces in all)")
+    distance, _ = cKDTree(points).query(project(P, preop_points))
+    near = float(np.mean(distance <= NEAR_FRACTION_OF_EXTENT * expected))
+    if near < MIN_NODES_NEAR_SKELETON:
+        raise InputError(f"{display_path(frame)}: no usable vessel tree in the frame (only {near:.0%} of the projected "
+                         f"pre-operative tree lies within {NEAR_FRACTION_OF_EXTENT * expected:.0f} px of the "
+                         f"frame's vessels; noise, another anatomy or a wrong geometry)")
+
+
+def _vessel_lengths(centerline) -> dict[str, float]:
+    labels = np.asarray(centerline.labels)
+    edges = np.asarray(centerline.edges, dtype=np.int64).reshape(-1, 2)
+    lengths = {}
+    for label in sorted(set(labels.tolist())):
+        both = edges[(labels[edges[:, 0]] == label) & (labels[edges[:, 1]] == label)]
+        lengths[label] = float(np.linalg.norm(centerline.points[both[:, 0]] - centerline.points[both[:, 1]],
+                                              axis=1).sum())
+    return lengths
+
+
+def result_warnings(preop, deformed, frame, method: str = "proposed") -> list[str]:
+    """Check a registration result against the pre-operative tree; warnings, or InputError if impossible.
+
+    Parameters
+    ----------
+    preop, deformed : Centerline
+        The same nodes before and after registration.
+    frame : path-like
+        The frame registered to (named in the messages).
+    method : str
+        The registration method; only "proposed" holds lengths, so only its length changes
+        beyond :data:`MAX_LENGTH_CHANGE_PROPOSED` are refused.
+    """
+    where = display_path(frame)
+    notes = []
+    before, after = _vessel_lengths(preop), _vessel_lengths(deformed)
+    for label, length in before.items():
+        if length < 1.0:
+            continue
+        change = after.get(label, 0.0) / length - 1.0
+        text = f"{label} is {after.get(label, 0.0):.0f} mm long after registration, {length:.0f} mm before"
+        if method == "proposed" and abs(change) > MAX_LENGTH_CHANGE_PROPOSED:
+            raise InputError(f"{where}: implausible registration: {text} ({change:+.0%}), which the length term "
+                             f"does not allow")
+        if abs(change) > WARN_LENGTH_CHANGE:
+            notes.append(f"{text} ({change:+.0%}): check the overlay")
+    shift, _ = cKDTree(preop.points).query(deformed.points)
+    worst = float(shift.max()) if len(shift) else 0.0
+    if worst > MAX_NODE_SHIFT_MM:
+        raise InputError(f"{where}: implausible registration: a node moved {worst:.0f} mm from the pre-operative "
+                         f"tree, more than the {MAX_NODE_SHIFT_MM:.0f} mm the deformation model allows")
+    if worst > WARN_NODE_SHIFT_MM:
+        notes.append(f"a node moved {worst:.0f} mm from the pre-operative tree (over {WARN_NODE_SHIFT_MM:.0f} mm): "
+                     f"check the overlay")
+    return notes
