@@ -1374,3 +1374,21 @@ def test_result_gates_warn_then_refuse_as_nodes_move_further():
     with pytest.raises(io.InputError, match=r"aorta is 145 mm long after registration, 100 mm before \(\+45%\)"):
         result_warnings(preop, preop.with_points(stretched), "f.png", method="proposed")
     assert any("+45%" in w for w in result_warnings(preop, preop.with_points(stretched), "f.png", method="icp-tps"))
+
+
+def test_a_planted_cache_entry_runs_nothing_and_is_recomputed(good, tmp_path, monkeypatch):
+    from FevarPlannerLib import cache
+
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "cache"))
+    case = io.load_case(good["mask"])
+    first = cache.preop_model(case, segmenter="threshold")
+    entry = cache._entry_path(tmp_path / "cache", first.key)
+    assert entry.is_file() and not first.from_cache
+    marker = tmp_path / "pwned"
+    entry.write_bytes(pickle.dumps({"key": first.key, "payload": _Exploit(marker)}))
+    again = cache.preop_model(case, segmenter="threshold")
+    assert not marker.exists() and not again.from_cache
+    assert cache.preop_model(case, segmenter="threshold").from_cache    # the planted file was replaced
+    entry.unlink()
+    os.mkfifo(entry)                                                    # a pipe is never opened
+    assert not cache.preop_model(case, segmenter="threshold").from_cache

@@ -182,8 +182,9 @@ def test_notes_about_the_inputs_reach_stderr_and_result_json_and_library_warning
     assert main(["-q", "plan", str(tmp_path / "case"), "--out", str(tmp_path / "out")]) == 0
     err = capsys.readouterr().err
     assert "internal warning" not in err
-    notes = [line for line in err.splitlines() if line.startswith("fevar-planner: warning: ")]
+    notes = [line for line in err.splitlines() if line.startswith("fevar-planner: note: ")]
     assert len(notes) == 1 and "aorta_mask.nrrd" in notes[0] and "aorta_mask.mha" in notes[0]
+    assert err.count("\n") == len(notes)
     result = _json.loads((tmp_path / "out" / "result.json").read_text())
     assert any("aorta_mask.mha" in note for note in result["warnings"])
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import os
 import pickle
+import stat
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -141,13 +142,34 @@ def _entry_path(cache_dir: Path, key: str) -> Path:
     return Path(cache_dir) / f"preop-{key[:32]}.pkl"
 
 
+#: numpy's own helpers an array pickle calls (everything else from numpy must be a class).
+_NUMPY_FUNCTIONS = {"_reconstruct", "_frombuffer", "scalar"}
+
+
+class _EntryUnpickler(pickle.Unpickler):
+    """Unpickles only what a cache entry is made of: classes of this package, numpy arrays and
+    dtypes, scipy sparse matrices. Anything else (``os.system``, ``builtins.eval``, ...) in a
+    planted or foreign file raises instead of running."""
+
+    def find_class(self, module: str, name: str):
+        found = super().find_class(module, name)
+        package = __package__ or "FevarPlannerLib"
+        allowed = ((module.startswith(package + ".") or module.startswith("scipy.sparse")) and isinstance(found, type)
+                   or module.split(".")[0] == "numpy" and (isinstance(found, type) or name in _NUMPY_FUNCTIONS))
+        if not allowed:
+            raise pickle.UnpicklingError(f"{module}.{name} is not part of a cache entry")
+        return found
+
+
 def _load_entry(path: Path, key: str):
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):   # a pipe or device is never opened
+            return None
         with open(path, "rb") as handle:
-            entry = pickle.load(handle)
+            entry = _EntryUnpickler(handle).load()
     except FileNotFoundError:
         return None
-    except Exception:  # a truncated or foreign file is recomputed and replaced, never trusted
+    except Exception:  # a truncated, foreign or planted file is recomputed and replaced, never trusted
         return None
     return entry if isinstance(entry, dict) and entry.get("key") == key else None
 

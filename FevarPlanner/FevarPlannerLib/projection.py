@@ -318,16 +318,10 @@ def patient_motion(P: np.ndarray, at, translation_px=(0.0, 0.0), rotation_deg: f
 
 def read_geometry_json(path) -> np.ndarray:
     """Read ``{"projection_matrix": [[4], [4], [4]]}`` and return a validated ``P``."""
-    from .io import display_path, read_json_file
-
-    path = Path(path)
-    data = read_json_file(path, "geometry JSON")
-    if not isinstance(data, dict) or "projection_matrix" not in data:
-        raise ValueError(f"{display_path(path)}: no 'projection_matrix' key")
-    if not isinstance(data["projection_matrix"], list):
-        raise ValueError(f"{display_path(path)}: key 'projection_matrix' must be a list of 3 rows of 4 numbers")
-    return validate_projection_matrix(data["projection_matrix"], name=f"{display_path(path)}: key "
-                                                                       f"'projection_matrix'")
+    P, _ = read_geometry_file(path)
+    if P is None:
+        raise ValueError(f"{path}: no 'projection_matrix' key")
+    return P
 
 
 def write_geometry_json(path, P: np.ndarray, **extra) -> None:
@@ -416,13 +410,20 @@ class GeometrySource:
                 "assumptions": list(self.assumptions), "in_plane_correction": self.in_plane_correction}
 
 
+def _json_number(value) -> float:
+    """A JSON number as float; text and booleans are not numbers (``TypeError``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"not a number: {value!r}")
+    return float(value)
+
+
 def _correction(data: dict, path: Path) -> dict | None:
     correction = data.get(CORRECTION_KEY)
     if correction is None:
         return None
     try:
-        translation = [float(x) for x in correction.get("translation_px", (0.0, 0.0))]
-        rotation = float(correction.get("rotation_deg", 0.0))
+        translation = [_json_number(x) for x in correction.get("translation_px", (0.0, 0.0))]
+        rotation = _json_number(correction.get("rotation_deg", 0.0))
     except (AttributeError, TypeError, ValueError):
         raise ValueError(f"{path}: {CORRECTION_KEY} must be {{'translation_px': [du, dv], 'rotation_deg': r}}") from None
     if len(translation) != 2 or not np.all(np.isfinite(translation + [rotation])):
@@ -437,14 +438,17 @@ def read_geometry_file(path) -> tuple[np.ndarray | None, dict | None]:
     (``{"translation_px": [du, dv], "rotation_deg": r}``, the user's fix of ``P`` from the
     C-arm tags, or of a calibrated one), or both. It must hold at least one of them.
     """
+    from .io import display_path, read_json_file
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read geometry JSON ({exc})") from None
+    data = read_json_file(path, "geometry JSON")
     if not isinstance(data, dict) or not ({"projection_matrix", CORRECTION_KEY} & set(data)):
-        raise ValueError(f"{path}: neither a 'projection_matrix' nor an '{CORRECTION_KEY}' key")
-    P = validate_projection_matrix(data["projection_matrix"], name=str(path)) if "projection_matrix" in data else None
+        raise ValueError(f"{display_path(path)}: neither a 'projection_matrix' nor an '{CORRECTION_KEY}' key")
+    P = None
+    if "projection_matrix" in data:
+        if not isinstance(data["projection_matrix"], list):
+            raise ValueError(f"{display_path(path)}: key 'projection_matrix' must be a list of 3 rows of 4 numbers")
+        P = validate_projection_matrix(data["projection_matrix"], name=f"{display_path(path)}: key 'projection_matrix'")
     return P, _correction(data, path)
 
 
