@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -443,15 +444,19 @@ def _check_not_an_input(out: Path, inputs) -> None:
         raise InputError(f"{display_path(out)}: --out exists and is not a regular file")
 
 
-def _quiet_libraries() -> None:
-    """ITK and VTK print their warnings straight to stderr, several lines each: keep them off
-    the command line's stderr, which holds one line per problem (the readers check inputs
-    themselves)."""
+@contextlib.contextmanager
+def _itk_warnings_off():
+    """ITK prints its warnings straight to stderr, several lines each: keep them off the command
+    line's stderr, which holds one line per problem (the readers check inputs themselves).
+    VTK's are left on: its readers' errors are detected through them."""
     import SimpleITK as sitk
-    from vtkmodules.vtkCommonCore import vtkObject
 
+    previous = sitk.ProcessObject.GetGlobalWarningDisplay()
     sitk.ProcessObject.SetGlobalWarningDisplay(False)
-    vtkObject.GlobalWarningDisplayOff()
+    try:
+        yield
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(previous)
 
 
 def _error_message(exc: BaseException) -> str:
@@ -470,8 +475,7 @@ def main(argv=None) -> int:
     other libraries' warnings are not shown.
     """
     args = build_parser().parse_args(argv)
-    _quiet_libraries()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), _itk_warnings_off():
         warnings.simplefilter("always")
         warnings.showwarning = _show_warning
         try:

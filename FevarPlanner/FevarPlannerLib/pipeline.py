@@ -1147,7 +1147,7 @@ def check_output_folder(out_dir, folders=(), files=()) -> Path:
 
 #: Suffixes of the files an output set is made of; anything else in an output folder (a
 #: subfolder, notes) was put there by someone else and is not deleted by a new set.
-OUTPUT_SUFFIXES = (".vtp", ".json", ".png")
+OUTPUT_SUFFIXES = (".vtp", ".json", ".png", ".csv")
 
 
 def _looks_like_an_output(path: Path) -> bool:
@@ -1181,13 +1181,15 @@ def _write_output_set(result: PlanResult, folder: Path) -> dict:
     return paths
 
 
-def write_outputs(result: PlanResult, out_dir) -> dict:
+def write_outputs(result: PlanResult, out_dir, extra=None) -> dict:
     """Write result.json, deformed_centerline.vtp, path.mrk.json and overlay.png into ``out_dir``.
 
     The whole set is written into a temporary folder beside ``out_dir`` and swapped in at
     the end (:func:`io.swap_folder`): until then a previous set stays as it was, and a
     failure (a full disk) or a killed process never leaves a half-written or mixed folder.
-    Files and the folder get the modes the umask gives new ones. Returns the final paths.
+    Files and the folder get the modes the umask gives new ones. ``extra(folder)``, if
+    given, writes further files of the same set into the staging folder and returns their
+    paths. Returns the final paths.
     """
     out_dir = Path(out_dir)
     check_output_folder(out_dir)
@@ -1196,6 +1198,8 @@ def write_outputs(result: PlanResult, out_dir) -> dict:
     try:
         os.chmod(staging, io.output_mode(folder=True))
         written = _write_output_set(result, staging)
+        if extra is not None:
+            written.update(extra(staging))
         io.swap_folder(staging, out_dir)
     except OSError as exc:
         where = display_path(exc.filename) if exc.filename else display_path(out_dir)

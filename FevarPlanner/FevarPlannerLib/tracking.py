@@ -186,16 +186,24 @@ def write_track_outputs(result: TrackResult, out_dir) -> dict:
     """Write ``track.csv``, ``track.json`` and the last frame's outputs into ``out_dir``."""
     from .pipeline import write_outputs
 
+    from .io import atomic_folder
+
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     buffer = _stringio.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
     for record in result.records:
         writer.writerow(record.row())
-    paths = {"track.csv": out_dir / "track.csv", "track.json": out_dir / "track.json"}
-    write_text_atomic(paths["track.csv"], buffer.getvalue())
-    write_text_atomic(paths["track.json"], json.dumps(result.summary(), indent=2) + "\n")
+
+    def track_files(folder: Path) -> dict:
+        paths = {"track.csv": folder / "track.csv", "track.json": folder / "track.json"}
+        write_text_atomic(paths["track.csv"], buffer.getvalue())
+        write_text_atomic(paths["track.json"], json.dumps(result.summary(), indent=2) + "\n")
+        return paths
+
+    # one output set, swapped in whole (pipeline.write_outputs)
     if result.last is not None:
-        paths.update(write_outputs(result.last, out_dir))
-    return paths
+        return write_outputs(result.last, out_dir, extra=track_files)
+    with atomic_folder(out_dir) as staging:
+        written = track_files(staging)
+    return {name: out_dir / path.name for name, path in written.items()}
