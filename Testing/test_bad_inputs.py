@@ -99,7 +99,8 @@ class Bad:
 CORPUS: list[Bad] = []
 #: A frame without the expected vessel tree may be caught by any of these gates (the 2D graph,
 #: the segmentation QC, the vessel-tree gate, the result gates); "|" separates alternatives.
-NOT_A_TREE = "skeleton has only|not found in the frame|no usable vessel tree|implausible registration"
+NOT_A_TREE = ("skeleton has only|not found in the frame|no usable vessel tree|implausible registration|"
+              "usable angiogram|devices only")
 
 
 def bad(category: str, name: str, *words: str, base: str = "mask", env=None):
@@ -1055,7 +1056,8 @@ def _crafted_checkpoint(path: Path, marker: Path) -> None:
 @bad("weights", "segment_model_crafted_pickle", "evil.pt", "refused to load")
 def _(r):
     _crafted_checkpoint(r.tmp / "evil.pt", r.tmp / "pwned")
-    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "evil.pt")]
+    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "evil.pt"),
+              "--segmenter", "unet"]
 
 
 @bad("weights", "resume_crafted_pickle", "evil.pt", "refused to load")
@@ -1068,19 +1070,29 @@ def _(r):
 @bad("weights", "segment_model_zero_bytes", "w.pt", "empty")
 def _(r):
     (r.tmp / "w.pt").write_bytes(b"")
-    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt")]
+    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt"),
+              "--segmenter", "unet"]
 
 
 @bad("weights", "segment_model_random_bytes", "w.pt", "not a readable PyTorch checkpoint")
 def _(r):
     _random_bytes(r.tmp / "w.pt")
-    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt")]
+    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt"),
+              "--segmenter", "unet"]
 
 
 @bad("weights", "segment_model_fifo", "w.pt", "named pipe")
 def _(r):
     _fifo(r.tmp / "w.pt")
-    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt")]
+    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt"),
+              "--segmenter", "unet"]
+
+
+@bad("weights", "segment_model_without_unet", "w.pt", "--segmenter unet only")
+def _(r):
+    (r.tmp / "w.pt").write_bytes(b"weights")
+    r.argv = ["-q", "segment", str(r.case / M), "--out", str(r.out / "mask.nrrd"), "--model", str(r.tmp / "w.pt"),
+              "--segmenter", "threshold"]
 
 
 @bad("weights", "segment_out_is_the_input", M, "overwrite")

@@ -260,6 +260,11 @@ def _cmd_segment(args) -> int:
     from .segmentation import load_unet, mask_surface, segment_ct, write_surface_vtp
 
     _check_not_an_input(args.out, [args.ct] + ([args.model] if args.model is not None else []))
+    if args.model is not None and args.segmenter != "unet":
+        from .io import InputError
+
+        raise InputError(f"{args.model}: --model is used by --segmenter unet only (the {args.segmenter} "
+                         f"segmenter would ignore it)")
     bar = ProgressBar(enabled=not args.quiet)
     bar(0.0, f"reading {args.ct}")
     ct = read_ct(args.ct)
