@@ -1229,7 +1229,8 @@ def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
 def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0) -> list:
     """Where the downward aorta trace splits into the common iliacs: the first traced slice
     (from the top) whose next slice holds :func:`_two_lumens`, else the first such slice
-    within ``search_mm`` beyond the trace's end. Returns [(k, centre, radius)] x 2 or []."""
+    within ``search_mm`` below the last slice where the trace still had the aorta's width (it
+    may have followed one iliac for a while). Returns [(k, centre, radius)] x 2 or []."""
     ks = sorted(aorta.centres, key=lambda k: k * aorta.step)
     for k in ks:
         below = k + aorta.step
@@ -1237,13 +1238,16 @@ def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0) -
             found = _two_lumens(ct, below, aorta.centres[k], aorta.radii[k], lumen_hu)
             if found:
                 return found
-    for n in range(1, int(search_mm / ct.spacing[2]) + 1):
-        below = ks[-1] + n * aorta.step
-        if not 0 <= below < ct.shape[0]:
-            break
-        found = _two_lumens(ct, below, aorta.centres[ks[-1]], aorta.radii[ks[-1]], lumen_hu)
-        if found:
-            return found
+    typical = float(np.median([aorta.radii[k] for k in ks]))
+    k_wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical][-1]     # the last slice of full aortic width
+    for k_ref in dict.fromkeys((k_wide, ks[-1])):
+        for n in range(1, int(search_mm / ct.spacing[2]) + 1):
+            below = k_ref + n * aorta.step
+            if not 0 <= below < ct.shape[0]:
+                break
+            found = _two_lumens(ct, below, aorta.centres[k_ref], aorta.radii[k_ref], lumen_hu)
+            if found:
+                return found
     return []
 
 
