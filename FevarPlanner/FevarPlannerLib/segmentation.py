@@ -1195,7 +1195,8 @@ def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
     ``radius`` in the slice above), or [].
 
     Two distance-map maxima of the lumen near the aorta, each at least ILIAC_MIN_RADIUS_MM
-    deep and at most 0.9 ``radius``, of similar size (ratio >= 0.5), at least 0.8 times the
+    deep and at most 0.9 ``radius``, of similar size (ratio >= 0.7: the common iliacs are
+    nearly symmetric, a visceral or renal branch beside the aorta is not), at least 0.8 times the
     sum of their radii apart (two lumens, not one flattened one), and both inside the aortic
     cross-section above (+ 3 mm): the iliacs come out of the aorta, a neighbour (IVC, SMA) does not.
     """
@@ -1220,26 +1221,35 @@ def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
     centres = peaks.astype(float) + lo
     apart = np.hypot(*((peaks[0] - peaks[1]) * np.asarray(spacing_ji)))
     from_aorta = np.hypot(*((centres - centre) * np.asarray(spacing_ji)).T)
-    if (apart >= 0.8 * radii.sum() and radii.min() >= 0.5 * radii.max() and radii.max() <= 0.9 * radius
+    if (apart >= 0.8 * radii.sum() and radii.min() >= 0.7 * radii.max() and radii.max() <= 0.9 * radius
             and np.all(from_aorta <= radius + 3.0)):
         return [(k, c, float(r)) for c, r in zip(centres, radii)]
     return []
 
 
-def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0) -> list:
-    """Where the downward aorta trace splits into the common iliacs: the first traced slice
-    (from the top) whose next slice holds :func:`_two_lumens`, else the first such slice
-    within ``search_mm`` below the last slice where the trace still had the aorta's width (it
-    may have followed one iliac for a while). Returns [(k, centre, radius)] x 2 or []."""
+def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, tolerance_mm: float = 10.0) -> list:
+    """Where the downward aorta trace splits into the common iliacs, or [].
+
+    The split lies near or below the last slice where the trace still had the aorta's width
+    (beyond it the trace may have followed one iliac): from ``tolerance_mm`` above that slice
+    down to the trace's end, the first traced slice whose next slice holds :func:`_two_lumens`;
+    else the first such slice within ``search_mm`` below that last full-width slice or below
+    the trace's end. An aorta that keeps its width to the end of the scan has no split.
+
+    Returns
+    -------
+    list of (k, centre_ji, radius_mm), two entries or none
+    """
     ks = sorted(aorta.centres, key=lambda k: k * aorta.step)
+    typical = float(np.median([aorta.radii[k] for k in ks]))
+    k_wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical][-1]     # the last slice of full aortic width
+    first = k_wide - aorta.step * int(round(tolerance_mm / ct.spacing[2]))
     for k in ks:
         below = k + aorta.step
-        if 0 <= below < ct.shape[0]:
+        if (k - first) * aorta.step >= 0 and 0 <= below < ct.shape[0]:
             found = _two_lumens(ct, below, aorta.centres[k], aorta.radii[k], lumen_hu)
             if found:
                 return found
-    typical = float(np.median([aorta.radii[k] for k in ks]))
-    k_wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical][-1]     # the last slice of full aortic width
     for k_ref in dict.fromkeys((k_wide, ks[-1])):
         for n in range(1, int(search_mm / ct.spacing[2]) + 1):
             below = k_ref + n * aorta.step
