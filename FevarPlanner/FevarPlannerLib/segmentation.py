@@ -1203,50 +1203,114 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     for step in (up, -up):
         trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
         traces.append(trace)
-        split = _follow(trace, ct, lumen_hu, labels, 1, counter)
-        if step == -up and split:
-            for k, c, r in _iliac_seeds(ct, split[0][0], trace, lumen_hu):
+        _follow(trace, ct, lumen_hu, labels, 1, counter)
+        if step == -up:
+            seeds = _bifurcation(ct, trace, lumen_hu)
+            if seeds:
+                _cut_trace_below(trace, seeds[0][0], labels)
+                _fill_crotch(ct, trace, seeds[0][0], lumen_hu, labels)
+            for k, c, r in seeds:
                 iliac = _Trace("iliac", k - step, c, r, step, ILIAC_MIN_RADIUS_MM)
                 traces.append(iliac)
                 _follow(iliac, ct, lumen_hu, labels, 2, counter)
     return labels, traces, lumen_hu
 
 
-def _iliac_seeds(ct: Volume, k_start: int, aorta: _Trace, lumen_hu, search_mm: float = 30.0) -> list:
-    """The two common iliacs where the aorta ended: the first slice (within ``search_mm`` below)
-    whose lumen near the aorta's last centre has two distance-map maxima at least 0.8 times
-    the sum of their radii apart (two separate lumens, not one flattened one).
+def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
+    """The two common iliacs in slice ``k`` just below an aortic cross-section (``centre``,
+    ``radius`` in the slice above), or [].
 
-    Returns
-    -------
-    list of (k, centre_ji, radius_mm)
+    Two distance-map maxima of the lumen near the aorta, each at least ILIAC_MIN_RADIUS_MM
+    deep and at most 0.9 ``radius``, of similar size (ratio >= 0.7: the common iliacs are
+    nearly symmetric, a visceral or renal branch beside the aorta is not), at least 0.8 times the
+    sum of their radii apart (two lumens, not one flattened one), and both inside the aortic
+    cross-section above (+ 3 mm): the iliacs come out of the aorta, a neighbour (IVC, SMA) does not.
     """
     from skimage.feature import peak_local_max
 
     spacing_ji = _slice_axes_mm(ct)
-    reach = 1.6 * aorta.radius + 8.0
+    reach = 1.6 * radius + 8.0
     half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
-    centre = np.floor(aorta.centre).astype(int)
-    lo = np.maximum(centre - half, 0)
-    hi = np.minimum(centre + half + 1, ct.shape[1:])
+    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
     rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
-    disc = np.hypot((rows - aorta.centre[0]) * spacing_ji[0], (cols - aorta.centre[1]) * spacing_ji[1]) <= reach
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
+    window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
+                                 0.6 / np.asarray(spacing_ji))
+    edt = ndi.distance_transform_edt((window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc, sampling=spacing_ji)
     min_distance = max(1, int(round(2 * ILIAC_MIN_RADIUS_MM / max(spacing_ji))))
-    for n in range(int(search_mm / ct.spacing[2]) + 1):
-        k = k_start + n * aorta.step
-        if not 0 <= k < ct.shape[0]:
-            break
+    peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=ILIAC_MIN_RADIUS_MM, num_peaks=2,
+                           exclude_border=False)
+    if len(peaks) < 2:
+        return []
+    radii = edt[tuple(peaks.T)]
+    centres = peaks.astype(float) + lo
+    apart = np.hypot(*((peaks[0] - peaks[1]) * np.asarray(spacing_ji)))
+    from_aorta = np.hypot(*((centres - centre) * np.asarray(spacing_ji)).T)
+    if (apart >= 0.8 * radii.sum() and radii.min() >= 0.7 * radii.max() and radii.max() <= 0.9 * radius
+            and np.all(from_aorta <= radius + 3.0)):
+        return [(k, c, float(r)) for c, r in zip(centres, radii)]
+    return []
+
+
+def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, tolerance_mm: float = 10.0) -> list:
+    """Where the downward aorta trace splits into the common iliacs, or [].
+
+    The split lies near or below the last slice where the trace still had the aorta's width
+    (beyond it the trace may have followed one iliac): from ``tolerance_mm`` above that slice
+    down to the trace's end, the first traced slice whose next slice holds :func:`_two_lumens`;
+    else the first such slice within ``search_mm`` below that last full-width slice or below
+    the trace's end. An aorta that keeps its width to the end of the scan has no split.
+
+    Returns
+    -------
+    list of (k, centre_ji, radius_mm), two entries or none
+    """
+    ks = sorted(aorta.centres, key=lambda k: k * aorta.step)
+    typical = float(np.median([aorta.radii[k] for k in ks]))
+    k_wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical][-1]     # the last slice of full aortic width
+    first = k_wide - aorta.step * int(round(tolerance_mm / ct.spacing[2]))
+    for k in ks:
+        below = k + aorta.step
+        if (k - first) * aorta.step >= 0 and 0 <= below < ct.shape[0]:
+            found = _two_lumens(ct, below, aorta.centres[k], aorta.radii[k], lumen_hu)
+            if found:
+                return found
+    for k_ref in dict.fromkeys((k_wide, ks[-1])):
+        for n in range(1, int(search_mm / ct.spacing[2]) + 1):
+            below = k_ref + n * aorta.step
+            if not 0 <= below < ct.shape[0]:
+                break
+            found = _two_lumens(ct, below, aorta.centres[k_ref], aorta.radii[k_ref], lumen_hu)
+            if found:
+                return found
+    return []
+
+
+def _fill_crotch(ct: Volume, aorta: _Trace, k_split: int, lumen_hu, labels: np.ndarray) -> None:
+    """Label as iliac (2) the lumen between the aorta's last slice and the slice where the two
+    iliacs are first apart (the crotch), within the aorta's reach, so the tree stays connected."""
+    k_last = max(aorta.centres, key=lambda k: k * aorta.step)
+    centre, radius = aorta.centres[k_last], aorta.radii[k_last]
+    spacing_ji = _slice_axes_mm(ct)
+    reach = 1.45 * radius + 2.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
+    for k in range(k_last + aorta.step, k_split + aorta.step, aorta.step):
         window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
                                      0.6 / np.asarray(spacing_ji))
-        edt = ndi.distance_transform_edt((window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc, sampling=spacing_ji)
-        peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=ILIAC_MIN_RADIUS_MM, num_peaks=2,
-                               exclude_border=False)
-        if len(peaks) == 2:
-            radii = edt[tuple(peaks.T)]
-            apart = np.hypot(*((peaks[0] - peaks[1]) * np.asarray(spacing_ji)))
-            if apart >= 0.8 * radii.sum() and radii.min() >= 0.5 * radii.max():
-                return [(k, peak.astype(float) + lo, float(r)) for peak, r in zip(peaks, radii)]
-    return []
+        view = labels[k, lo[0]:hi[0], lo[1]:hi[1]]
+        view[(window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc & (view == 0)] = 2
+
+
+def _cut_trace_below(trace: _Trace, k_cut: int, labels: np.ndarray) -> None:
+    """Forget the part of a downward trace at and beyond slice ``k_cut`` (it followed one iliac)."""
+    for k in [k for k in trace.centres if (k - k_cut) * trace.step >= 0]:
+        labels[k][labels[k] == 1] = 0
+        del trace.centres[k], trace.radii[k]
 
 
 class _SliceCounter:
