@@ -185,7 +185,7 @@ def plot(path: Path, per_view: dict, two_views: dict) -> None:
         axes[0].bar(x + (i - (len(names) - 1) / 2) * width, [bars[name]["cpu_ms"][s] for s in STAGES], width,
                     label=f"{name}: total {bars[name]['cpu_ms']['total']:.1f} ms CPU "
                           f"({bars[name]['wall_ms']['total']:.1f} wall)")
-    axes[0].set_xticks(x, STAGES)
+    axes[0].set_xticks(x, STAGES, rotation=20)
     axes[0].set(ylabel="median CPU time per frame (ms)", title="per-frame stages, 1024 x 1024 raw frame")
     axes[0].legend(fontsize=8)
     labels = ["one view", "two views"]
