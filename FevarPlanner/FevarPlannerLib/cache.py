@@ -91,10 +91,10 @@ def volume_digest(volume: Volume) -> str:
 
 
 def code_digest() -> str:
-    """SHA-256 of every module of this package: any code change invalidates the cache."""
+    """SHA-256 of every module of this package and its subpackages: any code change invalidates the cache."""
     digest = hashlib.sha256(f"format {CACHE_FORMAT}".encode())
-    for path in sorted(PACKAGE_DIR.glob("*.py")):
-        digest.update(path.name.encode())
+    for path in sorted(PACKAGE_DIR.rglob("*.py")):
+        digest.update(path.relative_to(PACKAGE_DIR).as_posix().encode())
         digest.update(path.read_bytes())
     return digest.hexdigest()
 

@@ -387,15 +387,16 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     if r0 > r1 or c0 > c1:
         r0, r1, c0, c1 = 0, rows - 1, 0, cols - 1
     shown = mask[r0:r1 + 1, c0:c1 + 1]
-    # distance to the nearest background pixel inside the exposed rectangle (its edges
-    # repeated outwards): at a side the vessel runs into, the vessel's half-width there
-    half_width = ndimage.distance_transform_edt(np.pad(shown, 1, mode="edge"))[1:-1, 1:-1]
     sides = {"top": (0, slice(None)), "bottom": (-1, slice(None)), "left": (slice(None), 0),
              "right": (slice(None), -1)}
-    clipped, margin = [], {}
+    clipped, margin, half_width = [], {}, None
     for side, index in sides.items():
         on_border = shown[index]
         if np.count_nonzero(on_border) >= MIN_BORDER_PIXELS:
+            if half_width is None:      # only for a clipped frame: 45 ms on a 1024 x 1024 frame
+                # distance to the nearest background pixel inside the exposed rectangle (its
+                # edges repeated outwards): at a side the vessel runs into, its half-width there
+                half_width = ndimage.distance_transform_edt(np.pad(shown, 1, mode="edge"))[1:-1, 1:-1]
             clipped.append(side)
             margin[side] = float(half_width[index][on_border].max())
     return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin)

@@ -153,6 +153,14 @@ def clean_mask(mask: np.ndarray, *, fill_holes: bool = True, largest_component: 
     numpy.ndarray of bool, same shape as ``mask``.
     """
     binary = as_binary(mask)
+    box, kept = _clean_in_box(binary, fill_holes, largest_component, min_size)
+    out = np.zeros(binary.shape, dtype=bool)
+    out[box] = kept
+    return out
+
+
+def _clean_in_box(binary: np.ndarray, fill_holes: bool, largest_component: bool, min_size: int):
+    """:func:`clean_mask` on the bounding box of ``binary``: (box, cleaned box contents)."""
     if not binary.any():
         raise ValueError(f"mask of shape {binary.shape} is empty (no foreground)")
     box = bounding_box(binary)
@@ -164,9 +172,21 @@ def clean_mask(mask: np.ndarray, *, fill_holes: bool = True, largest_component: 
                          f"fewer than min_size={min_size}")
     if fill_holes:
         kept = _fill_enclosed_holes(kept)
-    out = np.zeros(binary.shape, dtype=bool)
-    out[box] = kept
-    return out
+    return box, kept
+
+
+def _cleaned_crop(binary: np.ndarray, pad: int) -> tuple[tuple[slice, ...], np.ndarray]:
+    """``clean_mask(binary, largest_component=False)`` cut to its bounding box grown by ``pad``.
+
+    The same box and contents as cropping the cleaned full grid, without building it.
+    """
+    box, kept = _clean_in_box(binary, True, False, DEFAULT_MIN_SIZE)
+    tight = bounding_box(kept)
+    outer = tuple(slice(max(b.start + t.start - pad, 0), min(b.start + t.stop + pad, n))
+                  for b, t, n in zip(box, tight, binary.shape))
+    crop = np.zeros(tuple(o.stop - o.start for o in outer), dtype=bool)
+    crop[tuple(slice(b.start + t.start - o.start, b.start + t.stop - o.start) for b, t, o in zip(box, tight, outer))] = kept[tight]
+    return outer, crop
 
 
 def _smooth_and_sample(crop: np.ndarray, sigma: float | np.ndarray, step: int) -> np.ndarray:
@@ -253,12 +273,12 @@ def grid_edges(indices: np.ndarray, shape, *, prune_triangles: bool = True) -> n
 
 def _boundary(mask: np.ndarray) -> np.ndarray:
     """Foreground elements with a face neighbour in the background (or on the array's edge)."""
-    inner = np.zeros_like(mask)
-    core = (slice(1, -1),) * mask.ndim
-    inner[core] = mask[core]
+    padded = np.pad(mask, 1)
+    inner = mask.copy()
     for axis in range(mask.ndim):
-        for shift in (-1, 1):
-            inner[core] &= np.roll(mask, shift, axis=axis)[core]
+        for start in (0, 2):
+            inner &= padded[tuple(slice(start, start + n) if a == axis else slice(1, 1 + n)
+                                  for a, n in enumerate(mask.shape))]
     return mask & ~inner
 
 
@@ -296,7 +316,7 @@ def local_radius(mask: np.ndarray, indices: np.ndarray, spacing=None) -> np.ndar
         return radii
     box = bounding_box(binary, pad=1)
     start = np.array([b.start for b in box])
-    edge = np.argwhere(_boundary(np.pad(binary[box], 1))) - 1 + start
+    edge = np.argwhere(_boundary(binary[box])) + start
     tree = cKDTree(edge * spacing)
     radii[inside] = tree.query(indices[inside] * spacing)[0] + 0.5 * float(spacing.min())
     return radii
@@ -343,9 +363,7 @@ def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: i
     binary = as_binary(mask)
     if binary.ndim != 2:
         raise ValueError(f"skeletonize_2d: expected a 2D mask, got shape {binary.shape}")
-    cleaned = clean_mask(binary, largest_component=False)
-    box = bounding_box(cleaned, pad=int(math.ceil(3 * smooth_sigma)) + 2)
-    crop = cleaned[box]
+    box, crop = _cleaned_crop(binary, int(math.ceil(3 * smooth_sigma)) + 2)
     step = downsample if downsample is not None else (2 if crop.size > DOWNSAMPLE_ABOVE_PIXELS else 1)
     if step < 1:
         raise ValueError(f"downsample must be >= 1, got {step}")
@@ -429,10 +447,8 @@ def skeletonize_3d(mask: Volume, *, smooth_sigma: float = 0.0) -> Volume:
     binary = as_binary(mask.array, "3D mask")
     if binary.ndim != 3:
         raise ValueError(f"skeletonize_3d: expected a 3D mask, got shape {binary.shape}")
-    cleaned = clean_mask(binary, largest_component=False)
     sigma_kji = smooth_sigma / np.asarray(mask.spacing, dtype=float)[::-1]
-    box = bounding_box(cleaned, pad=int(math.ceil(3 * sigma_kji.max())) + 2)
-    crop = cleaned[box]
+    box, crop = _cleaned_crop(binary, int(math.ceil(3 * sigma_kji.max())) + 2)
     if smooth_sigma > 0:
         crop = _smooth_and_sample(crop, sigma_kji, 1)
         if not crop.any():

@@ -1,0 +1,119 @@
+"""Anatomical roles and labels of the preserved branches and the trunks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..conventions import BRANCH_LABELS
+from .skeleton_graph import Classification, SkeletonGraph
+
+def _unit(vector, dim: int, name: str) -> np.ndarray:
+    vector = np.asarray(vector, dtype=float).reshape(-1)
+    if vector.shape != (dim,) or not np.all(np.isfinite(vector)) or np.linalg.norm(vector) == 0:
+        raise ValueError(f"{name} must be a finite non-zero {dim}-vector, got {vector}")
+    return vector / np.linalg.norm(vector)
+
+
+#: Weights of the role scores in :func:`anatomical_roles` (dimensionless: lengths in the
+#: graph's unit). Renals: lateral counts twice as much as height; a 3D end anterior of the
+#: top end (coeliac, SMA) or posterior of it (internal iliac) is penalised twice its offset.
+ROLE_LATERAL_WEIGHT = 2.0
+DEPTH_PENALTY = 2.0
+
+
+def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
+    """Which end node plays which of the five roles: label -> row of ``end_positions``.
+
+    With ``p`` an end's offset from the most superior end (the upper aorta's):
+
+    * the iliacs are the pair of other ends with the largest
+      ``-(p_a + p_b).superior + |p_a - p_b|.left - 2 max(0, p.posterior)`` summed: low and
+      far apart, so that an internal iliac beside its common iliac is not taken for the
+      other side; the one further to the patient's left is ``iliac_left``;
+    * ``renal_{side}`` is the end on its side of the top end (``s p.left > 0``, ``s = +1``
+      for left) with the largest ``2 s p.left + p.superior - 2 max(0, p.anterior)``: lateral
+      and high, not an anterior visceral branch.
+
+    ``anterior`` (3D only) enables the depth terms; in a 2D view depth is not seen. Lateral
+    offsets are measured across the cranio-caudal direction (in an angulated view the
+    image directions of left and superior are not orthogonal).
+
+    Raises
+    ------
+    ValueError
+        With fewer than five ends.
+    """
+    points = np.asarray(end_positions, dtype=float)
+    if len(points) < len(BRANCH_LABELS):
+        raise ValueError(f"need {len(BRANCH_LABELS)} end nodes for the anatomy, got {len(points)}")
+    dim = points.shape[1]
+    superior = _unit(superior, dim, "superior")
+    left = _unit(left, dim, "left")
+    left = _unit(left - (left @ superior) * superior, dim, "left")
+    top = int(np.argmax(points @ superior))
+    offset = points - points[top]
+    height, lateral = offset @ superior, offset @ left
+    forward = offset @ _unit(anterior, dim, "anterior") if anterior is not None else np.zeros(len(points))
+    others = np.array([i for i in range(len(points)) if i != top])
+    low = -height[others] - DEPTH_PENALTY * np.maximum(0.0, -forward[others])
+    pair_score = low[:, None] + low[None, :] + np.abs(lateral[others][:, None] - lateral[others][None, :])
+    np.fill_diagonal(pair_score, -np.inf)
+    a, b = np.unravel_index(np.argmax(pair_score), pair_score.shape)
+    right_iliac, left_iliac = sorted((int(others[a]), int(others[b])), key=lambda i: lateral[i])
+    roles = {"aorta": top, "iliac_left": left_iliac, "iliac_right": right_iliac}
+    for side, s in (("left", 1.0), ("right", -1.0)):
+        score = ROLE_LATERAL_WEIGHT * s * lateral + height - DEPTH_PENALTY * np.maximum(0.0, forward)
+        order = [int(i) for i in np.argsort(-score, kind="stable") if int(i) not in roles.values()]
+        on_side = [i for i in order if s * lateral[i] > 0]
+        roles[f"renal_{side}"] = (on_side or order)[0]
+    return roles
+
+
+def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left, superior,
+                  anterior=None) -> Classification:
+    """Name the five preserved branches and the trunks; fill ``node_labels`` (in place).
+
+    Parameters
+    ----------
+    graph : SkeletonGraph
+    classification : Classification
+        From :func:`classify` with ``tau=5``.
+    left, superior : array_like, shape (d,)
+        The patient's left and superior directions in the graph's frame: in 3D LPS
+        ``(1, 0, 0)`` and ``(0, 0, 1)``; in 2D from ``projection.image_directions(P, at)``
+        (a mirrored view flips ``left``).
+
+    anterior : array_like, shape (3,), optional
+        The patient's anterior direction (3D only: ``(0, -1, 0)`` in LPS).
+
+    Rule: :func:`anatomical_roles` on the five branch ends (the most superior end is the
+    upper aorta; iliacs low and on their side; renals lateral and high). Trunks are aorta.
+
+    Returns
+    -------
+    Classification
+        The same object, labelled.
+    """
+    branches = classification.branches
+    if len(branches) != len(BRANCH_LABELS):
+        raise ValueError(f"labelling needs exactly {len(BRANCH_LABELS)} preserved branches, got {len(branches)}")
+    _unit(left, graph.dim, "left")
+    _unit(superior, graph.dim, "superior")
+    roles = anatomical_roles(graph.positions[[b.end for b in branches]], left=left, superior=superior,
+                             anterior=anterior)
+    for label, index in roles.items():
+        branches[index].label = label
+    labels = ["other"] * len(graph)
+    for branch in branches:
+        for node in branch.nodes[1:]:
+            labels[node] = branch.label
+    for trunk in classification.trunks:
+        trunk.label = "aorta"
+        for node in trunk.nodes:
+            labels[node] = "aorta"
+    for branch in branches:
+        labels[branch.junction] = "aorta"
+    for node in classification.deleted_nodes:
+        labels[node] = "other"
+    classification.node_labels = labels
+    return classification

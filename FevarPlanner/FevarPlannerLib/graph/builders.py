@@ -1,0 +1,24 @@
+"""Conveniences: the skeleton graph of a mask (thinned here) or of a given skeleton."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import skeleton as _skeleton
+from ..io import Volume
+from .skeleton_graph import SkeletonGraph
+
+def skeleton_graph_3d(mask_or_skeleton: Volume, is_skeleton: bool = False, *,
+                      smooth_sigma: float = 0.0) -> SkeletonGraph:
+    """3D skeleton graph of a lumen mask (thinned here) or of a given skeleton volume."""
+    skeleton = mask_or_skeleton if is_skeleton else _skeleton.skeletonize_3d(mask_or_skeleton,
+                                                                              smooth_sigma=smooth_sigma)
+    return SkeletonGraph.from_volume(skeleton)
+
+
+def skeleton_graph_2d(mask: np.ndarray, *, pixel_size: float = 1.0, smooth_sigma: float = 1.0,
+                      downsample: int | None = None, is_skeleton: bool = False) -> SkeletonGraph:
+    """2D skeleton graph of a vessel mask (thinned here) or of a given 2D skeleton."""
+    skeleton = mask if is_skeleton else _skeleton.skeletonize_2d(mask, smooth_sigma=smooth_sigma,
+                                                                 downsample=downsample)
+    return SkeletonGraph.from_image(skeleton, pixel_size)

@@ -1,0 +1,237 @@
+"""Benchmark the whole per-frame path from a raw 1024 x 1024 frame, stage by stage (issue 10).
+
+A phantom case (random anatomy, seed ``--seed``) is rendered as a raw DSA-like 1024 x 1024
+frame (:func:`phantom.render_fluoro`) in the AP view and, for the two-view variant, in a
+second view of the same anatomy (LAO ``--second-angle``). The pre-operative model is built
+once (thinned lumen, Algorithm 1, centred: :func:`pipeline.preop_from_lumen`). Then, per
+frame and over ``--repeats`` repeats, each stage of the per-frame path is timed as the
+pipeline runs it:
+
+==============  =========================================================================
+mask            the pre-operative prior projected through P (:class:`quality.FluoroPrior`)
+                and :func:`segmentation.segment_fluoro` with it (as ``pipeline._vessel_mask``)
+skeleton2d      :func:`skeleton.skeletonize_2d` and :meth:`graph.SkeletonGraph.from_image`
+                (with the mask's radii)
+graph2d         Algorithm 1, anatomical labels and smoothing of the 2D graph
+matching        :func:`matching.candidate_correspondences`
+deformation     soft assignment, deformation (eq. 6, L-BFGS) and TPS fill, per candidate
+plausibility    the never-worse-than-SV check of every vessel
+other           the rest of the registration call (visibility of the frame, projections)
+==============  =========================================================================
+
+The registration stages are the pipeline's own (:func:`pipeline.register_views`, one call
+for both views of the two-view variant, which registers them jointly), timed by its stage
+timer; the benchmark adds the CPU time beside the wall time of each. Wall time
+(``time.perf_counter``) and CPU time of this process (``time.process_time``) are both
+recorded: the machine is shared with other work, so wall times are noisy and the CPU time
+is the better guide (one BLAS thread, no worker threads: CPU time <= wall time). The goals:
+33 ms for one view, 66 ms for two.
+
+    OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame.py --out OUT [--repeats 30]
+
+Writes ``bench_frame.json`` and ``bench_frame.png`` into ``--out``.
+"""
+
+from __future__ import annotations
+
+from common import argument_parser, pyplot, save_figure, single_threaded_blas, write_report
+
+single_threaded_blas()      # before NumPy
+
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from FevarPlannerLib import phantom, pipeline, segmentation  # noqa: E402
+from FevarPlannerLib.quality import FluoroPrior  # noqa: E402
+
+STAGES = ("mask", "skeleton2d", "graph2d", "matching", "deformation", "plausibility", "other")
+GOALS_MS = {"one_view": 33.0, "two_views": 66.0}
+FRAME_SIZE = 1024
+
+
+def _clock():
+    return time.perf_counter(), time.process_time()
+
+
+def _since(start) -> tuple[float, float]:
+    wall, cpu = _clock()
+    return wall - start[0], cpu - start[1]
+
+
+def frame_cases(seed: int, second_angle: float):
+    """(pre-operative model, [(view name, raw frame, true mask, P), ...]) of one phantom anatomy."""
+    params = replace(phantom.random_params(np.random.default_rng(seed)), detector_rows=FRAME_SIZE,
+                     detector_cols=FRAME_SIZE, primary_angle_deg=0.0, secondary_angle_deg=0.0)
+    views = []
+    preop = None
+    for name, angle in (("AP", 0.0), (f"LAO{second_angle:g}", second_angle)):
+        case = phantom.generate_case(replace(params, primary_angle_deg=angle), name=f"frame_{name}")
+        if preop is None:
+            preop = pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+        frame, truth = phantom.render_fluoro(case.intraop, case.P_true, case.carm, case.params,
+                                             np.random.default_rng(params.seed))
+        views.append((name, frame, truth, case.P_true))
+    return preop, views
+
+
+@contextmanager
+def _cpu_stage_timer(cpu: dict):
+    """Make the pipeline's stage timer record this process's CPU time into ``cpu`` as well."""
+    wall_timer = pipeline._timed
+
+    @contextmanager
+    def both(timings, name):
+        start = time.process_time()
+        try:
+            with wall_timer(timings, name):
+                yield
+        finally:
+            cpu[name] = cpu.get(name, 0.0) + time.process_time() - start
+
+    pipeline._timed = both
+    try:
+        yield
+    finally:
+        pipeline._timed = wall_timer
+
+
+def time_views(preop, views) -> tuple[dict, dict, dict]:
+    """One pass of the per-frame path over ``views`` (registered jointly): ({stage: wall s}, {stage: CPU s}, facts)."""
+    wall, cpu = {"mask": 0.0}, {"mask": 0.0}
+    masks = []
+    for _, frame, _, P in views:
+        start = _clock()
+        prior = FluoroPrior.from_centerline(preop.centerline, P)
+        masks.append(segmentation.segment_fluoro(frame, prior))
+        seconds = _since(start)
+        wall["mask"] += seconds[0]
+        cpu["mask"] += seconds[1]
+    start = _clock()
+    with _cpu_stage_timer(cpu):
+        result = pipeline.register_views(preop, [(mask, P) for mask, (_, _, _, P) in zip(masks, views)],
+                                         names=[name for name, _, _, _ in views],
+                                         images=[frame for _, frame, _, _ in views])
+    total_wall, total_cpu = _since(start)
+    for stage in STAGES[1:-1]:
+        wall[stage] = result.timings.get(stage, 0.0)
+        cpu.setdefault(stage, 0.0)
+    wall["other"] = total_wall - sum(wall[s] for s in STAGES[1:-1])
+    cpu["other"] = total_cpu - sum(cpu[s] for s in STAGES[1:-1])
+    facts = {"mask_pixels": [int(m.sum()) for m in masks], "nodes_2d": len(result.skeleton2d),
+             "correspondence": result.correspondence, "energy": result.energy,
+             "result_sum": float(np.sum(result.deformed.points))}
+    return wall, cpu, facts
+
+
+def mask_breakdown(preop, frame: np.ndarray, P: np.ndarray, repeats: int) -> dict:
+    """Where the mask's time goes: the prior, and segment_fluoro at other work sizes and scales."""
+    prior_times = []
+    for _ in range(repeats):
+        start = _clock()
+        FluoroPrior.from_centerline(preop.centerline, P)
+        prior_times.append(_since(start)[1])
+    variants = {"default": {}, "work_size_192": {"work_size": 192}, "work_size_128": {"work_size": 128}}
+    out = {"prior_construction_cpu_ms": 1e3 * float(np.median(prior_times))}
+    for name, kwargs in variants.items():
+        times = []
+        for _ in range(repeats):
+            prior = FluoroPrior.from_centerline(preop.centerline, P)
+            start = _clock()
+            segmentation.segment_fluoro(frame, prior, **kwargs)
+            times.append(_since(start)[1])
+        out[f"segment_fluoro_{name}_cpu_ms"] = 1e3 * float(np.median(times))
+    return out
+
+
+def profile_mask(preop, frame: np.ndarray, P: np.ndarray, repeats: int, top: int = 12) -> list[str]:
+    """The functions segment_fluoro spends its (cumulative) time in, most first."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    for _ in range(repeats):
+        prior = FluoroPrior.from_centerline(preop.centerline, P)
+        profiler.runcall(segmentation.segment_fluoro, frame, prior)
+    stats = pstats.Stats(profiler).sort_stats("tottime")
+    rows = []
+    for (filename, line, name), (_, calls, tottime, cumtime, _) in list(stats.stats.items()):
+        rows.append((tottime, f"{Path(filename).name}:{line} {name}: {1e3 * tottime / repeats:.2f} ms own, "
+                              f"{1e3 * cumtime / repeats:.2f} ms cumulative per frame, {calls // repeats} call(s)"))
+    return [text for _, text in sorted(rows, reverse=True)[:top]]
+
+
+def summarise(runs: list[tuple[dict, dict, dict]]) -> dict:
+    walls = {s: [r[0][s] for r in runs] for s in STAGES}
+    cpus = {s: [r[1][s] for r in runs] for s in STAGES}
+    return {"wall_ms": {s: 1e3 * float(np.median(v)) for s, v in walls.items()}
+            | {"total": 1e3 * float(np.median(np.sum([walls[s] for s in STAGES], axis=0)))},
+            "cpu_ms": {s: 1e3 * float(np.median(v)) for s, v in cpus.items()}
+            | {"total": 1e3 * float(np.median(np.sum([cpus[s] for s in STAGES], axis=0)))},
+            "facts": runs[0][2]}
+
+
+def plot(path: Path, per_view: dict, two_views: dict) -> None:
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
+    bars = per_view | {"two views (joint)": two_views}
+    names = list(bars)
+    x = np.arange(len(STAGES))
+    width = 0.8 / len(names)
+    for i, name in enumerate(names):
+        axes[0].bar(x + (i - (len(names) - 1) / 2) * width, [bars[name]["cpu_ms"][s] for s in STAGES], width,
+                    label=f"{name}: total {bars[name]['cpu_ms']['total']:.1f} ms CPU "
+                          f"({bars[name]['wall_ms']['total']:.1f} wall)")
+    axes[0].set_xticks(x, STAGES, rotation=20)
+    axes[0].set(ylabel="median CPU time per frame (ms)", title="per-frame stages, 1024 x 1024 raw frame")
+    axes[0].legend(fontsize=8)
+    labels = ["one view", "two views"]
+    totals = [per_view[names[0]]["cpu_ms"]["total"], two_views["cpu_ms"]["total"]]
+    walls = [per_view[names[0]]["wall_ms"]["total"], two_views["wall_ms"]["total"]]
+    xs = np.arange(2)
+    axes[1].bar(xs - 0.2, totals, 0.4, label="CPU")
+    axes[1].bar(xs + 0.2, walls, 0.4, label="wall (shared machine: noisy)", color="tab:gray")
+    for xi, goal in zip(xs, (GOALS_MS["one_view"], GOALS_MS["two_views"])):
+        axes[1].hlines(goal, xi - 0.45, xi + 0.45, colors="k", linestyles="--")
+    axes[1].set_xticks(xs, labels)
+    axes[1].set(ylabel="median per-frame time (ms)", title="total against the goal (dashed)")
+    axes[1].legend(fontsize=8)
+    save_figure(fig, path)
+
+
+def main() -> None:
+    parser = argument_parser(__doc__)
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--second-angle", type=float, default=30.0, help="primary angle of the second view (deg)")
+    parser.add_argument("--no-breakdown", action="store_true", help="skip the segment_fluoro breakdown")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    preop, views = frame_cases(args.seed, args.second_angle)
+    runs = {}
+    for name, chosen in [(view[0], [view]) for view in views] + [("two views", views)]:
+        time_views(preop, chosen)     # warm-up: imports, caches
+        runs[name] = summarise([time_views(preop, chosen) for _ in range(args.repeats)])
+        print(name, {k: round(v, 2) for k, v in runs[name]["cpu_ms"].items()}, "CPU ms;",
+              f"wall total {runs[name]['wall_ms']['total']:.1f} ms", flush=True)
+    per_view = {k: v for k, v in runs.items() if k != "two views"}
+    two = runs["two views"]
+    payload = {"frame_shape": [FRAME_SIZE, FRAME_SIZE], "repeats": args.repeats, "seed": args.seed,
+               "goals_ms": GOALS_MS, "nodes_3d": len(preop.centerline), "views": per_view, "two_views": two,
+               "two_views_how": "pipeline.register_views on both frames (one joint deformation), two masks",
+               "note": "medians over repeats; CPU time = time.process_time of this process (one BLAS thread); "
+                       "wall times are noisy on the shared 2-core machine"}
+    if not args.no_breakdown:
+        _, frame, _, P = views[0]
+        payload["mask_breakdown"] = mask_breakdown(preop, frame, P, max(5, args.repeats // 3))
+        payload["mask_profile"] = profile_mask(preop, frame, P, max(5, args.repeats // 3))
+        print(payload["mask_breakdown"], *payload["mask_profile"], sep="\n")
+    write_report(args.out, "bench_frame", payload)
+    plot(args.out / "bench_frame.png", per_view, two)
+
+
+if __name__ == "__main__":
+    main()
