@@ -399,7 +399,8 @@ def _score_case_route(folder: Path, method: str, truth) -> dict:
             "along_ray_mm": depth["along_ray_mm"]["mean"], "rms_mm": depth["rms_mm"],
             "out_of_plane_recovered": depth["out_of_plane_recovered"], "per_vessel": depth["per_vessel"],
             "views_used": _views_used(result), "registration_s": result.timings.get("registration"),
-            "wall_s": wall, "correspondence": result.inputs.get("correspondence")}
+            "wall_s": wall, "correspondence": result.inputs.get("correspondence"),
+            "warnings": [str(w) for w in getattr(result, "warnings", [])]}
 
 
 def _judge_against_sv_and_floor(results: dict, floor_mm: float) -> None:
@@ -466,10 +467,17 @@ def _independent_summary(cases: list[dict]) -> dict:
 
 
 def _views_note(summary: dict) -> str:
+    """What a multi-view set's row must say: the floor is the main view's; whether views were used."""
     if summary["views_per_case"] < 2:
         return ""
     used = max((m.get("views_used", 1) for m in summary["methods"].values()), default=1)
-    return " (run single-view on the main frame: the pipeline read one view)" if used < 2 else " (all views)"
+    if used < 2:
+        return " (run single-view on the main frame: the pipeline read one view; floor of the main view)"
+    return " (floor of the main view)"
+
+
+def _method_note(summary: dict, method: dict) -> str:
+    return f" [{method['views_used']} view(s) read]" if summary["views_per_case"] > 1 else ""
 
 
 def _independent_table(summaries: dict) -> str:
@@ -482,7 +490,8 @@ def _independent_table(summaries: dict) -> str:
                 lines.append(f"| {name} | {label} | {m['failed']}/{s['cases']} | | | | | | | | |")
                 continue
             recovered = "" if m["out_of_plane_recovered"] is None else f"{m['out_of_plane_recovered']:.2f}"
-            lines.append(f"| {name}{_views_note(s)} | {label} | {m['failed']}/{s['cases']} | {m['2d_px']:.2f} | "
+            lines.append(f"| {name}{_views_note(s)} | {label}{_method_note(s, m)} | {m['failed']}/{s['cases']} | "
+                         f"{m['2d_px']:.2f} | "
                          f"{m['3d_mm']:.2f} | {m['in_plane_mm']:.2f} | {m['along_ray_mm']:.2f} | "
                          f"{s['depth_floor_mm']:.2f} | {m['worse_than_sv']}/{m['cases']} | "
                          f"{m['within_floor']}/{m['cases']} | {recovered} |")
