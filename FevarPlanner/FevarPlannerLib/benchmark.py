@@ -48,7 +48,7 @@ from skimage.draw import line as draw_line
 
 from . import evaluation, phantom, scenarios
 from .centerline import Centerline
-from .io import InputError, write_text_atomic
+from .files import InputError, write_text_atomic
 from .pipeline import plan_case, preop_from_lumen, register_frame
 from .projection import patient_motion, project
 

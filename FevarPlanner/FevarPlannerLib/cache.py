@@ -27,7 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import Case, Volume, write_bytes_atomic
+from .files import write_bytes_atomic
+from .io import Case, Volume
+from .preop import build_preop
 
 __all__ = ["CACHE_FORMAT", "PreopModel", "default_cache_dir", "volume_digest", "code_digest", "preop_key",
            "preop_model", "clear_cache"]
@@ -43,7 +45,7 @@ class PreopModel:
 
     Attributes
     ----------
-    preop : pipeline.Preoperative
+    preop : preop.Preoperative
         The classified, centred, labelled 3D skeleton graph (paper Algorithm 2 rows 1-2).
     lumen : Volume or None
         The lumen mask (bool) it came from; None when the case gave only a skeleton.
@@ -190,8 +192,6 @@ def preop_model(case: Case, *, segmenter: str = "unet", progress=None, cache_dir
     use_cache : bool
         False: compute, and neither read nor write the cache.
     """
-    from .pipeline import build_preop
-
     key = preop_key(case, segmenter) if use_cache else ""
     path = _entry_path(cache_dir or default_cache_dir(), key) if use_cache else None
     if path is not None:

@@ -261,7 +261,7 @@ def _cmd_segment(args) -> int:
 
     _check_not_an_input(args.out, [args.ct] + ([args.model] if args.model is not None else []))
     if args.model is not None and args.segmenter != "unet":
-        from .io import InputError
+        from .files import InputError
 
         raise InputError(f"{args.model}: --model is used by --segmenter unet only (the {args.segmenter} "
                          f"segmenter would ignore it)")
@@ -437,7 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_not_an_input(out: Path, inputs) -> None:
     """Refuse an output file that is an input, lies inside an input folder, or is not a plain file."""
-    from .io import InputError, display_path
+    from .files import InputError, display_path
 
     target = Path(os.path.realpath(out))
     for given in inputs:
@@ -466,7 +466,7 @@ def _itk_warnings_off():
 
 def _error_message(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
-        from .io import display_path
+        from .files import display_path
 
         return f"{display_path(exc.filename)}: {exc.strerror}"
     return str(exc) or type(exc).__name__

@@ -17,7 +17,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .io import Volume, atomic_path
+from .files import atomic_path
+from .io import Volume
 from .projection import depth, source_position
 
 __all__ = ["DEFAULT_SIZE", "CHECK_HU_FLOOR", "attenuation", "drr_grid", "render_drr", "check_drr", "resample_frame",

@@ -36,7 +36,7 @@ from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter
 
 from .centerline import Centerline
 from .conventions import ANATOMY_LABELS, PALETTE
-from .io import InputError, check_readable, atomic_path, write_text_atomic
+from .files import InputError, atomic_path, check_readable, write_text_atomic
 from .projection import depth, image_directions, project, validate_projection_matrix, view_label
 
 __all__ = [
@@ -300,7 +300,7 @@ def write_result_json(path, data: dict) -> None:
 
 
 def read_result_json(path) -> dict:
-    """Read and validate a result.json; :class:`io.InputError` names the file and problem."""
+    """Read and validate a result.json; :class:`files.InputError` names the file and problem."""
     path = Path(path)
     check_readable(path)
     try:

@@ -36,8 +36,11 @@ from . import (baselines, deformation, evaluation, export, graph, io, matching, 
                skeleton)
 from .alignment import fit_in_plane_rigid
 from .centerline import Centerline
-from .conventions import IOTA_MM, LPS_DIRECTIONS, PALETTE
-from .io import MAIN_VIEW, Case, InputError, View, display_path, load_case
+from .conventions import IOTA_MM, PALETTE
+from .files import InputError, InputWarning, atomic_folder, check_inside, display_path, output_mode, swap_folder
+from .io import MAIN_VIEW, Case, View, load_case
+from .preop import (SMOOTHING_ITERATIONS, Preoperative, _induced_edges, _report, _skeleton3d_and_lumen, _timed,
+                    build_preop, preop_from_lumen, preop_from_skeleton)
 from .projection import image_directions, pixels_per_mm, project, view_label
 
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "FrameResult", "PlanResult", "preop_from_skeleton",
@@ -45,42 +48,6 @@ __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "FrameResult", 
            "register_views", "run_case", "plan_case", "write_outputs"]
 
 METHODS = ("proposed", "icp-tps", "rigid")
-#: Laplacian smoothing passes over both skeletons (graph.smooth_positions), which takes out
-#: the voxel / pixel staircase that eq. (4)'s path lengths and the targets inherit. On the
-#: simulation protocol with +-1 degree out-of-plane bending, before the 3D skeleton was also
-#: centred in the lumen (Testing/benchmarks/bench_registration.py), the mean 2D error fell
-#: from 0.61 to 0.13 px and the 3D error from 1.06 to 0.91 mm.
-SMOOTHING_ITERATIONS = 10
-
-
-@contextmanager
-def _timed(timings: dict, name: str):
-    start = time.perf_counter()
-    try:
-        yield
-    finally:
-        timings[name] = timings.get(name, 0.0) + time.perf_counter() - start
-
-
-def _report(progress, fraction: float, message: str) -> None:
-    if progress is not None:
-        progress(fraction, message)
-
-
-@dataclass
-class Preoperative:
-    """The pre-operative 3D skeleton graph, classified and labelled (computed once per patient)."""
-
-    graph: graph.SkeletonGraph
-    classification: graph.Classification
-    kept: np.ndarray
-    centerline: Centerline
-    timings: dict = field(default_factory=dict)
-
-    def __post_init__(self):
-        # the kept nodes' own graph (node t is graph node kept[t]), for the per-frame TPS fill
-        self.kept_adjacency = self.graph.subgraph(self.kept).adjacency
-        self.centre = self.centerline.points.mean(axis=0)
 
 
 @dataclass
@@ -191,70 +158,6 @@ class PlanResult:
             extra["views"] = [{k: v for k, v in view.items() if k != "visibility"} for view in self.views]
             extra["visibility"] = {view["name"]: view["visibility"] for view in self.views}
         return export.build_result_dict(self.method, self.preop, self.deformed, self.path, self.timings, **extra)
-
-
-def _induced_edges(graph_: graph.SkeletonGraph, nodes: np.ndarray) -> np.ndarray:
-    """Edges of ``graph_`` between ``nodes``, renumbered to positions in ``nodes``."""
-    index = np.full(len(graph_.positions), -1)
-    index[nodes] = np.arange(len(nodes))
-    edges = index[graph_.edges()]
-    return edges[np.all(edges >= 0, axis=1)]
-
-
-def _skeleton3d_and_lumen(case: Case, progress=None, segmenter: str = "classical"):
-    """The case's 3D skeleton volume (given, or thinned from the lumen) and its lumen mask (or None)."""
-    mask = case.aorta_mask
-    if case.skeleton3d is not None:
-        return case.skeleton3d, mask
-    if mask is None:
-        from . import segmentation
-
-        _report(progress, 0.05, "segmenting the aorta in the CT")
-        # the classical route and the UNet report slice by slice: move the bar from 5 to 15 %
-        kwargs = {"progress": lambda done, total: _report(progress, 0.05 + 0.1 * done / max(total, 1),
-                                                          f"segmenting the aorta: slice {done}/{total}")}
-        mask = segmentation.segment_ct(case.ct, segmenter, **(kwargs if segmenter != "threshold" else {}))
-    _report(progress, 0.15, "thinning the 3D lumen")
-    return skeleton.skeletonize_3d(mask), mask
-
-
-def preop_from_skeleton(skeleton_volume, timings: dict | None = None, lumen=None) -> Preoperative:
-    """Classify (Alg. 1) and label a binary 3D skeleton volume: Algorithm 2 rows 1-2.
-
-    With the ``lumen`` mask it was thinned from, the smoothed skeleton is also centred in
-    the lumen's cross-sections (graph.centre_in_lumen, sub-voxel).
-    """
-    timings = {} if timings is None else timings
-    with _timed(timings, "preop_graph3d"):
-        # with the lumen, spurs are also judged against the local radius (graph.spur_length)
-        g3 = graph.SkeletonGraph.from_volume(skeleton_volume, lumen=lumen)
-        c3 = graph.classify(g3, iota=IOTA_MM, directions=LPS_DIRECTIONS)
-        # the repaired graph (gaps bridged, small loops broken, spurs isolated), its voxel
-        # staircase smoothed away
-        g3 = graph.smooth_positions(c3.graph, SMOOTHING_ITERATIONS)
-    if lumen is not None:
-        with _timed(timings, "preop_centring"):
-            g3 = graph.centre_in_lumen(g3, lumen)
-    with _timed(timings, "preop_graph3d"):
-        c3 = graph.label_anatomy(g3, c3, **LPS_DIRECTIONS)
-    kept = np.asarray(c3.kept_nodes())
-    labels = [c3.node_labels[i] for i in kept]
-    centerline = Centerline(g3.positions[kept], _induced_edges(g3, kept), labels)
-    return Preoperative(g3, c3, kept, centerline, timings)
-
-
-def preop_from_lumen(lumen, timings: dict | None = None) -> Preoperative:
-    """Thin a binary 3D lumen mask (a Volume) and build its :class:`Preoperative`, centred in it."""
-    return preop_from_skeleton(skeleton.skeletonize_3d(lumen), timings, lumen)
-
-
-def build_preop(case: Case, progress=None, segmenter: str = "classical"):
-    """(:class:`Preoperative`, lumen mask or None) of a case, computed (see :func:`prepare_preop`)."""
-    timings = {}
-    with _timed(timings, "preop_skeleton3d"):
-        skeleton_volume, lumen = _skeleton3d_and_lumen(case, progress, segmenter)
-    _report(progress, 0.25, "3D skeleton graph and Algorithm 1")
-    return preop_from_skeleton(skeleton_volume, timings, lumen), lumen
 
 
 def prepare_preop(case: Case, progress=None, segmenter: str = "classical", cache=False) -> Preoperative:
@@ -855,7 +758,7 @@ def _read_ground_truth(case: Case) -> Centerline | None:
     path = Path(case.case_dir) / "gt.json" if case.case_dir is not None else None
     if path is None or not os.path.lexists(path):
         return None
-    io.check_inside(path, case.case_dir, "the case folder")
+    check_inside(path, case.case_dir, "the case folder")
     return io.read_ground_truth(path)
 
 
@@ -1006,7 +909,7 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     The plausibility gates (:mod:`plausibility`) run around the work: start / target and the
     output folder before anything is read, the anatomy's projection once the case is
     loaded, the frame's vessel tree and the result before anything is written. Their
-    warnings, and those of the readers (:class:`io.InputWarning`), land in
+    warnings, and those of the readers (:class:`InputWarning`), land in
     ``result.warnings``.
     """
     load_keys = {"ct", "aorta_mask", "skeleton3d", "fluoro", "fluoro_mask", "geometry", "frame"}
@@ -1015,9 +918,9 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
         files = [overrides[k] for k in sorted(load_keys - {"frame"}) if overrides.get(k) is not None]
         check_output_folder(out_dir, folders=[case_dir] if case_dir is not None else [], files=files)
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", io.InputWarning)
+        warnings.simplefilter("always", InputWarning)
         case = load_case(case_dir, **{k: v for k, v in overrides.items() if k in load_keys and v is not None})
-    notes = [str(w.message) for w in caught if issubclass(w.category, io.InputWarning)]
+    notes = [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
     for recorded in caught:      # passed on as they came: the CLI shows ours as notes
         warnings.warn_explicit(recorded.message, recorded.category, recorded.filename, recorded.lineno)
     plausibility.check_anatomy_in_view(case.P, _anatomy_points(case), case.fluoro.shape, case.paths.get("geometry", case_dir))
@@ -1034,7 +937,7 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
                                    frame_path)
     gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
     for note in gate_notes:
-        warnings.warn(note, io.InputWarning, stacklevel=2)
+        warnings.warn(note, InputWarning, stacklevel=2)
     result.warnings.extend(notes + gate_notes)
     if out_dir is not None:
         write_outputs(result, out_dir)
@@ -1095,7 +998,7 @@ def _write_failure_qc(out_dir: Path, failure) -> None:
         quality.write_segmentation_qc(beside, failure.qc, str(failure))
         failure.args = (str(failure).replace(f"see {QC_NAME}", f"see {display_path(beside)}"),)
         return
-    with io.atomic_folder(out_dir) as staging:
+    with atomic_folder(out_dir) as staging:
         quality.write_segmentation_qc(staging / QC_NAME, failure.qc, str(failure))
 
 
@@ -1186,7 +1089,7 @@ def write_outputs(result: PlanResult, out_dir, extra=None) -> dict:
     """Write result.json, deformed_centerline.vtp, path.mrk.json and overlay.png into ``out_dir``.
 
     The whole set is written into a temporary folder beside ``out_dir`` and swapped in at
-    the end (:func:`io.swap_folder`): until then a previous set stays as it was, and a
+    the end (:func:`swap_folder`): until then a previous set stays as it was, and a
     failure (a full disk) or a killed process never leaves a half-written or mixed folder.
     Files and the folder get the modes the umask gives new ones. ``extra(folder)``, if
     given, writes further files of the same set into the staging folder and returns their
@@ -1197,11 +1100,11 @@ def write_outputs(result: PlanResult, out_dir, extra=None) -> dict:
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.writing.", dir=out_dir.parent))
     try:
-        os.chmod(staging, io.output_mode(folder=True))
+        os.chmod(staging, output_mode(folder=True))
         written = _write_output_set(result, staging)
         if extra is not None:
             written.update(extra(staging))
-        io.swap_folder(staging, out_dir)
+        swap_folder(staging, out_dir)
     except OSError as exc:
         where = display_path(exc.filename) if exc.filename else display_path(out_dir)
         raise InputError(f"{where}: cannot write the outputs ({exc.strerror or exc}); {display_path(out_dir)} "

@@ -11,7 +11,7 @@ of what was read:
   pre-operative ones; no node further from the pre-operative tree than the deformation
   model moves anatomy.
 
-A failed gate raises :class:`io.InputError` (exit code 2 in the CLI) with the file and
+A failed gate raises :class:`files.InputError` (exit code 2 in the CLI) with the file and
 the reason; a doubtful result that can still be used gives a warning (a string), which
 :func:`pipeline.plan_case` puts in ``result.json`` under ``"warnings"`` and on stderr.
 """
@@ -25,7 +25,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .centerline import ANATOMY_LABELS
-from .io import InputError, display_path
+from .files import InputError, display_path
 from .projection import depth, project
 
 __all__ = [

@@ -326,7 +326,7 @@ def read_geometry_json(path) -> np.ndarray:
 
 def write_geometry_json(path, P: np.ndarray, **extra) -> None:
     """Write ``P`` (and any JSON-serialisable extras) to ``path`` atomically."""
-    from .io import write_text_atomic
+    from .files import write_text_atomic
 
     P = validate_projection_matrix(P)
     payload = {"projection_matrix": P.tolist(), **extra}
@@ -438,7 +438,7 @@ def read_geometry_file(path) -> tuple[np.ndarray | None, dict | None]:
     (``{"translation_px": [du, dv], "rotation_deg": r}``, the user's fix of ``P`` from the
     C-arm tags, or of a calibrated one), or both. It must hold at least one of them.
     """
-    from .io import display_path, read_json_file
+    from .files import display_path, read_json_file
 
     path = Path(path)
     data = read_json_file(path, "geometry JSON")
@@ -468,7 +468,7 @@ def update_in_plane_correction(case_dir, *, shift=None, rotate: float | None = N
     not given keeps its stored value. A calibrated ``projection_matrix`` in the file is kept.
     The file is removed when nothing is left in it. Returns the geometry.json path.
     """
-    from .io import InputError, write_text_atomic
+    from .files import InputError, write_text_atomic
 
     case_dir = Path(case_dir)
     if not case_dir.is_dir():

@@ -9,7 +9,7 @@ A confident wrong answer is the worst outcome: before the frame is registered,
   frame, and, after the best in-plane shift, most of each projected main vessel must lie
   close to the mask's skeleton (:func:`check_frame_mask`).
 
-A failure raises :class:`QualityError` (an :class:`io.InputError`: one line, exit code 2)
+A failure raises :class:`QualityError` (an :class:`files.InputError`: one line, exit code 2)
 naming the vessel and where it was expected; it carries what :func:`write_segmentation_qc`
 needs to draw the picture (the frame with the mask and the projected tree; CT slices and a
 MIP with the lumen), which callers write before reporting the error.
@@ -24,7 +24,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from .conventions import PALETTE
-from .io import InputError, Volume, atomic_path
+from .files import InputError, atomic_path
+from .io import Volume
 
 __all__ = ["FluoroPrior", "TYPICAL_RADIUS_MM", "DEFORMATION_MARGIN_MM", "MAIN_VESSELS", "LENGTH_RANGE_MM", "RADIUS_RANGE_MM", "QualityError", "QCData", "check_preop_tree",
            "check_frame_mask", "vessel_contrast_to_noise", "write_segmentation_qc"]

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import io
+from . import files, io
 from .centerline import Centerline
 from .conventions import BRANCH_LABELS
 from .projection import CArmGeometry, in_plane_transform, project, projection_matrix_from_carm, source_position, \
@@ -839,7 +839,7 @@ def write_scenario(case: ScenarioCase | Scenario, folder, *, images: bool | None
     images = bool(case.scenario.info.get("images")) if images is None else images
     rng = np.random.default_rng([case.scenario.seed, 7])
     folder = Path(folder)
-    with io.atomic_folder(folder) as tmp:
+    with files.atomic_folder(folder) as tmp:
         if images:
             io.write_volume(tmp / "ct.nrrd", render_ct(case.preop, case.lumen, rng))
         else:
@@ -854,8 +854,8 @@ def write_scenario(case: ScenarioCase | Scenario, folder, *, images: bool | None
             write_geometry_json(where / "geometry.json", view.P_given, true_projection_matrix=view.P_true.tolist(),
                                 view=view.name, primary_angle=view.carm.primary_angle,
                                 secondary_angle=view.carm.secondary_angle)
-        io.write_text_atomic(tmp / "gt.json", json.dumps(case.ground_truth()))
-        io.write_text_atomic(tmp / "scenario.json", json.dumps(case.scenario.to_dict(), indent=1))
+        files.write_text_atomic(tmp / "gt.json", json.dumps(case.ground_truth()))
+        files.write_text_atomic(tmp / "scenario.json", json.dumps(case.scenario.to_dict(), indent=1))
     return folder
 
 

@@ -33,8 +33,9 @@ from torch import nn
 from torch.nn import functional as F
 from vtk.util import numpy_support
 
-from . import io
-from .io import InputError, Volume, atomic_path
+from . import files, io
+from .files import InputError, atomic_path
+from .io import Volume
 from .quality import DEFORMATION_MARGIN_MM, TYPICAL_RADIUS_MM, FluoroPrior
 
 __all__ = [
@@ -303,7 +304,7 @@ def _load_checkpoint(path) -> dict:
     crafted ``.pt`` that would call a function on loading raises :class:`InputError`.
     """
     path = Path(path)
-    io.check_input_file(path)
+    files.check_input_file(path)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:

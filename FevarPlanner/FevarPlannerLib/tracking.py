@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from . import evaluation, planning
-from .io import InputError, load_case, read_fluoro, write_text_atomic
+from .files import InputError, write_text_atomic
+from .io import load_case, read_fluoro
 
 __all__ = ["FrameRecord", "TrackResult", "register_run_frame", "track_case", "write_track_outputs", "CSV_COLUMNS"]
 
@@ -186,7 +187,7 @@ def write_track_outputs(result: TrackResult, out_dir) -> dict:
     """Write ``track.csv``, ``track.json`` and the last frame's outputs into ``out_dir``."""
     from .pipeline import write_outputs
 
-    from .io import atomic_folder
+    from .files import atomic_folder
 
     out_dir = Path(out_dir)
     buffer = _stringio.StringIO()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import io
+from .. import files, io
 from ..projection import CArmGeometry, projection_matrix_from_carm, write_geometry_json
 from .anatomy import Anatomy, build_preop_anatomy
 from .ct import _ct_from_lumen_field
@@ -136,7 +136,7 @@ def write_case(case: PhantomCase, folder, *, mask_only: bool = False) -> Path:
     folder = Path(folder)
     pre_rng = np.random.default_rng([case.preop_params.seed, 1])
     intra_rng = np.random.default_rng([case.params.seed, 2])
-    with io.atomic_folder(folder) as tmp:
+    with files.atomic_folder(folder) as tmp:
         volume = case.grid.volume(dtype=np.uint8)
         lumen = _lumen_field(case.preop, volume)
         io.write_volume(tmp / "aorta_mask.nrrd", volume.with_array((lumen <= 0.0).astype(np.uint8)))
@@ -150,7 +150,7 @@ def write_case(case: PhantomCase, folder, *, mask_only: bool = False) -> Path:
                                   patient_id=case.name)
         write_geometry_json(tmp / "geometry.json", case.P_given, true_projection_matrix=case.P_true.tolist(),
                             isocenter=case.grid.center_lps().tolist())
-        io.write_text_atomic(tmp / "gt.json", json.dumps(_ground_truth(case)))
-        io.write_text_atomic(tmp / "case.json", json.dumps(_case_json(case), indent=2))
+        files.write_text_atomic(tmp / "gt.json", json.dumps(_ground_truth(case)))
+        files.write_text_atomic(tmp / "case.json", json.dumps(_case_json(case), indent=2))
     return folder
 
