@@ -37,10 +37,10 @@ import slicer
 import vtk
 from vtk.util import numpy_support
 
-from FevarPlannerApp.summary import summary_rows
 from FevarPlannerLib import RESEARCH_USE_STATEMENT
 from FevarPlannerLib.centerline import Centerline
 from FevarPlannerLib.conventions import PALETTE
+from FevarPlannerLib.export import summary_rows
 
 try:
     from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,

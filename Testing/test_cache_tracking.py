@@ -140,3 +140,24 @@ def test_tags_only_geometry_is_announced_recorded_checked_and_correctable(run_ca
     # a folder that is not there is an error, and nothing is created
     assert cli.main(["geometry", str(tmp_path / "nope"), "--shift", "1", "1"]) == 2
     assert not (tmp_path / "nope").exists()
+
+
+def test_surface_of_a_skeleton_case_comes_from_its_aorta_mask_by_the_case_rules(run_case_dir, tmp_path):
+    from FevarPlannerLib import skeleton
+
+    folder = shutil.copytree(run_case_dir[0], tmp_path / "case")
+    mask = io.read_mask(folder / "aorta_mask.nrrd")
+    io.write_volume(folder / "skeleton3d.nrrd", mask.with_array(skeleton.skeletonize_3d(mask).array.astype(np.uint8)))
+    case = io.load_case(folder)
+    assert case.stage_3d == "skeleton3d" and case.aorta_mask is None
+    model = cache.PreopModel(preop=None, lumen=None, key="")
+    assert model.surface() is None                                  # no lumen and no case: nothing to show
+    surface = model.surface(case)
+    assert surface.GetNumberOfPolys() > 1000
+    bounds = np.array(surface.GetBounds()).reshape(3, 2)
+    corners = np.array([mask.index_to_lps(np.argwhere(mask.array).min(axis=0)),
+                        mask.index_to_lps(np.argwhere(mask.array).max(axis=0))])
+    np.testing.assert_allclose(bounds, np.sort(corners, axis=0).T, atol=2 * max(mask.spacing))
+    # a flag for the 3D side hides the folder's mask (the case's rules): no surface then
+    flagged = io.load_case(folder, skeleton3d=folder / "skeleton3d.nrrd")
+    assert cache.PreopModel(preop=None, lumen=None, key="").surface(flagged) is None

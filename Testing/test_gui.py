@@ -21,7 +21,7 @@ from PySide6.QtGui import QImage  # noqa: E402
 from PySide6.QtWidgets import QApplication  # noqa: E402
 
 from FevarPlannerApp import app as cli  # noqa: E402
-from FevarPlannerApp.summary import summary_rows  # noqa: E402
+from FevarPlannerLib.export import summary_rows  # noqa: E402
 from FevarPlannerApp.views import BACKGROUND_BOTTOM, BACKGROUND_TOP, COLORS  # noqa: E402
 from FevarPlannerApp.window import MainWindow, as_array  # noqa: E402
 from FevarPlannerLib import phantom, planning  # noqa: E402

@@ -7,6 +7,7 @@ centrelines), and runs :func:`FevarPlannerLib.pipeline.plan_case` in a worker th
 
 Launch: ``fevar-planner-gui [CASE_DIR]`` or ``python -m FevarPlannerApp [CASE_DIR]``.
 
-Importing this package imports neither Qt nor VTK; :mod:`FevarPlannerApp.summary` is pure
-Python and is shared with the Slicer module.
+Importing this package imports neither Qt nor VTK. It talks to the core only
+(:mod:`FevarPlannerLib`); the results table's rows come from
+:func:`FevarPlannerLib.export.summary_rows`, as in the Slicer module.
 """

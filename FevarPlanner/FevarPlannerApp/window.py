@@ -11,9 +11,9 @@ from PySide6.QtUiTools import QUiLoader
 from PySide6.QtWidgets import (QApplication, QFileDialog, QHBoxLayout, QHeaderView, QLabel, QMainWindow, QMessageBox,
                                QPushButton, QScrollArea, QSlider, QSplitter, QTableWidgetItem, QVBoxLayout, QWidget)
 
-from FevarPlannerApp.summary import summary_rows
 from FevarPlannerApp.views import FluoroView, View3D
 from FevarPlannerApp.worker import PlanOutcome, PlanRequest, PlanWorker
+from FevarPlannerLib.export import summary_rows
 
 __all__ = ["resource_path", "load_panel", "MainWindow", "apply_dark_palette", "as_array"]
 

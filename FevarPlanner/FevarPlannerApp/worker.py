@@ -5,6 +5,7 @@ pre-operative model from the cache (:func:`FevarPlannerLib.cache.preop_model`: t
 segmented once per patient, not on every click), runs
 :func:`FevarPlannerLib.pipeline.run_case` (the one logic entry point) and reports progress,
 the outcome or a one-line error through Qt signals, which Qt delivers on the GUI thread.
+It reads nothing itself: the case, its files and the aorta surface come from the core.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 
 from PySide6.QtCore import QObject, Signal, Slot
 
-__all__ = ["PlanRequest", "PlanOutcome", "PlanWorker", "aorta_surface"]
+__all__ = ["PlanRequest", "PlanOutcome", "PlanWorker"]
 
 
 @dataclass
@@ -40,19 +41,6 @@ class PlanOutcome:
     written: dict = field(default_factory=dict)
     model: object = None
     case: object = None
-
-
-def aorta_surface(case_dir, aorta_mask=None):
-    """Lumen surface (vtkPolyData, LPS mm) of the case's aorta mask, or None without one.
-
-    ``aorta_mask`` (a path) wins over the folder's ``aorta_mask.*`` file.
-    """
-    from FevarPlannerLib import io, segmentation
-
-    path = Path(aorta_mask) if aorta_mask else io.find_case_file(case_dir, "aorta_mask", io.VOLUME_SUFFIXES)
-    if path is None:
-        return None
-    return segmentation.mask_surface(io.read_mask(path), smooth_sigma_vox=1.0)
 
 
 class PlanWorker(QObject):
@@ -86,7 +74,7 @@ class PlanWorker(QObject):
                 outcome.written = write_outputs(result, request.out_dir)
             if request.with_surface:
                 self.progress.emit(1.0, "extracting the aorta surface")
-                outcome.surface = model.surface() or aorta_surface(request.case_dir, request.overrides.get("aorta_mask"))
+                outcome.surface = model.surface(case)
             self.succeeded.emit(outcome)
         except Exception as exc:  # the GUI shows any failure as one line and stays usable
             self.failed.emit(f"{type(exc).__name__}: {exc}".splitlines()[0])

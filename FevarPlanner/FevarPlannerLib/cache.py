@@ -64,12 +64,21 @@ class PreopModel:
     from_cache: bool = False
     _surface: object = field(default=None, repr=False)
 
-    def surface(self):
-        """The lumen surface (vtkPolyData, LPS mm), made once per model; None without a lumen."""
-        if self._surface is None and self.lumen is not None:
-            from .segmentation import mask_surface
+    def surface(self, case: Case | None = None):
+        """The lumen surface (vtkPolyData, LPS mm), made once per model.
 
-            self._surface = mask_surface(self.lumen, smooth_sigma_vox=1.0)
+        Without a lumen (the case gave a skeleton), the surface of the ``case``'s aorta mask
+        when it offers one (read by the case's own rules, :meth:`io.Case.load_input`);
+        else None.
+        """
+        if self._surface is None:
+            lumen = self.lumen
+            if lumen is None and case is not None and "aorta_mask" in case.available:
+                lumen = case.load_input("aorta_mask")
+            if lumen is not None:
+                from .segmentation import mask_surface
+
+                self._surface = mask_surface(lumen, smooth_sigma_vox=1.0)
         return self._surface
 
 

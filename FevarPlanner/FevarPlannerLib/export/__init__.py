@@ -13,6 +13,7 @@ format (every name is re-exported here):
                 coordinate system
     overlay     ``overlay.png``: the fluoroscopic frame with projected centrelines, pixel for pixel
     picture3d   a 3D picture of centrelines (and optionally the aorta surface), rendered offscreen
+    summary     the results table's rows (:func:`summary_rows`), shared by the front ends
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from .markups import IDENTITY_ORIENTATION, MARKUPS_SCHEMA, read_path_markups, wr
 from .overlay import OverlayLayer, ROLE_NAMES, centerline_layer, path_layer, render_overlay, view_name
 from .overlay import _orientation_marks  # the tests draw the marks alone
 from .picture3d import polydata_actor, render_centerlines_3d, tube_actor
+from .summary import FIT_NAMES, METRIC_NAMES, format_metric, summary_rows
 from .result import (CORE_KEYS, REQUIRED_TIMINGS, RESULT_VERSION, build_result_dict, read_result_json,
                      validate_result, write_result_json)
 from .vtp import (COORDINATE_SYSTEMS, LEGACY_SPACE_TAG, LPS_TO_RAS, SPACE_TAG, centerline_to_polydata,
@@ -49,5 +51,7 @@ __all__ = [
     "render_centerlines_3d",
     "tube_actor",
     "polydata_actor",
+    "format_metric",
+    "summary_rows",
 ]
 

@@ -1,7 +1,7 @@
-"""The rows of the results table, shared by the workstation and the Slicer module.
+"""The rows of the results table: a planning result in words, for every front end.
 
-Pure Python on purpose (no Qt, no Slicer): the Slicer extension ships this file next to
-``FevarPlanner.py`` so that both front ends describe a result in the same words.
+The workstation and the Slicer module both fill their table from :func:`summary_rows`,
+so that both describe a result in the same words. Pure Python (no Qt, no VTK).
 """
 
 from __future__ import annotations
