@@ -178,7 +178,7 @@ def test_notes_about_the_inputs_reach_stderr_and_result_json_and_library_warning
     def noisy_run_case(*args, **kwargs):
         _warnings.warn("a library's internal warning", RuntimeWarning)
         return real(*args, **kwargs)
-    monkeypatch.setattr(pipeline, "run_case", noisy_run_case)
+    monkeypatch.setattr(pipeline.case, "run_case", noisy_run_case)   # plan_case calls it there
     assert main(["-q", "plan", str(tmp_path / "case"), "--out", str(tmp_path / "out")]) == 0
     err = capsys.readouterr().err
     assert "internal warning" not in err

@@ -1,0 +1,243 @@
+"""A whole case: read, gated (:mod:`plausibility`), registered, planned and evaluated
+(:func:`run_case`), and the same from a case folder with its outputs written
+(:func:`plan_case`); :func:`prepare_preop` gives the pre-operative model, cached or not.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from .. import evaluation, io, planning, plausibility, quality, skeleton
+from ..centerline import Centerline
+from ..files import InputError, InputWarning, check_inside, display_path
+from ..io import MAIN_VIEW, Case, View, load_case
+from ..preop import Preoperative, _report, _timed, build_preop
+from ..projection import project
+from .frame import register_views
+from .outputs import _write_failure_qc, check_output_folder, write_outputs
+from .results import PlanResult, ViewFrame
+
+
+def prepare_preop(case: Case, progress=None, segmenter: str = "classical", cache=False) -> Preoperative:
+    """3D skeleton graph of the pre-operative anatomy, classified (Alg. 1), centred and labelled.
+
+    A case holding only a CT is segmented first with ``segmenter`` ("classical", "unet" or "threshold").
+    ``cache``: True (the default cache folder) or a folder keeps the result on disk and
+    reuses it for the same inputs (:mod:`cache`); False computes it.
+    """
+    if cache is False or cache is None:
+        return build_preop(case, progress, segmenter)[0]
+    from .. import cache as preop_cache
+
+    folder = None if cache is True else cache
+    return preop_cache.preop_model(case, segmenter=segmenter, progress=progress, cache_dir=folder).preop
+
+
+def _read_ground_truth(case: Case) -> Centerline | None:
+    path = Path(case.case_dir) / "gt.json" if case.case_dir is not None else None
+    if path is None or not os.path.lexists(path):
+        return None
+    check_inside(path, case.case_dir, "the case folder")
+    return io.read_ground_truth(path)
+
+
+def _vessel_mask(frame, progress=None, prior=None) -> np.ndarray:
+    """The given vessel mask of a case or view, or the frame segmented."""
+    if frame.fluoro_mask is not None:
+        return frame.fluoro_mask
+    from .. import segmentation
+
+    _report(progress, 0.4, "segmenting vessels in the frame")
+    return segmentation.segment_fluoro(frame.fluoro.image, prior)
+
+
+def _case_views(case: Case) -> list[View]:
+    """The case's views (io.load_case), or its one frame for a Case built by hand."""
+    if case.views:
+        return list(case.views)
+    return [View(MAIN_VIEW, case.fluoro, case.fluoro_mask, case.P,
+                 {k: case.paths[k] for k in ("fluoro", "fluoro_mask") if k in case.paths})]
+
+
+def _view_summary(view: View, frame: ViewFrame, deformed: Centerline) -> dict:
+    """result.json's entry for one view: pose, 2D error, visibility, files.
+
+    ``2d_px`` is over the nodes whose projection the frame shows (a node outside it has no
+    2D evidence to be measured against); ``2d_all_px`` over every node, the paper's measure.
+    """
+    skeleton = (frame.skeleton2d.positions, frame.skeleton2d.edges())
+    errors = evaluation.evaluate(deformed, None, frame.P, *skeleton)
+    shown = frame.visibility.shows(project(frame.P, deformed.points))
+    fit = evaluation.error_2d(deformed.points[shown], frame.P, *skeleton) if shown.any() else None
+    return {"name": view.name, "projection_matrix": np.asarray(frame.P).tolist(), "2d_px": fit,
+            "2d_all_px": errors["2d_px"],
+            "correspondence": frame.correspondence, "inputs": {k: str(v) for k, v in view.paths.items()},
+            "visibility": frame.visibility.to_dict(frame.nodes_outside)}
+
+
+def _drr_volume(case: Case):
+    """The volume a DRR is rendered from: the CT, else the lumen mask (an angiogram), else None."""
+    return case.ct if case.ct is not None else case.aorta_mask
+
+
+def _preop_of(case: Case, preop, progress, segmenter, cache) -> Preoperative:
+    if preop is None:
+        return prepare_preop(case, progress, segmenter, cache)
+    return getattr(preop, "preop", preop)  # a cache.PreopModel or a Preoperative
+
+
+def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
+             target: str = "renal_left", refine_pose: bool = False, alpha: float = 500.0,
+             beta: float = 10.0, segmenter: str = "classical", preop=None, cache=False, drr="auto") -> PlanResult:
+    """Run the whole job on a loaded case: pre-op graph, registration to every view, path, errors.
+
+    Every view of the case (``case.views``: the top-level frame and ``views/<name>/``) takes
+    part in one registration (:func:`register_views`). ``segmenter`` ("classical",
+    "unet" or "threshold") segments a case that holds only a CT. ``preop`` (a :class:`Preoperative`
+    or a :class:`cache.PreopModel`) skips the pre-operative work; ``cache`` keeps it on disk
+    (:func:`prepare_preop`). ``drr``: render the geometry check (:mod:`drr`) of the first
+    view always (True), never (False) or when its ``P`` came from C-arm tags ("auto").
+    """
+    planning.check_labels(start, target)
+    t0 = time.perf_counter()
+    _report(progress, 0.0, "pre-operative skeleton graph")
+    with _blamed_on(case.paths.get(case.stage_3d)):
+        preop = _preop_of(case, preop, progress, segmenter, cache)
+    timings = dict(preop.timings)
+    views = _case_views(case)
+    by_name = {view.name: view for view in views}
+    priors = [quality.FluoroPrior.from_centerline(preop.centerline, view.P) for view in views]
+    qc = quality.QCData(case.ct, case.aorta_mask, views[0].fluoro.image, None, priors[0])
+    with _blamed_on(case.paths.get(case.stage_3d)):
+        quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
+    masks = []
+    with _timed(timings, "segmentation2d"):
+        for view, prior in zip(views, priors):
+            with _blamed_on(_view_frame_path(view)):
+                masks.append(_vessel_mask(view, progress, prior))
+    qc.mask2d = masks[0]
+    for view, mask, prior in zip(views, masks, priors):
+        try:
+            with _blamed_on(_view_frame_path(view)):
+                quality.check_frame_mask(mask, prior, qc, frame=view.fluoro.image if view.has_frame else None)
+        except quality.QualityError as exc:
+            if view is views[0]:
+                raise
+            raise quality.QualityError(f"view {view.name}: {exc}", qc) from None
+    _report(progress, 0.5, f"registering ({method}, {len(views)} view(s))")
+    with _blamed_on(_view_frame_path(views[0])):
+        frame = register_views(preop, [(mask, view.P) for mask, view in zip(masks, views)],
+                               names=[view.name for view in views],
+                               images=[view.fluoro.image if view.has_frame else None for view in views],
+                               method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
+    timings.update(frame.timings)
+    timings["registration"] = frame.timings["intraop"]
+    _report(progress, 0.85, "planning the catheter path")
+    with _timed(timings, "planning"):
+        path = planning.plan_path(frame.deformed, start=start, target=target)
+    sk_edges = frame.skeleton2d.edges()
+    gt = _read_ground_truth(case)
+    with _blamed_on(Path(case.case_dir) / "gt.json" if gt is not None else None):
+        errors = evaluation.evaluate(frame.deformed, gt, frame.P, frame.skeleton2d.positions, sk_edges)
+    geometry = case.geometry.to_dict() if case.geometry is not None else None
+    drr_image = None
+    if (drr is True or (drr == "auto" and geometry and geometry["source"] == "dicom-tags")) and _drr_volume(case) is not None:
+        from .. import drr as drr_module
+
+        _report(progress, 0.9, "rendering the DRR geometry check")
+        with _timed(timings, "drr"):
+            drr_image = drr_module.check_drr(_drr_volume(case), case.P, case.fluoro.shape)
+    summaries = [_view_summary(by_name[vf.name], vf, frame.deformed) for vf in frame.views]
+    timings["total"] = time.perf_counter() - t0
+    _report(progress, 1.0, "done")
+    return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
+                      sk_edges, views[0].fluoro.image, timings, errors,
+                      {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
+                      qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings))
+
+
+def _view_frame_path(view: View):
+    """The file a view's frame problems are named after: its vessel mask, else its frame."""
+    paths = getattr(view, "paths", None) or {}
+    return paths.get("fluoro_mask", paths.get("fluoro"))
+
+
+@contextmanager
+def _blamed_on(path):
+    """Turn a plain ``ValueError`` of the block (a skeleton without its branches, a flat frame)
+    into an :class:`InputError` naming the input file it came from."""
+    try:
+        yield
+    except ValueError as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if path is None or display_path(path) in message:
+            raise
+        if isinstance(exc, InputError) and type(exc) is not InputError:
+            # a subclass (quality.QualityError) carries more than its message: renamed in place
+            exc.args = (f"{display_path(path)}: {message}",)
+            raise
+        raise InputError(f"{display_path(path)}: {message}") from None
+
+
+def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None, **overrides) -> PlanResult:
+    """Load a case folder (docs/DESIGN.md section 4), run it, and write the outputs if ``out_dir``.
+
+    ``overrides`` are the case-file flags (``ct``, ``aorta_mask``, ``skeleton3d``, ``fluoro``,
+    ``fluoro_mask``, ``geometry``, ``frame``) and the options of :func:`run_case`.
+
+    The plausibility gates (:mod:`plausibility`) run around the work: start / target and the
+    output folder before anything is read, the anatomy's projection once the case is
+    loaded, the frame's vessel tree and the result before anything is written. Their
+    warnings, and those of the readers (:class:`InputWarning`), land in
+    ``result.warnings``.
+    """
+    load_keys = {"ct", "aorta_mask", "skeleton3d", "fluoro", "fluoro_mask", "geometry", "frame"}
+    plausibility.check_start_target(overrides.get("start") or "iliac_right", overrides.get("target") or "renal_left")
+    if out_dir is not None:
+        files = [overrides[k] for k in sorted(load_keys - {"frame"}) if overrides.get(k) is not None]
+        check_output_folder(out_dir, folders=[case_dir] if case_dir is not None else [], files=files)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InputWarning)
+        case = load_case(case_dir, **{k: v for k, v in overrides.items() if k in load_keys and v is not None})
+    notes = [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
+    for recorded in caught:      # passed on as they came: the CLI shows ours as notes
+        warnings.warn_explicit(recorded.message, recorded.category, recorded.filename, recorded.lineno)
+    plausibility.check_anatomy_in_view(case.P, _anatomy_points(case), case.fluoro.shape, case.paths.get("geometry", case_dir))
+    try:
+        result = run_case(case, method=method, progress=progress,
+                          **{k: v for k, v in overrides.items() if k not in load_keys})
+    except quality.QualityError as failure:    # the QC picture first, so the user sees why
+        if out_dir is not None and failure.qc is not None:
+            _write_failure_qc(Path(out_dir), failure)
+        raise
+    frame_path = case.paths.get("fluoro_mask", case.paths.get("fluoro"))
+    plausibility.check_anatomy_in_view(result.P, result.preop.points, case.fluoro.shape, case.paths.get("geometry", case_dir))
+    plausibility.check_vessel_tree(result.skeleton2d_points, result.skeleton2d_edges, result.P, result.preop.points,
+                                   frame_path)
+    gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
+    for note in gate_notes:
+        warnings.warn(note, InputWarning, stacklevel=2)
+    result.warnings.extend(notes + gate_notes)
+    if out_dir is not None:
+        write_outputs(result, out_dir)
+    return result
+
+
+#: Foreground voxels sampled to check the anatomy's projection before any work.
+_ANATOMY_SAMPLES = 4000
+
+
+def _anatomy_points(case: Case) -> np.ndarray:
+    """LPS points of the loaded 3D input: foreground voxels of a mask / skeleton, or the CT's centre."""
+    volume = case.reference_volume
+    if case.stage_3d == "ct":
+        return volume.center_lps()[None]
+    kji = np.argwhere(volume.array)
+    step = max(1, len(kji) // _ANATOMY_SAMPLES)
+    return volume.index_to_lps(kji[::step])

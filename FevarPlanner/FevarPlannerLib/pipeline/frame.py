@@ -1,0 +1,275 @@
+"""The per-frame side of Algorithm 2 (rows 3-16): the 2D skeleton graph and Algorithm 1 on
+it, the pose refinement, matching and soft assignment (:mod:`matching`), the deformation
+(:mod:`deformation`), for one view (:func:`register_frame`) or several
+(:func:`register_views`). Nothing here depends on more than the frame and the
+pre-operative model, which is computed once per patient.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+from threadpoolctl import ThreadpoolController
+
+from .. import baselines, graph, matching, skeleton
+from ..alignment import fit_in_plane_rigid
+from ..conventions import IOTA_MM
+from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
+from ..projection import image_directions, pixels_per_mm, project
+from .fallback import _never_worse_than_sv
+from .multiview import CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with
+from .results import FrameResult, METHODS, ViewFrame
+from .visibility import Visibility, frame_visibility
+
+
+def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
+    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), pixel_size=mm_per_pixel, mask=mask)
+
+
+def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
+    """Algorithm 1 on the 2D graph (lengths scaled by ``g2.unit_mm``), labelled through ``P``."""
+    left, superior = image_directions(P, at)
+    # Algorithm 1's iota in pixels at the anatomy's depth (g2.unit_mm is mm per pixel there)
+    c2 = graph.classify(g2, iota=IOTA_MM * (1.0 / g2.unit_mm), directions={"left": left, "superior": superior})
+    return graph.label_anatomy(c2.graph, c2, left=left, superior=superior)
+
+
+#: The vessels that a stiff wire moves least: the pose is refined on these alone, so that
+#: the deformation of the sac and the iliacs is not mistaken for a misaligned frame.
+STABLE_VESSELS = ("aorta", "renal_left", "renal_right")
+#: A correction turning the frame further than this is a failed fit, not a misalignment.
+MAX_POSE_ROTATION_DEG = 30.0
+
+
+def _branch_nodes(classification: graph.Classification, labels) -> np.ndarray:
+    nodes = [b.nodes for b in classification.branches if b.label in labels]
+    return np.concatenate(nodes) if nodes else np.empty(0, dtype=np.int64)
+
+
+def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification,
+                        P: np.ndarray) -> np.ndarray:
+    """``P`` corrected in-plane on the stable vessels (upper aorta and renals).
+
+    The stable vessels' 3D nodes are soft-assigned to their 2D targets (eqs. 4-5) under the
+    given ``P``; the rotation and translation of the image plane that lays their projections
+    onto the targets (alignment.fit_in_plane_rigid) is folded into ``P``. A rigid in-plane
+    move changes no projected length, so the assignment it was fitted on stays valid.
+    """
+    g3, c3 = preop.graph, preop.classification
+    candidate = matching.candidate_correspondences(g3, c3, g2, c2, P)[0]
+    assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate)
+    stable = _branch_nodes(c3, STABLE_VESSELS)
+    stable = stable[assignment.assigned[stable]]
+    if len(stable) < 10:
+        return P
+    fit = fit_in_plane_rigid(project(P, g3.positions[stable]), assignment.targets[stable], P)
+    return fit.P if abs(fit.rotation_deg) <= MAX_POSE_ROTATION_DEG else P
+
+
+def _frame_projection(preop: Preoperative, view: "_ViewState", P: np.ndarray) -> None:
+    """Project the pre-operative kept nodes through ``P``: which of them the frame shows."""
+    view.P = P
+    view.visible = view.visibility.shows(project(P, preop.graph.positions))
+
+
+@dataclass
+class _ViewState:
+    """The per-view working data of :func:`register_views`."""
+
+    name: str
+    P: np.ndarray
+    g2: graph.SkeletonGraph
+    c2: graph.Classification | None
+    visibility: Visibility
+    visible: np.ndarray | None = None
+    candidates: list = field(default_factory=list)
+    unclassified: str | None = None      # why Algorithm 1 failed on this view (then c2 is None)
+
+
+@functools.cache
+def _threadpools() -> ThreadpoolController:
+    """The process's BLAS / OpenMP pools, found once (finding them costs about 3 ms a frame)."""
+    return ThreadpoolController()
+
+
+def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, method: str = "proposed",
+                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0,
+                   image: np.ndarray | None = None, name: str = "main") -> FrameResult:
+    """Register the pre-operative skeleton to one frame's 2D vessel mask (the per-frame part).
+
+    Parameters
+    ----------
+    preop : Preoperative
+    mask2d : (rows, cols) bool
+        Vessel mask on the frame's grid.
+    P : (3, 4)
+        Projection matrix (rigid pre-alignment, eq. 1).
+    method : {"proposed", "icp-tps", "rigid"}
+    refine_pose : bool
+        Correct the in-plane pose on the stable vessels first (:func:`_refined_projection`).
+        Off by default: on deformed but aligned frames it mistakes the deformation for a
+        misalignment (benchmark: 3D error 1.1 -> 5-11 mm); it pays off only for frames
+        known to be misaligned by more than about 10 px (the robustness curves).
+    alpha, beta : float
+        Weights of the length and smoothness terms (eq. 6).
+    image : (rows, cols) array, optional
+        The raw frame, to find collimated borders (:func:`frame_visibility`).
+    name : str
+        The view's name in the result.
+    """
+    return register_views(preop, [(mask2d, P)], names=[name], images=[image], method=method,
+                          refine_pose=refine_pose, alpha=alpha, beta=beta)
+
+
+def register_views(preop: Preoperative, frames, *, names=None, images=None, method: str = "proposed",
+                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
+    """Register the pre-operative skeleton to several frames of the same anatomy at once.
+
+    Each view gets its own 2D skeleton graph, classification, candidate correspondences and
+    soft assignment (eqs. 3-5) to the same 3D nodes; one deformation (eq. 6) minimises the
+    length and smoothness terms with the data term averaged over the views, so that views
+    at different C-arm angles fix the depth that one view leaves open. A node gets no data
+    term in a view that does not show it (outside the frame, in a collimated band, beyond a
+    border the vessel runs out of: :func:`frame_visibility`). Each vessel of the result is
+    then checked against the undeformed start (:func:`_never_worse_than_sv`). A view whose
+    2D skeleton cannot be classified is left out with a warning while another one remains.
+
+    Parameters
+    ----------
+    preop : Preoperative
+    frames : sequence of (mask2d, P)
+        Vessel mask and projection matrix of each view.
+    names : sequence of str, optional
+        View names (default "main", "view2", ...).
+    images : sequence of arrays or None, optional
+        Raw frames, for the collimator detection.
+    method, refine_pose, alpha, beta
+        As in :func:`register_frame`. ``icp-tps`` uses the first view only.
+
+    Returns
+    -------
+    FrameResult
+        ``P``, ``skeleton2d`` and ``classification2d`` of the first view; ``views`` of all.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    frames = list(frames)
+    if not frames:
+        raise ValueError("register_views: no view given")
+    names = list(names) if names is not None else ["main"] + [f"view{k + 1}" for k in range(1, len(frames))]
+    images = list(images) if images is not None else [None] * len(frames)
+    if len(names) != len(frames) or len(images) != len(frames) or len(set(names)) != len(names):
+        raise ValueError("register_views: need one distinct name (and one image or None) per view")
+    # small matrices: BLAS threads only cost time here (10x in L-BFGS on 2 cores)
+    with _threadpools().limit(limits=1, user_api="blas"):
+        return _register_views(preop, frames, names, images, method, refine_pose, alpha, beta)
+
+
+def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -> _ViewState:
+    """One view's 2D side: skeleton graph, classification (Alg. 1), pose, visibility."""
+    with _timed(timings, "skeleton2d"):
+        g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
+    c2 = unclassified = None
+    if refine_pose or method == "proposed":
+        with _timed(timings, "graph2d"):
+            try:
+                c2 = _classify_2d(g2, P, preop.centre)
+                g2 = c2.graph
+            except ValueError as exc:        # e.g. a lateral view: vessels overlap, ends merge
+                unclassified = str(exc)
+            # pixel staircase smoothed away: eq. (4) compares path lengths along it
+            g2 = graph.smooth_positions(g2, SMOOTHING_ITERATIONS)
+    if refine_pose and c2 is not None:
+        with _timed(timings, "pose_refinement"):
+            P = _refined_projection(preop, g2, c2, P)
+    view = _ViewState(name, P, g2, c2, frame_visibility(mask2d, image), unclassified=unclassified)
+    _frame_projection(preop, view, P)
+    return view
+
+
+def _alternatives(preop, views, trials, best, alpha, beta) -> list:
+    """The registrations to fall back on: the other candidate combinations and, with several
+    views, each view alone with its chosen correspondence."""
+    found = [(positions, f"candidate {k + 1}") for k, ((positions, _, _), combo) in enumerate(trials) if combo is not best]
+    if len(views) > 1:
+        found += [(_deform_with(preop, [view], (chosen,), alpha, beta)[0], f"view {view.name} alone")
+                  for view, chosen in zip(views, best) if chosen is not None]
+    return found
+
+
+def _full_combination(views, combo) -> tuple:
+    """A combination over the classified views, with None for each unclassified one."""
+    chosen = iter(combo)
+    return tuple(None if v.c2 is None else next(chosen) for v in views)
+
+
+def _with_unclassified_views(preop, views, combo, deformed, alpha, beta):
+    """Add the views without a classification: passes of nearest-point targets (from the last
+    result) beside the classified views' assignments, until the nodes settle."""
+    full = _full_combination(views, combo)
+    energy = None
+    for _ in range(CLOSEST_POINT_PASSES):
+        previous = deformed
+        deformed, energy, _ = _deform_with(preop, views, full, alpha, beta, estimate=deformed)
+        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
+            break
+    return deformed, energy, full
+
+
+def _register_views(preop, frames, names, images, method, refine_pose, alpha, beta) -> FrameResult:
+    timings = {}
+    views, warnings, failures = [], [], []
+    for (mask2d, P), name, image in zip(frames, names, images):
+        try:
+            views.append(_prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings))
+        except ValueError as exc:
+            # one unreadable view (vessels overlapping at a steep angle) must not sink the others
+            failures.append(exc)
+            warnings.append(f"view {name} not used: {exc}")
+    if not views:
+        raise ValueError(f"view {names[0]}: {failures[0]}" if len(frames) > 1 else str(failures[0])) from failures[0]
+    points = preop.centerline.points
+    energy, source = None, method
+    if method == "rigid":
+        deformed = points
+    elif method == "icp-tps":
+        if len(views) > 1:
+            warnings.append(f"icp-tps registers one frame: used view {views[0].name} only")
+        with _timed(timings, "registration"):
+            deformed = baselines.icp_tps(points, preop.centerline.edges, views[0].g2.positions, views[0].P).points
+    else:
+        classified = [v for v in views if v.c2 is not None]
+        if not classified:
+            raise ValueError(views[0].unclassified if len(views) == 1 else
+                             f"no view could be classified (view {views[0].name}: {views[0].unclassified})")
+        with _timed(timings, "matching"):
+            for view in views:
+                view.candidates = [None] if view.c2 is None else matching.candidate_correspondences(
+                    preop.graph, preop.classification, view.g2, view.c2, view.P)
+        combinations = list(itertools.islice(itertools.product(*[v.candidates for v in classified]),
+                                             MAX_CANDIDATE_COMBINATIONS))
+        with _timed(timings, "deformation"):
+            trials = [(_deform_with(preop, classified, combo, alpha, beta), combo) for combo in combinations]
+            (deformed, energy, _), best = min(trials, key=lambda t: t[0][2])
+            if len(classified) < len(views):
+                deformed, energy, best = _with_unclassified_views(preop, views, best, deformed, alpha, beta)
+                trials = [(result, _full_combination(views, combo)) for result, combo in trials]
+                warnings += [f"view {v.name}: no anatomical classification ({v.unclassified}); registered to "
+                             f"its nearest 2D skeleton points" for v in views if v.c2 is None]
+        with _timed(timings, "plausibility"):
+            deformed, doubts = _never_worse_than_sv(
+                deformed, lambda: _alternatives(preop, views, trials, best, alpha, beta), preop, views)
+        warnings += doubts
+        source = "; ".join(f"{c.source} ({len(v.candidates)} candidate(s))" if c is not None else "nearest points"
+                           for v, c in zip(views, best))
+    timings["intraop"] = sum(timings.values())
+    outside = [int(np.count_nonzero(~v.visible[preop.kept])) for v in views]
+    frames_out = [ViewFrame(v.name, v.P, v.g2, v.c2, v.visibility, n_out,
+                            (c.source if c is not None else "nearest points") if method == "proposed" else method)
+                  for v, n_out, c in zip(views, outside, best if method == "proposed" else [None] * len(views))]
+    first = views[0]
+    return FrameResult(preop.centerline.with_points(deformed), first.P, first.g2, first.c2, energy, source, timings,
+                       frames_out, warnings)

@@ -1,0 +1,161 @@
+"""Deformation over several views: each view's targets (its soft assignment, or nearest
+points for a view without its own classification), pieces a view does not show carried
+rigidly, and the combinations of per-view candidate correspondences.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree
+
+from .. import deformation, matching
+from ..preop import Preoperative, _induced_edges
+from ..projection import project
+
+
+#: Most combinations of per-view candidate correspondences deformed (the first in order).
+MAX_CANDIDATE_COMBINATIONS = 16
+#: Length (mm) of the seen vessel next to an unseen piece whose direction that piece keeps.
+TANGENT_MM = 15.0
+
+
+def _carry_unseen(preop: Preoperative, moved: np.ndarray, assigned: np.ndarray, visible: list) -> np.ndarray:
+    """Move each unassigned piece that a frame border cuts rigidly with the vessel it hangs from.
+
+    A piece of kept nodes without a 2D target in any view that holds a node no view shows
+    (outside every frame, in a collimated band, or within the vessel's half-width of a
+    border it runs out of, where thinning is unreliable) and hangs from one place of the
+    assigned tree has no data term: the length and smoothness terms of eq. 6 are smallest
+    when it keeps its shape (a rigid motion), and it turns with
+    the direction of the last :data:`TANGENT_MM` of the vessel it hangs from, so that a
+    vessel leaving the frame goes on the way it left instead of the TPS extrapolating it.
+    Changes ``moved`` in place and returns the carried graph nodes.
+    """
+    g3 = preop.graph
+    n = len(g3.positions)
+    free = np.zeros(n, dtype=bool)
+    free[preop.kept] = ~assigned[preop.kept]
+    unseen = free & ~np.logical_or.reduce(visible)
+    if not unseen.any():
+        return np.empty(0, dtype=np.int64)
+    edges = g3.edges()
+    inner = edges[free[edges[:, 0]] & free[edges[:, 1]]]
+    adjacency = scipy.sparse.coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(n, n))
+    _, component = csgraph.connected_components(adjacency, directed=False)
+    links = edges[free[edges[:, 0]] != free[edges[:, 1]]]
+    links = np.where(free[links[:, :1]], links, links[:, ::-1])          # (free node, assigned node)
+    links = links[assigned[links[:, 1]]]
+    pair = edges[assigned[edges[:, 0]] & assigned[edges[:, 1]]]
+    length = np.linalg.norm(g3.positions[pair[:, 0]] - g3.positions[pair[:, 1]], axis=1)
+    assigned_graph = scipy.sparse.coo_matrix((length, (pair[:, 0], pair[:, 1])), shape=(n, n)).tocsr()
+    carried = []
+    for label in np.unique(component[unseen]):
+        piece = np.flatnonzero(free & (component == label))
+        anchors = np.unique(links[np.isin(links[:, 0], piece), 1])
+        if len(anchors) == 0:
+            continue
+        if len(anchors) > 1:
+            apart = csgraph.dijkstra(assigned_graph, directed=False, indices=anchors[0], limit=TANGENT_MM)
+            if not np.isfinite(apart[anchors]).all():
+                continue                                    # hangs between two seen parts: the TPS
+        distance = csgraph.dijkstra(assigned_graph, directed=False, indices=anchors, min_only=True, limit=TANGENT_MM)
+        near = np.flatnonzero(np.isfinite(distance) & (distance > 0))
+        anchor_before, anchor_after = g3.positions[anchors].mean(axis=0), moved[anchors].mean(axis=0)
+        rotation = np.eye(3)
+        if len(near):
+            rotation = _rotation_between(anchor_before - g3.positions[near].mean(axis=0),
+                                         anchor_after - moved[near].mean(axis=0))
+        moved[piece] = anchor_after + (g3.positions[piece] - anchor_before) @ rotation.T
+        carried.append(piece)
+    return np.concatenate(carried) if carried else np.empty(0, dtype=np.int64)
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation turning direction ``a`` into direction ``b``."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis, cos = np.cross(a, b), float(a @ b)
+    sin = np.linalg.norm(axis)
+    if sin < 1e-12:
+        return np.eye(3)
+    k = axis / sin
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + sin * K + (1 - cos) * K @ K
+
+
+def _view_data(nodes: np.ndarray, assignment, visible: np.ndarray, P: np.ndarray, positions: np.ndarray):
+    """(targets, weights) of one view for the deformation ``nodes``.
+
+    Weights are 0 where the view has no target (unassigned, or not shown by the frame) and
+    otherwise scaled so that S_D stays the mean squared distance over the view's assigned
+    nodes (eq. 6).
+    """
+    has_target = assignment.assigned[nodes] & visible[nodes]
+    targets = np.where(has_target[:, None], assignment.targets[nodes], project(P, positions[nodes]))
+    count = np.count_nonzero(has_target)
+    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
+    return targets, weights
+
+
+#: Most passes of nearest-point targets for a view without its own classification (ICP-like);
+#: the passes stop earlier once the nodes move less than CLOSEST_POINT_SETTLED_MM on average.
+CLOSEST_POINT_PASSES = 10
+CLOSEST_POINT_SETTLED_MM = 0.05
+#: A nearest 2D skeleton point further than this many times the median nearest distance of
+#: the view is an outlier (another vessel, a part the 2D skeleton lacks) and gives no target.
+CLOSEST_POINT_OUTLIER = 5.0
+
+
+def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
+    """(targets, weights) of a view without a classification: the nearest 2D skeleton points.
+
+    ``estimate`` are the current kept positions; their projections through the view's P
+    find the nearest node of its (smoothed) 2D skeleton; weights as in :func:`_view_data`.
+    """
+    positions = np.array(preop.graph.positions, dtype=float)
+    positions[preop.kept] = estimate
+    uv = project(view.P, positions[nodes])
+    distance, index = cKDTree(view.g2.positions).query(uv)
+    usable = view.visible[nodes]
+    limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
+    has_target = usable & (distance <= limit)
+    count = np.count_nonzero(has_target)
+    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
+    return np.where(has_target[:, None], view.g2.positions[index], uv), weights
+
+
+def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
+    """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
+
+    Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
+    term averaged over the views moves them; the TPS fills the rest (row 16). A view whose
+    correspondence is None (no classification) takes the nearest 2D skeleton points of the
+    kept positions ``estimate`` as targets instead. The score (matching.candidate_score)
+    picks between candidates: the energy plus the 3D implausibility of the result.
+    """
+    g3, c3 = preop.graph, preop.classification
+    classified = [(v, c) for v, c in zip(views, correspondences) if c is not None]
+    assignments = {v.name: matching.soft_assign(g3, c3, v.g2, v.c2, v.P, c) for v, c in classified}
+    has_target = [assignments[v.name].assigned & v.visible for v, _ in classified]
+    nodes = np.flatnonzero(np.logical_or.reduce(has_target))
+    data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
+            else _closest_point_data(v, nodes, preop, estimate) for v in views]
+    extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
+    (targets, weights), edges = data[0], _induced_edges(g3, nodes)
+    if not np.any(weights) and not extra:
+        raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
+    weights_arg = None if np.all(weights == 1.0) else weights
+    result = deformation.deform_assigned(g3.positions[nodes], targets, edges, views[0].P, alpha=alpha, beta=beta,
+                                         weights=weights_arg, **extra)
+    moved = np.array(g3.positions, dtype=float)
+    moved[nodes] = result.points
+    in_deformation = np.zeros(len(g3.positions), dtype=bool)
+    in_deformation[nodes] = True
+    assigned_fraction = in_deformation[preop.kept].mean()
+    in_deformation[_carry_unseen(preop, moved, in_deformation, [v.visible for v in views])] = True
+    filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], in_deformation[preop.kept],
+                                         preop.kept_adjacency)
+    score = matching.candidate_score(result.energy_final, assigned_fraction, preop.centerline.points, filled,
+                                     preop.centerline.edges, alpha)
+    return filled, float(result.energy_final), score

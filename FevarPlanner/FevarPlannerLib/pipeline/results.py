@@ -1,0 +1,87 @@
+"""What a registration and a planned case return: :class:`FrameResult` (one registration,
+per view :class:`ViewFrame`) and :class:`PlanResult` (everything a caller shows or writes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import export, graph, planning, quality
+from ..centerline import Centerline
+from .visibility import Visibility
+
+
+METHODS = ("proposed", "icp-tps", "rigid")
+
+
+@dataclass
+class ViewFrame:
+    """One view's share of a registration (several views: :func:`register_views`)."""
+
+    name: str
+    P: np.ndarray
+    skeleton2d: graph.SkeletonGraph
+    classification2d: graph.Classification | None
+    visibility: Visibility
+    nodes_outside: int = 0
+    correspondence: str = ""
+
+
+@dataclass
+class FrameResult:
+    """One registration: the deformed kept nodes and how they were found.
+
+    ``P``, ``skeleton2d`` and ``classification2d`` are those of the first view; ``views``
+    holds every view, ``warnings`` what the plausibility checks changed or doubted.
+    """
+
+    deformed: Centerline
+    P: np.ndarray
+    skeleton2d: graph.SkeletonGraph
+    classification2d: graph.Classification | None
+    energy: float | None
+    correspondence: str
+    timings: dict
+    views: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+
+@dataclass
+class PlanResult:
+    """Everything a caller shows or writes about one case (see docs/DESIGN.md section 4).
+
+    ``P``, ``skeleton2d_*``, ``fluoro_image`` and ``errors`` are the first view's; ``views``
+    has one dict per view (name, projection matrix, 2D error, visibility, inputs) and
+    ``warnings`` what the plausibility checks replaced or doubted.
+    """
+
+    method: str
+    preop: Centerline
+    deformed: Centerline
+    path: planning.CatheterPath
+    P: np.ndarray
+    skeleton2d_points: np.ndarray
+    skeleton2d_edges: np.ndarray
+    fluoro_image: np.ndarray
+    timings: dict
+    errors: dict | None = None
+    inputs: dict = field(default_factory=dict)
+    qc: quality.QCData | None = None
+    geometry: dict | None = None
+    drr: np.ndarray | None = None
+    views: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs,
+                 "warnings": list(self.warnings)}
+        if self.errors is not None:
+            extra["errors"] = self.errors
+        if self.geometry is not None:
+            extra["geometry"] = self.geometry
+        if self.views:
+            extra["views"] = [{k: v for k, v in view.items() if k != "visibility"} for view in self.views]
+            extra["visibility"] = {view["name"]: view["visibility"] for view in self.views}
+        return export.build_result_dict(self.method, self.preop, self.deformed, self.path, self.timings, **extra)
