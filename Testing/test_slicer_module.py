@@ -264,7 +264,7 @@ def test_cmake_build_ships_every_core_module_and_the_resources(tmp_path):
     core = sorted(p.relative_to(MODULE_DIR).as_posix() for p in (MODULE_DIR / "FevarPlannerLib").rglob("*.py"))
     assert [s for s in scripts if s.startswith("FevarPlannerLib/")] == core
     # subpackages ship too
-    assert {"FevarPlannerLib/pipeline.py", "FevarPlannerLib/phantom/case.py", "FevarPlannerLib/deformation/tps.py"} \
+    assert {"FevarPlannerLib/pipeline/frame.py", "FevarPlannerLib/phantom/case.py", "FevarPlannerLib/deformation/tps.py"} \
         <= set(core)
     assert "FevarPlanner.py" in scripts and not any(s.startswith("FevarPlannerApp/") for s in scripts)
     assert all((MODULE_DIR / s).is_file() for s in scripts)
