@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib import evaluation, io, phantom, pipeline
+from FevarPlannerLib.pipeline.visibility import _collimated_bands
 from FevarPlannerLib.projection import project, write_geometry_json
 
 PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
@@ -43,6 +44,30 @@ def test_a_collimator_band_is_not_exposed():
     vis = pipeline.frame_visibility(mask, image)
     assert vis.exposed == (12, 59, 0, 79) and vis.clipped_border == ["top"]
     assert pipeline.frame_visibility(mask).clipped_border == []   # without the frame nothing says so
+
+
+def test_margins_equal_the_whole_rectangles_distance_transform():
+    """The half-width at a clipped side, taken from a strip along it, is that of the whole exposed rectangle."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        mask = ndimage.gaussian_filter(rng.random(tuple(rng.integers(3, 50, 2))), rng.choice([0.7, 2.0, 4.0])) > 0.5
+        vis = pipeline.frame_visibility(mask)
+        whole = ndimage.distance_transform_edt(np.pad(mask, 1, mode="edge"))[1:-1, 1:-1]
+        lines = {"top": (0, slice(None)), "bottom": (-1, slice(None)), "left": (slice(None), 0),
+                 "right": (slice(None), -1)}
+        for side in vis.clipped_border:
+            line = lines[side]
+            assert vis.margin_px[side] == whole[line][mask[line]].max()
+
+
+def test_a_frame_without_shutters_has_no_bands_and_a_flat_border_line_still_counts():
+    rng = np.random.default_rng(1)
+    image = (2000 + 60 * rng.normal(size=(40, 50))).astype(np.uint16)
+    assert _collimated_bands(image) == dict.fromkeys(["top", "bottom", "left", "right"], 0)
+    image[:, -7:] = 900                         # a flat blade on the right
+    assert _collimated_bands(image) == {"top": 0, "bottom": 0, "left": 0, "right": 7}
 
 
 @pytest.fixture(scope="module")

@@ -59,16 +59,39 @@ MIN_BORDER_PIXELS = 2
 
 def _collimated_bands(image: np.ndarray) -> dict:
     """Number of flat (shutter) rows / columns on each side of a raw frame."""
-    image = np.asarray(image, dtype=float)
+    image = np.asarray(image)
+    could_be_flat = _borders_could_be_flat(image)
+    if not any(could_be_flat.values()):
+        return dict.fromkeys(_SIDES, 0)
+    image = image.astype(float)
     low, high = np.percentile(image, [1, 99])
     limit = FLAT_BAND_FRACTION * max(high - low, 1e-12)
-    flat_rows, flat_cols = image.std(axis=1) < limit, image.std(axis=0) < limit
 
     def run(flags):
         return int(np.argmin(flags)) if not flags.all() else len(flags)
 
-    return {"top": run(flat_rows), "bottom": run(flat_rows[::-1]), "left": run(flat_cols),
-            "right": run(flat_cols[::-1])}
+    bands = dict.fromkeys(_SIDES, 0)
+    for axis, (first, last) in ((1, ("top", "bottom")), (0, ("left", "right"))):
+        if could_be_flat[first] or could_be_flat[last]:
+            flat = image.std(axis=axis) < limit
+            bands[first], bands[last] = run(flat), run(flat[::-1])
+    return bands
+
+
+def _borders_could_be_flat(image: np.ndarray) -> dict:
+    """Per side, whether the frame's outermost line there might count as flat.
+
+    The flatness limit is :data:`FLAT_BAND_FRACTION` of the 1st-99th percentile range, which
+    is at most the full range (max - min, exact on the frame's own dtype); a border line
+    varying by more than that fraction of the full range (with a margin for rounding) is not
+    flat whatever the percentiles, and then no band can start on that side. Checking the
+    four lines first spares the percentiles and the row / column spreads of a frame
+    without shutters (about 10 ms on 1024 x 1024).
+    """
+    top, bottom = float(image.max()), float(image.min())
+    bound = FLAT_BAND_FRACTION * max(top - bottom + 1e-9 * (abs(top) + abs(bottom)), 1e-12) * (1 + 1e-6)
+    lines = {"top": image[0], "bottom": image[-1], "left": image[:, 0], "right": image[:, -1]}
+    return {side: bool(np.std(line.astype(float)) < bound) for side, line in lines.items()}
 
 
 def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Visibility:
@@ -100,14 +123,35 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     shown = mask[r0:r1 + 1, c0:c1 + 1]
     sides = {"top": (0, slice(None)), "bottom": (-1, slice(None)), "left": (slice(None), 0),
              "right": (slice(None), -1)}
-    clipped, margin, half_width = [], {}, None
+    clipped, margin = [], {}
     for side, index in sides.items():
         on_border = shown[index]
         if np.count_nonzero(on_border) >= MIN_BORDER_PIXELS:
-            if half_width is None:      # only for a clipped frame: 45 ms on a 1024 x 1024 frame
-                # distance to the nearest background pixel inside the exposed rectangle (its
-                # edges repeated outwards): at a side the vessel runs into, its half-width there
-                half_width = ndimage.distance_transform_edt(np.pad(shown, 1, mode="edge"))[1:-1, 1:-1]
             clipped.append(side)
-            margin[side] = float(half_width[index][on_border].max())
+            margin[side] = _half_width_at_border(shown, side, index, on_border)
     return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin)
+
+
+def _longest_run(flags: np.ndarray) -> int:
+    """Length of the longest run of True in a 1D bool array."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], flags, [False]]).astype(np.int8)))
+    return int((edges[1::2] - edges[::2]).max()) if len(edges) else 0
+
+
+def _half_width_at_border(shown: np.ndarray, side: str, index, on_border: np.ndarray) -> float:
+    """The vessel's largest half-width (px) on one side of the exposed rectangle ``shown``.
+
+    The distance of each vessel pixel on the border line to the nearest background pixel
+    inside the rectangle (its edges repeated outwards). A pixel in a run of ``L`` vessel
+    pixels along the line that does not fill the whole line has background on the line
+    within ``L``; background deeper than ``L`` from the border is farther than that, so
+    the distance transform of a strip ``L + 1`` deep along the side gives the same values
+    as that of the whole rectangle (45 ms on a 1024 x 1024 frame) at a fraction of the cost.
+    """
+    across = 0 if side in ("top", "bottom") else 1
+    run = _longest_run(on_border)
+    depth = shown.shape[across] if run == len(on_border) else min(run + 1, shown.shape[across])
+    strip = {"top": shown[:depth], "bottom": shown[shown.shape[0] - depth:], "left": shown[:, :depth],
+             "right": shown[:, shown.shape[1] - depth:]}[side]
+    half_width = ndimage.distance_transform_edt(np.pad(strip, 1, mode="edge"))[1:-1, 1:-1]
+    return float(half_width[index][on_border].max())
