@@ -6,7 +6,8 @@ import pytest
 
 from FevarPlannerLib.centerline import Centerline
 from FevarPlannerLib.evaluation import (common_labels, distance_statistics, error_2d, error_3d, evaluate,
-                                        point_to_graph, point_to_segments, restrict_to_labels)
+                                        graph_index, point_to_graph, point_to_segments,
+                                        restrict_to_labels)
 from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm
 
 AP = CArmGeometry(sid=1100.0, sod=750.0, pixel_spacing=(0.4, 0.4), primary_angle=0.0,
@@ -39,6 +40,20 @@ def test_point_to_segments_matches_brute_force(dim, n_segments):
     np.testing.assert_allclose(point_to_segments(points, seg_a, seg_b), expected, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(point_to_segments(points, seg_a, seg_b, chunk_elements=7), expected,
                                rtol=1e-12, atol=1e-12)
+
+
+def test_a_graph_index_answers_far_points_exactly_and_again():
+    """Points far from a dense curve need more than the first candidates; the index escalates
+    and gives the all-pairs answer, the same on every query."""
+    rng = np.random.default_rng(7)
+    curve = np.cumsum(rng.normal(size=(400, 2)), axis=0)
+    edges = np.stack([np.arange(399), np.arange(1, 400)], axis=1)
+    points = curve[rng.integers(0, 400, 60)] + rng.normal(scale=40.0, size=(60, 2))
+    index = graph_index(curve, edges)
+    expected = brute_force(points, curve[edges[:, 0]], curve[edges[:, 1]])
+    np.testing.assert_allclose(index.distances(points), expected, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(index.distances(points), point_to_graph(points, curve, edges))
+    assert np.array_equal(index.distances(points[::-1])[::-1], index.distances(points))
 
 
 def test_point_to_segments_hand_cases():

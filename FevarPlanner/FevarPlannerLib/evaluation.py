@@ -54,7 +54,9 @@ from .projection import project, source_position, validate_projection_matrix
 
 __all__ = [
     "point_to_segments",
+    "SegmentIndex",
     "point_to_graph",
+    "graph_index",
     "distance_statistics",
     "error_2d",
     "error_3d",
@@ -73,6 +75,8 @@ __all__ = [
 _CANDIDATES = 8
 #: Below this many segments the plain all-pairs computation is as fast as the tree.
 _BRUTE_FORCE_SEGMENTS = 64
+#: Most segments scanned per point (growing 4x from _CANDIDATES) before the all-pairs fallback.
+_MAX_CANDIDATES = 512
 
 
 def _nearest_on_segments(points: np.ndarray, seg_a: np.ndarray, seg_b: np.ndarray,
@@ -136,31 +140,71 @@ def point_to_segments(points, seg_a, seg_b, *, chunk_elements: int = 2_000_000) 
 
     Notes
     -----
-    A KD-tree on the segment midpoints proposes the ``8`` nearest segments of each point.
-    The answer is exact whenever the best of them is no farther than ``d_k - h_max``
-    (``d_k`` the distance to the 8th nearest midpoint, ``h_max`` the largest half-length):
-    every other segment lies at least that far. The points that fail the check are
-    computed against all segments.
+    See :class:`SegmentIndex`, which this builds and queries once; build the index yourself
+    to measure many point sets against the same segments.
     """
     points = as_points(points, "points")
-    seg_a = as_points(seg_a, "segment starts", points.shape[1])
-    seg_b = as_points(seg_b, "segment ends", points.shape[1])
-    if len(seg_a) != len(seg_b):
-        raise ValueError(f"{len(seg_a)} segment starts but {len(seg_b)} segment ends")
-    if len(seg_a) == 0:
-        raise ValueError("no segments to measure the distance to")
-    if len(points) == 0:
-        return np.empty(0)
-    if len(seg_a) <= _BRUTE_FORCE_SEGMENTS:
-        return _segment_distances_all_pairs(points, seg_a, seg_b, chunk_elements)
-    midpoints = 0.5 * (seg_a + seg_b)
-    half_length_max = 0.5 * np.sqrt(((seg_b - seg_a) ** 2).sum(axis=1)).max()
-    midpoint_distance, candidates = cKDTree(midpoints).query(points, k=_CANDIDATES)
-    best = _segment_distances_candidates(points, seg_a, seg_b, candidates)
-    unresolved = best > midpoint_distance[:, -1] - half_length_max
-    if np.any(unresolved):
-        best[unresolved] = _segment_distances_all_pairs(points[unresolved], seg_a, seg_b, chunk_elements)
-    return best
+    return SegmentIndex(seg_a, seg_b, points.shape[1], chunk_elements=chunk_elements).distances(points)
+
+
+class SegmentIndex:
+    """A set of straight segments, prepared for repeated nearest-distance queries.
+
+    Parameters
+    ----------
+    seg_a, seg_b : array_like, shape (m, d)
+        Segment end points; a segment with ``seg_a[i] == seg_b[i]`` is a single point.
+    dim : int, optional
+        The dimension the segments must have (that of the query points).
+    chunk_elements : int
+        As in :func:`point_to_segments`.
+
+    Notes
+    -----
+    A KD-tree on the segment midpoints proposes the ``8`` nearest segments of each point.
+    The answer is exact whenever the best of them is no farther than ``d_k - h_max``
+    (``d_k`` the distance to the k-th nearest midpoint, ``h_max`` the largest half-length):
+    every other segment lies at least that far. The points that fail the check are asked
+    again with four times as many candidates, and so on; those still unresolved at
+    :data:`_MAX_CANDIDATES` are computed against all segments. Every answer is the
+    minimum of the same per-segment distances, so it does not depend on the stage that
+    resolved it.
+    """
+
+    def __init__(self, seg_a, seg_b, dim: int | None = None, *, chunk_elements: int = 2_000_000):
+        self.seg_a = as_points(seg_a, "segment starts", dim)
+        self.seg_b = as_points(seg_b, "segment ends", self.seg_a.shape[1] if dim is None else dim)
+        if len(self.seg_a) != len(self.seg_b):
+            raise ValueError(f"{len(self.seg_a)} segment starts but {len(self.seg_b)} segment ends")
+        if len(self.seg_a) == 0:
+            raise ValueError("no segments to measure the distance to")
+        self.chunk_elements = chunk_elements
+        self.tree = None
+        if len(self.seg_a) > _BRUTE_FORCE_SEGMENTS:
+            self.tree = cKDTree(0.5 * (self.seg_a + self.seg_b))
+            self.half_length_max = 0.5 * np.sqrt(((self.seg_b - self.seg_a) ** 2).sum(axis=1)).max()
+
+    def distances(self, points) -> np.ndarray:
+        """Distance from each point (n, d) to the nearest point of the segments, shape (n,)."""
+        points = as_points(points, "points", self.seg_a.shape[1])
+        if len(points) == 0:
+            return np.empty(0)
+        if self.tree is None:
+            return _segment_distances_all_pairs(points, self.seg_a, self.seg_b, self.chunk_elements)
+        best = np.empty(len(points))
+        pending = np.arange(len(points))
+        k = _CANDIDATES
+        while len(pending) and k < min(len(self.seg_a), _MAX_CANDIDATES + 1):
+            midpoint_distance, candidates = self.tree.query(points[pending], k=k)
+            found = _segment_distances_candidates(points[pending], self.seg_a, self.seg_b, candidates)
+            resolved = found <= midpoint_distance[:, -1] - self.half_length_max
+            best[pending[resolved]] = found[resolved]
+            pending = pending[~resolved]
+            k *= 4
+        if len(pending):
+            best[pending] = _segment_distances_all_pairs(points[pending], self.seg_a, self.seg_b,
+                                                         self.chunk_elements)
+        return best
 
 
 def _graph_segments(graph_points: np.ndarray, graph_edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -188,12 +232,16 @@ def point_to_graph(points, graph_points, graph_edges) -> np.ndarray:
     -------
     numpy.ndarray, shape (n,)
     """
-    graph_points = as_points(graph_points, "graph points")
+    return graph_index(graph_points, graph_edges).distances(points)
+
+
+def graph_index(graph_points, graph_edges, dim: int | None = None) -> SegmentIndex:
+    """The :class:`SegmentIndex` of a graph drawn with straight edges (see :func:`point_to_graph`)."""
+    graph_points = as_points(graph_points, "graph points", dim)
     if len(graph_points) == 0:
         raise ValueError("the graph has no nodes")
     graph_edges = np.asarray(graph_edges, dtype=np.int64).reshape(-1, 2)
-    seg_a, seg_b = _graph_segments(graph_points, graph_edges)
-    return point_to_segments(points, seg_a, seg_b)
+    return SegmentIndex(*_graph_segments(graph_points, graph_edges), dim)
 
 
 def distance_statistics(distances) -> dict:

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import evaluation
 from ..centerline import Centerline
 from ..preop import Preoperative
 from ..projection import project
@@ -51,13 +50,22 @@ def _length(points: np.ndarray, edges: np.ndarray) -> float:
 
 def _fit_px(points: np.ndarray, nodes: np.ndarray, views: list, kept: np.ndarray) -> float:
     """Mean over the views of the mean 2D distance (px) of the shown projected ``nodes`` to the skeleton."""
-    fits = []
+    return _fits_px(points, [nodes], views, kept)[0]
+
+
+def _fits_px(points: np.ndarray, node_sets: list, views: list, kept: np.ndarray) -> list:
+    """:func:`_fit_px` of each of several node sets, with one skeleton query per view."""
+    fits = [[] for _ in node_sets]
     for v in views:
-        shown = nodes[v.visible[kept[nodes]]]
-        if len(shown):
-            uv = project(v.P, points[shown])
-            fits.append(evaluation.point_to_graph(uv, v.g2.positions, v.g2.edges()).mean())
-    return float(np.mean(fits)) if fits else 0.0
+        shown = [nodes[v.visible[kept[nodes]]] for nodes in node_sets]
+        uv = [project(v.P, points[nodes]) for nodes in shown if len(nodes)]
+        if not uv:
+            continue
+        distances = iter(np.split(v.skeleton_index.distances(np.concatenate(uv)), np.cumsum([len(u) for u in uv])[:-1]))
+        for fit, nodes in zip(fits, shown):
+            if len(nodes):
+                fit.append(next(distances).mean())
+    return [float(np.mean(fit)) if fit else 0.0 for fit in fits]
 
 
 def _judge(points, vessel: _Vessel, preop_points, sv_fit: float, views, kept) -> tuple[str | None, float]:
@@ -110,8 +118,8 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
     vessels = [v for v in _vessels(preop.centerline) if v.label != "other"]
     vessels.sort(key=lambda v: v.label != "aorta")
     result, warnings = result.copy(), []
-    for vessel in vessels:
-        sv_fit = _fit_px(sv, vessel.nodes, views, preop.kept)
+    sv_fits = _fits_px(sv, [vessel.nodes for vessel in vessels], views, preop.kept)
+    for vessel, sv_fit in zip(vessels, sv_fits):
         reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept)
         if reason is None:
             continue

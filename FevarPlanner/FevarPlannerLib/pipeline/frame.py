@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .. import baselines, graph, matching, skeleton
+from .. import baselines, evaluation, graph, matching, skeleton
 from ..alignment import fit_in_plane_rigid
 from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
@@ -87,6 +87,24 @@ class _ViewState:
     visible: np.ndarray | None = None
     candidates: list = field(default_factory=list)
     unclassified: str | None = None      # why Algorithm 1 failed on this view (then c2 is None)
+    assignments: dict = field(default_factory=dict)     # id(correspondence) -> (correspondence, assignment)
+
+    def assignment(self, preop: Preoperative, correspondence) -> matching.SoftAssignment:
+        """The soft assignment (eqs. 3-5) of the 3D nodes to this view under ``correspondence``.
+
+        Computed once per view and correspondence: the candidate combinations, the
+        nearest-point passes and the plausibility alternatives share it.
+        """
+        key = id(correspondence)
+        if key not in self.assignments:     # the correspondence is kept with it: its id stays unique
+            found = matching.soft_assign(preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence)
+            self.assignments[key] = (correspondence, found)
+        return self.assignments[key][1]
+
+    @functools.cached_property
+    def skeleton_index(self) -> evaluation.SegmentIndex:
+        """The 2D skeleton's segments, indexed once for the many 2D fits of the plausibility check."""
+        return evaluation.graph_index(self.g2.positions, self.g2.edges())
 
 
 @functools.cache

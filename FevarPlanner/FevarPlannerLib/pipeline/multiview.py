@@ -134,9 +134,9 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     kept positions ``estimate`` as targets instead. The score (matching.candidate_score)
     picks between candidates: the energy plus the 3D implausibility of the result.
     """
-    g3, c3 = preop.graph, preop.classification
+    g3 = preop.graph
     classified = [(v, c) for v, c in zip(views, correspondences) if c is not None]
-    assignments = {v.name: matching.soft_assign(g3, c3, v.g2, v.c2, v.P, c) for v, c in classified}
+    assignments = {v.name: v.assignment(preop, c) for v, c in classified}
     has_target = [assignments[v.name].assigned & v.visible for v, _ in classified]
     nodes = np.flatnonzero(np.logical_or.reduce(has_target))
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
