@@ -38,6 +38,7 @@ from common import argument_parser, pyplot, save_figure, single_threaded_blas, w
 
 single_threaded_blas()      # before NumPy
 
+import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
 from contextlib import contextmanager  # noqa: E402
@@ -80,7 +81,12 @@ def frame_cases(seed: int, second_angle: float):
 
 @contextmanager
 def _cpu_stage_timer(cpu: dict):
-    """Make the pipeline's stage timer record this process's CPU time into ``cpu`` as well."""
+    """Make the pipeline's stage timer record this process's CPU time into ``cpu`` as well.
+
+    The stage timer is patched in every module of the pipeline package that uses it.
+    """
+    users = [module for name, module in sorted(sys.modules.items())
+             if (name == pipeline.__name__ or name.startswith(pipeline.__name__ + ".")) and hasattr(module, "_timed")]
     wall_timer = pipeline._timed
 
     @contextmanager
@@ -92,11 +98,13 @@ def _cpu_stage_timer(cpu: dict):
         finally:
             cpu[name] = cpu.get(name, 0.0) + time.process_time() - start
 
-    pipeline._timed = both
+    for module in users:
+        module._timed = both
     try:
         yield
     finally:
-        pipeline._timed = wall_timer
+        for module in users:
+            module._timed = wall_timer
 
 
 def time_views(preop, views) -> tuple[dict, dict, dict]:
