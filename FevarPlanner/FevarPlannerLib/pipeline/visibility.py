@@ -88,8 +88,9 @@ def _borders_could_be_flat(image: np.ndarray) -> dict:
     four lines first spares the percentiles and the row / column spreads of a frame
     without shutters (about 10 ms on 1024 x 1024).
     """
-    top, bottom = float(image.max()), float(image.min())
-    bound = FLAT_BAND_FRACTION * max(top - bottom + 1e-9 * (abs(top) + abs(bottom)), 1e-12) * (1 + 1e-6)
+    brightest, darkest = float(image.max()), float(image.min())
+    span = brightest - darkest + 1e-9 * (abs(brightest) + abs(darkest))
+    bound = FLAT_BAND_FRACTION * max(span, 1e-12) * (1 + 1e-6)
     lines = {"top": image[0], "bottom": image[-1], "left": image[:, 0], "right": image[:, -1]}
     return {side: bool(np.std(line.astype(float)) < bound) for side, line in lines.items()}
 
