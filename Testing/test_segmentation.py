@@ -514,3 +514,23 @@ def test_preop_gate_names_the_missing_vessel_and_checks_radii():
     thin = truth.with_array(ndi.binary_erosion(truth.array, iterations=4))
     with pytest.raises(quality.QualityError, match="radius"):
         quality.check_preop_tree(centreline, thin)
+
+
+def test_percentile_among_zeros_matches_the_padded_array():
+    rng = np.random.default_rng(5)
+    values = rng.random(300) * (rng.random(300) > 0.3)
+    padded = np.concatenate([values, np.zeros(1700)])
+    for q in (50.0, 90.0, 99.5, 100.0):
+        assert seg._percentile_among_zeros(values, q, padded.size) == pytest.approx(np.percentile(padded, q))
+
+
+def test_block_mean_and_bilinear_upsampling_on_odd_shapes():
+    rng = np.random.default_rng(6)
+    image = rng.random((37, 42)).astype(np.float32)
+    small = seg._downsample(image, 4)
+    padded = np.pad(image, ((0, 3), (0, 2)), mode="edge")
+    assert np.allclose(small, padded.reshape(10, 4, 11, 4).mean(axis=(1, 3)), atol=1e-6)
+    constant = seg._upsample(np.full((10, 11), 2.5, np.float32), 4, (37, 42))
+    assert constant.shape == (37, 42) and np.allclose(constant, 2.5)
+    ramp = seg._upsample(np.arange(10, dtype=np.float32)[:, None].repeat(11, axis=1), 4, (40, 44))
+    assert np.allclose(ramp[4:36, 0], (np.arange(4, 36) + 0.5) / 4 - 0.5)    # linear between block centres

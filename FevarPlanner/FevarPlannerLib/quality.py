@@ -112,6 +112,32 @@ class FluoroPrior:
             self._raster_cache[key] = self._rasterise(tuple(shape), int(factor))
         return self._raster_cache[key]
 
+    def band(self, shape, factor: int = 1, pad: int = 0) -> "PriorBand":
+        """Where to look on a grid of ``shape`` reduced by ``factor`` (cached per arguments).
+
+        Returns
+        -------
+        PriorBand
+            ``box``: the band's bounding box widened by ``pad`` pixels (clipped to the grid);
+            within it ``distance`` to the projected tree, the ``nearest`` node (>= 0),
+            its projected ``radius`` and the ``band`` (distance <= radius + deformation margin),
+            all in pixels of the reduced grid.
+        """
+        key = ("band", tuple(shape), int(factor), int(pad))
+        if key not in self._raster_cache:
+            distance, nearest = self.rasterise(shape, factor)
+            nearest = np.maximum(nearest, 0)
+            radius = (self.radii_px[nearest] / factor).astype(np.float32)
+            band = distance <= radius + self.margin_px[nearest] / factor
+            if band.any():
+                rows, cols = np.flatnonzero(band.any(axis=1)), np.flatnonzero(band.any(axis=0))
+                box = (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, shape[0])),
+                       slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, shape[1])))
+            else:
+                box = (slice(0, shape[0]), slice(0, shape[1]))
+            self._raster_cache[key] = PriorBand(box, distance[box], nearest[box], radius[box], band[box])
+        return self._raster_cache[key]
+
     def _rasterise(self, shape, factor: int):
         uv = (self.uv + 0.5) / factor - 0.5
         finite = np.all(np.isfinite(uv[self.edges].reshape(len(self.edges), -1)), axis=1) if len(self.edges) else []
@@ -132,6 +158,17 @@ class FluoroPrior:
             return np.full(shape, np.inf, dtype=np.float32), np.full(shape, -1, dtype=np.int64)
         distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
         return distance.astype(np.float32), node_of_pixel[ri, ci]
+
+
+@dataclass(frozen=True)
+class PriorBand:
+    """The part of a reduced frame grid the prior lets the segmentation look at (:meth:`FluoroPrior.band`)."""
+
+    box: tuple
+    distance: np.ndarray
+    nearest: np.ndarray
+    radius: np.ndarray
+    band: np.ndarray
 
 
 @dataclass

@@ -737,27 +737,51 @@ def write_surface_vtp(path, polydata: vtk.vtkPolyData) -> None:
 # ----------------------------------------------------------------------------------------
 
 def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
-    """Block mean by an integer ``factor`` (the last rows / columns padded by replication)."""
+    """Block mean (float32) by an integer ``factor``; the last rows / columns padded by replication.
+
+    Sums of strided views: no float64 copy and no copy of the full-resolution ``image`` (any
+    numeric dtype) beyond one float32 pass over its rows.
+    """
     if factor == 1:
-        return image
-    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
-    pad = (0, (-image.shape[1]) % factor, 0, (-image.shape[0]) % factor)
-    if any(pad):
-        tensor = F.pad(tensor, pad, mode="replicate")
-    return F.avg_pool2d(tensor, factor)[0, 0].numpy()
+        return np.asarray(image, dtype=np.float32)
+    pad = ((0, (-image.shape[0]) % factor), (0, (-image.shape[1]) % factor))
+    if any(p for _, p in pad):
+        image = np.pad(image, pad, mode="edge")
+    rows = image[0::factor].astype(np.float32)
+    for k in range(1, factor):
+        rows += image[k::factor]
+    blocks = rows[:, 0::factor].copy()
+    for k in range(1, factor):
+        blocks += rows[:, k::factor]
+    blocks *= np.float32(1.0 / factor ** 2)
+    return blocks
+
+
+def _linear_weights(n_coarse: int, factor: int, n_fine: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Source indices and weights of linear interpolation from a block-mean grid to the fine grid.
+
+    Fine pixel centres sit at ``(u + 0.5) / factor - 0.5`` on the coarse grid, where the block
+    means sit (``align_corners=False``); positions outside the coarse grid take the edge value.
+    """
+    position = np.clip((np.arange(n_fine) + 0.5) / factor - 0.5, 0.0, n_coarse - 1)
+    below = np.floor(position).astype(np.intp)
+    above = np.minimum(below + 1, n_coarse - 1)
+    return below, above, (position - below).astype(np.float32)
 
 
 def _upsample(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
-    """Bilinear upsampling of a block-mean grid back onto the full grid of ``shape``.
-
-    With ``align_corners=False`` and an integer scale, full-grid pixel centres map to
-    ``(u + 0.5) / factor - 0.5`` on the reduced grid, which is where block means sit.
-    """
+    """Bilinear upsampling (float32) of a block-mean grid back onto the full grid of ``shape``,
+    done separably: rows, then columns."""
     if factor == 1:
         return image
-    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]
-    full = F.interpolate(tensor, scale_factor=factor, mode="bilinear", align_corners=False)[0, 0]
-    return full[:shape[0], :shape[1]].numpy()
+    image = np.asarray(image, dtype=np.float32)
+    below, above, weight = _linear_weights(image.shape[0], factor, shape[0])
+    rows = image[below]
+    rows += weight[:, None] * (image[above] - rows)
+    below, above, weight = _linear_weights(image.shape[1], factor, shape[1])
+    full = rows[:, below]
+    full += weight * (rows[:, above] - full)
+    return full
 
 
 def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -898,9 +922,12 @@ def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, ves
 
 
 def _vessel_region(oriented: np.ndarray, response: np.ndarray, max_sigma: float, high: float, low: float,
-                   contrast_fraction: float) -> np.ndarray:
-    """Binary vessel mask on the reduced grid: the hysteresis tree widened by local contrast."""
-    reference = float(np.percentile(response, 99.5)) + 1e-12
+                   contrast_fraction: float, reference: float | None = None) -> np.ndarray:
+    """Binary vessel mask on the reduced grid: the hysteresis tree widened by local contrast.
+
+    ``reference`` (default: the 99.5th percentile of ``response``) is what ``high`` and ``low``
+    are fractions of."""
+    reference = (float(np.percentile(response, 99.5)) if reference is None else reference) + 1e-12
     tree = apply_hysteresis_threshold(response / reference, low, high)
     if not tree.any():
         return tree
@@ -1576,27 +1603,62 @@ def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float 
     return distance <= slack * radius[ri, ci] + 1.0
 
 
+def _prior_scales(prior: FluoroPrior, factor: int, n_scales: int) -> np.ndarray:
+    """Frangi scales (px of the reduced grid) spanning 0.6 x the projected radii (5th-99th percentile)."""
+    r_min = max(float(np.percentile(prior.radii_px, 5)) / factor, 0.8)
+    r_max = max(float(np.percentile(prior.radii_px, 99)) / factor, r_min)
+    return np.geomspace(max(0.6 * r_min, 0.8), max(0.6 * r_max, 1.0), n_scales)
+
+
+def _percentile_among_zeros(values: np.ndarray, q: float, total: int) -> float:
+    """``np.percentile`` (linear) of ``values`` (>= 0) padded with zeros to ``total`` entries,
+    without building the padded array: the cropped response ranks as the whole grid's would."""
+    values = values.ravel()
+    zeros = total - values.size
+    position = q / 100.0 * (total - 1) - zeros
+    if position < 0:
+        return 0.0
+    below = int(math.floor(position))
+    low_high = np.partition(values, [below, min(below + 1, values.size - 1)])
+    low, high = float(low_high[below]), float(low_high[min(below + 1, values.size - 1)])
+    if below == -1:
+        low = 0.0
+    return low + (position - below) * (high - low)
+
+
 def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: str, work_size: int,
-                               high: float, low: float, contrast_fraction: float, min_area_fraction: float):
-    """Vessel mask of one grey frame, looking only in the band around the projected tree."""
+                               high: float, low: float, contrast_fraction: float, min_area_fraction: float,
+                               n_scales: int = 4):
+    """Vessel mask of one grey frame, looking only in the band around the projected tree.
+
+    Everything runs on the band's bounding box (padded by the filters' reach), read off the
+    prior once per grid (:meth:`FluoroPrior.band`); thresholds that are fractions of the
+    whole reduced grid (response percentile, smallest object) keep counting the whole grid.
+    """
     factor = max(1, int(round(max(frame.shape) / work_size)))
-    small = _normalise(_downsample(frame, factor))
-    distance, nearest = prior.rasterise(small.shape, factor)
-    nearest = np.maximum(nearest, 0)
+    small_shape = (-(-frame.shape[0] // factor), -(-frame.shape[1] // factor))
+    sigmas = _prior_scales(prior, factor, n_scales)
+    reach = int(math.ceil(4 * sigmas[-1])) + int(math.ceil(3 * sigmas[-1])) + 2
+    where = prior.band(small_shape, factor, reach)
+    rows, cols = where.box
+    crop = frame[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor]
+    small = _normalise(_downsample(crop, factor))
+    distance, nearest, radius, band = where.distance, where.nearest, where.radius, where.band
     if vessels == "auto":
         vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
     oriented = small if vessels == "bright" else 1.0 - small
-    radius = prior.radii_px[nearest] / factor
-    band = distance <= radius + prior.margin_px[nearest] / factor
-    r_min = max(float(np.percentile(prior.radii_px, 5)) / factor, 0.8)
-    r_max = max(float(np.percentile(prior.radii_px, 99)) / factor, r_min)
-    sigmas = np.geomspace(max(0.6 * r_min, 0.8), max(0.6 * r_max, 1.0), 4)
     response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
-    vessel = _vessel_region(oriented, response, float(sigmas[-1]), high, low, contrast_fraction) & band
+    total = small_shape[0] * small_shape[1]
+    reference = _percentile_among_zeros(response, 99.5, total)
+    vessel = _vessel_region(oriented, response, float(sigmas[-1]), high, low, contrast_fraction,
+                            reference=reference) & band
     vessel &= _within_expected_width(vessel, radius)
     thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
-    vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
+    vessel = _remove_small_objects(vessel, min_area_fraction * total)
     soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
-    return _upsample(soft, factor, frame.shape) > 0.5
+    full = np.zeros(frame.shape, dtype=bool)
+    full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \
+        _upsample(soft, factor, crop.shape) > 0.5
+    return full
