@@ -61,6 +61,30 @@ def timed(function, *args, repeat: int = 1, **kwargs):
     return result, best
 
 
+def cpu_median(function, *args, repeat: int = 11, **kwargs) -> float:
+    """Median CPU seconds (this process, all threads) of ``function`` over ``repeat`` calls:
+    steadier than wall time on a shared machine."""
+    seconds = []
+    for _ in range(repeat):
+        start = time.process_time()
+        function(*args, **kwargs)
+        seconds.append(time.process_time() - start)
+    return float(np.median(seconds))
+
+
+def frame_results(seed: int) -> dict:
+    """Dice and time of ``segment_fluoro`` on a 1024 x 1024 phantom frame, with and without the prior."""
+    frame, truth, case = phantom_frame_1024(seed)
+    prior = FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    mask, seconds = timed(seg.segment_fluoro, frame, vessels="auto", repeat=5)
+    prior_mask, prior_seconds = timed(seg.segment_fluoro, frame, prior, repeat=5)
+    return {"frame": frame, "truth": truth, "mask": mask,
+            "fluoro_1024_with_prior_dice": seg.dice(prior_mask, truth),
+            "fluoro_1024_with_prior_time_s": prior_seconds,
+            "fluoro_1024_with_prior_cpu_median_s": cpu_median(seg.segment_fluoro, frame, prior),
+            "fluoro_1024_dice": seg.dice(mask, truth), "fluoro_1024_time_s": seconds}
+
+
 def skeleton_distance_mm(mask: io.Volume, centreline: Centerline) -> dict:
     """Mean / 95th percentile distance of the mask's 3D skeleton voxels to the true centreline,
     of the centreline nodes to the skeleton (coverage), and of the pipeline's pre-operative
@@ -200,11 +224,16 @@ def main() -> None:
     parser.add_argument("--n-cases", type=int, default=3)
     parser.add_argument("--seed", type=int, default=200)
     parser.add_argument("--model", help="UNet checkpoint (default: the shipped weights)")
+    parser.add_argument("--frames-only", action="store_true",
+                        help="only the fluoroscopy frames (1024^2 phantom, the cases' DSA, distractors)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (1 is fastest on a busy 2-core machine)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
+    if args.frames_only:
+        frames_only(args)
+        return
     model = seg.load_unet(args.model)
     with tempfile.TemporaryDirectory() as tmp:
         folders = held_out_cases(args, Path(tmp))
@@ -214,10 +243,7 @@ def main() -> None:
     big = large_ct(ct)
     _, unet_big_s = timed(seg.segment_ct_unet, big, model)
     _, unet_big_raw_s = timed(seg.segment_ct_unet, big, model, postprocess=False)
-    frame, frame_truth, frame_case = phantom_frame_1024(args.seed)
-    frame_mask, frame_s = timed(seg.segment_fluoro, frame, vessels="auto", repeat=5)
-    frame_prior = FluoroPrior.from_centerline(frame_case.preop.to_centerline(), frame_case.P_given)
-    frame_prior_mask, frame_prior_s = timed(seg.segment_fluoro, frame, frame_prior, repeat=5)
+    frame = frame_results(args.seed)
     _, classical_big_s = timed(seg.segment_ct_classical, big)
     distractors = distractor_frames()
     results = {
@@ -226,25 +252,41 @@ def main() -> None:
                     for name in ("unet", "threshold", "classical")},
         "ct_512x512x300_unet_s": unet_big_s,
         "ct_512x512x300_classical_s": classical_big_s,
-        "fluoro_1024_with_prior_dice": seg.dice(frame_prior_mask, frame_truth),
-        "fluoro_1024_with_prior_time_s": frame_prior_s,
         "fluoro_distractor_frames": distractors,
         "ct_512x512x300_unet_without_postprocess_s": unet_big_raw_s,
         "fluoro_cases": fluoro_cases,
         "fluoro_mean_dice": float(np.mean([c["dice"] for c in fluoro_cases])),
-        "fluoro_1024_dice": seg.dice(frame_mask, frame_truth),
-        "fluoro_1024_time_s": frame_s,
+        **{key: value for key, value in frame.items() if key.startswith("fluoro_")},
         "model": str(args.model or seg.default_model_path()),
         "torch_threads": torch.get_num_threads(),
     }
     (args.out / "bench_segmentation.json").write_text(json.dumps(results, indent=2))
     k = int(np.argmax(truth.array.sum(axis=(1, 2))))
-    example = {"frame": frame, "truth": frame_truth, "mask": frame_mask, "dice": results["fluoro_1024_dice"],
+    example = {"frame": frame["frame"], "truth": frame["truth"], "mask": frame["mask"], "dice": results["fluoro_1024_dice"],
                "ct_slice": ct.array[k], "ct_truth": truth.array[k],
                "ct_unet": seg.segment_ct_unet(ct, model).array[k]}
     plot(results, example, args.out / "bench_segmentation.png")
     print(json.dumps({key: value for key, value in results.items() if key not in ("ct_cases", "fluoro_cases")},
                      indent=2))
+
+
+def frames_only(args) -> None:
+    """The frame part alone (``--frames-only``): writes ``bench_segmentation_frames.json``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folders = held_out_cases(args, Path(tmp))
+        fluoro_cases = [evaluate_fluoro_case(f) for f in folders]
+    frame = frame_results(args.seed)
+    distractors = distractor_frames()
+    results = {key: value for key, value in frame.items() if key.startswith("fluoro_")}
+    results.update({
+        "fluoro_cases": fluoro_cases,
+        "fluoro_cases_with_prior_mean_dice": float(np.mean([c["with_prior"]["dice"] for c in fluoro_cases])),
+        "fluoro_distractor_frames": distractors,
+        "fluoro_distractor_mean_dice_with_prior": float(np.mean([r["dice_with_prior"] for r in distractors])),
+    })
+    (args.out / "bench_segmentation_frames.json").write_text(json.dumps(results, indent=2))
+    print(json.dumps({key: value for key, value in results.items()
+                      if key not in ("fluoro_cases", "fluoro_distractor_frames")}, indent=2))
 
 
 if __name__ == "__main__":
