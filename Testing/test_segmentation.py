@@ -534,3 +534,23 @@ def test_block_mean_and_bilinear_upsampling_on_odd_shapes():
     assert constant.shape == (37, 42) and np.allclose(constant, 2.5)
     ramp = seg._upsample(np.arange(10, dtype=np.float32)[:, None].repeat(11, axis=1), 4, (40, 44))
     assert np.allclose(ramp[4:36, 0], (np.arange(4, 36) + 0.5) / 4 - 0.5)    # linear between block centres
+
+
+def test_a_ct_only_case_hands_its_segmented_lumen_to_the_quality_gate_and_qc(tmp_path, monkeypatch):
+    import shutil
+
+    from FevarPlannerLib import io, pipeline
+
+    case = ph.write_phantom_set(tmp_path / "cases", n=1, seed=7, preset="random")[0]
+    image_only = tmp_path / "image_only"
+    image_only.mkdir()
+    shutil.copytree(case / "ct", image_only / "ct")
+    for name in ("fluoro.dcm", "geometry.json", "case.json"):
+        shutil.copy2(case / name, image_only / name)
+    seen = []
+    check = quality.check_preop_tree
+    monkeypatch.setattr(quality, "check_preop_tree", lambda centreline, lumen, qc: seen.append(lumen) or
+                        check(centreline, lumen, qc))
+    result = pipeline.plan_case(image_only)
+    assert seen[0] is result.qc.lumen
+    assert seg.dice(result.qc.lumen, io.load_case(case).aorta_mask) >= 0.8

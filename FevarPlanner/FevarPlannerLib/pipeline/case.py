@@ -86,10 +86,17 @@ def _drr_volume(case: Case):
     return case.ct if case.ct is not None else case.aorta_mask
 
 
-def _preop_of(case: Case, preop, progress, segmenter, cache) -> Preoperative:
-    if preop is None:
-        return prepare_preop(case, progress, segmenter, cache)
-    return getattr(preop, "preop", preop)  # a cache.PreopModel or a Preoperative
+def _preop_of(case: Case, preop, progress, segmenter, cache):
+    """(:class:`Preoperative`, the lumen it was built from or None): the given mask, else the
+    segmented CT's lumen (so that the quality gate and the QC picture see it too)."""
+    if preop is None and cache not in (False, None):
+        from .. import cache as preop_cache
+
+        preop = preop_cache.preop_model(case, segmenter=segmenter, progress=progress,
+                                        cache_dir=None if cache is True else cache)
+    elif preop is None:
+        return build_preop(case, progress, segmenter)
+    return getattr(preop, "preop", preop), getattr(preop, "lumen", None)  # a cache.PreopModel or a Preoperative
 
 
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
@@ -108,14 +115,15 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     t0 = time.perf_counter()
     _report(progress, 0.0, "pre-operative skeleton graph")
     with _blamed_on(case.paths.get(case.stage_3d)):
-        preop = _preop_of(case, preop, progress, segmenter, cache)
+        preop, lumen = _preop_of(case, preop, progress, segmenter, cache)
+    lumen = case.aorta_mask if case.aorta_mask is not None else lumen
     timings = dict(preop.timings)
     views = _case_views(case)
     by_name = {view.name: view for view in views}
     priors = [quality.FluoroPrior.from_centerline(preop.centerline, view.P) for view in views]
-    qc = quality.QCData(case.ct, case.aorta_mask, views[0].fluoro.image, None, priors[0])
+    qc = quality.QCData(case.ct, lumen, views[0].fluoro.image, None, priors[0])
     with _blamed_on(case.paths.get(case.stage_3d)):
-        quality.check_preop_tree(preop.centerline, case.aorta_mask, qc)     # before registering: both sides
+        quality.check_preop_tree(preop.centerline, lumen, qc)     # before registering: both sides
     masks = []
     with _timed(timings, "segmentation2d"):
         for view, prior in zip(views, priors):
