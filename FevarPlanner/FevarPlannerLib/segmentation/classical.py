@@ -1,0 +1,563 @@
+"""CT without learning: trace the aorta slice by slice, grow the lumen, follow the branches."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage import measure
+
+from ..files import InputError
+from ..io import Volume
+from .threshold import _bounding_box, _check_ct, postprocess_mask
+
+
+#: Lumen radii (mm) a traced aorta may have, and the HU window of contrast-filled blood used
+#: to find it before the seed's own statistics are known.
+AORTA_RADIUS_MM = (7.0, 22.0)
+CONTRAST_HU = (150.0, 600.0)
+#: Cortical bone: denser than any contrast lumen.
+BONE_HU = 700.0
+#: Soft tissue around the vessels; the lumen edge is taken half way between it and the lumen.
+SOFT_TISSUE_HU = 40.0
+#: Smallest radius (mm) of a traced common iliac, and the scales (mm) of the branch vesselness.
+ILIAC_MIN_RADIUS_MM = 2.5
+BRANCH_SIGMAS_MM = (1.5, 2.5, 4.0)
+#: How far (mm along the branch) a branch may reach from the aorta or iliacs.
+BRANCH_REACH_MM = 70.0
+
+
+def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
+    """In-plane spacing (row = j, column = i) in mm."""
+    return float(ct.spacing[1]), float(ct.spacing[0])
+
+
+def _superior_step(ct: Volume) -> int:
+    """+1 when increasing k goes superior (towards +z in LPS), else -1."""
+    return 1 if (ct.direction @ np.array([0.0, 0.0, 1.0]))[2] >= 0 else -1
+
+
+def _posterior_sign_j(ct: Volume) -> float:
+    """+1 when increasing j goes posterior (towards +y in LPS), else -1 (or 0 if oblique)."""
+    return float(np.sign(ct.direction[1, 1]))
+
+
+def _round_blobs(hu_slice: np.ndarray, spacing_ji, hu_window, radius_mm) -> list[dict]:
+    """Round bright blobs of one axial slice: centre (j, i), inscribed radius (mm), circle score.
+
+    The circle score is the area of the inscribed disc over the blob's area (1 for a disc,
+    small for an elongated or branched blob) times the blob's solidity.
+    """
+    lo, hi = hu_window
+    smooth = ndi.gaussian_filter(hu_slice.astype(np.float32), 0.7 / np.asarray(spacing_ji))
+    inside = ndi.binary_opening((smooth >= lo) & (smooth <= hi), iterations=1)
+    labels, n = ndi.label(inside)
+    if n == 0:
+        return []
+    pixel_mm2 = spacing_ji[0] * spacing_ji[1]
+    min_px = math.pi * radius_mm[0] ** 2 / pixel_mm2
+    max_px = 4.0 * math.pi * radius_mm[1] ** 2 / pixel_mm2
+    blobs = []
+    for region in measure.regionprops(labels, intensity_image=smooth):
+        if not min_px <= region.area <= max_px:
+            continue
+        r0, c0, r1, c1 = region.bbox
+        edt = ndi.distance_transform_edt(np.pad(region.image, 1), sampling=spacing_ji)[1:-1, 1:-1]
+        radius = float(edt.max())
+        if not radius_mm[0] <= radius <= radius_mm[1]:
+            continue
+        peak = np.unravel_index(np.argmax(edt), edt.shape)
+        disc_fraction = math.pi * radius ** 2 / (region.area * pixel_mm2)
+        blobs.append({"centre": np.array([r0 + peak[0], c0 + peak[1]], dtype=float), "radius": radius,
+                      "score": min(disc_fraction, 1.0) * region.solidity, "hu": float(region.intensity_mean)})
+    return blobs
+
+
+def _spine_behind(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, posterior: float,
+                  reach_mm: float = 45.0, half_width_mm: float = 12.0) -> bool:
+    """True if cortical bone lies within ``reach_mm`` posterior of a blob's edge (a vertebra)."""
+    if posterior == 0:
+        return True
+    j0, i0 = centre_ji
+    start = j0 + posterior * radius_mm / spacing_ji[0]
+    stop = start + posterior * reach_mm / spacing_ji[0]
+    rows = slice(int(max(min(start, stop), 0)), int(min(max(start, stop) + 1, hu_slice.shape[0])))
+    half = int(round(half_width_mm / spacing_ji[1]))
+    cols = slice(int(max(i0 - half, 0)), int(min(i0 + half + 1, hu_slice.shape[1])))
+    strip = hu_slice[rows, cols]
+    return strip.size > 0 and bool((strip > BONE_HU).sum() >= 3)
+
+
+def _inside_bone(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, ring_mm: float = 4.0,
+                 max_fraction: float = 0.25) -> bool:
+    """True if a ring just outside the blob is largely cortical bone (a vertebral body's
+    cancellous core is as bright and as round as the aorta, but the aorta is never walled by bone)."""
+    reach = radius_mm + ring_mm
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int) + 1
+    lo = np.maximum(np.floor(centre_ji).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre_ji).astype(int) + half + 1, hu_slice.shape)
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    dist = np.hypot((rows - centre_ji[0]) * spacing_ji[0], (cols - centre_ji[1]) * spacing_ji[1])
+    ring = (dist > radius_mm + 0.5) & (dist <= reach)
+    return bool(ring.any() and (hu_slice[lo[0]:hi[0], lo[1]:hi[1]][ring] > BONE_HU).mean() > max_fraction)
+
+
+def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, step_mm: float = 5.0):
+    """The best aorta cross-section of the CT: a bright round blob in front of the spine.
+
+    Axial slices every ``step_mm`` are searched for round blobs inside ``hu_window`` with an
+    inscribed radius in ``radius_mm`` and cortical bone behind them (the vertebral body);
+    the blob with the best circle score (times a preference for the middle of the range)
+    wins.
+
+    Returns
+    -------
+    (k, centre_ji, radius_mm, score) or None
+    """
+    spacing_ji = _slice_axes_mm(ct)
+    posterior = _posterior_sign_j(ct)
+    step = max(1, int(round(step_mm / ct.spacing[2])))
+    best = None
+    for k in range(step // 2, ct.shape[0], step):
+        hu_slice = np.asarray(ct.array[k])
+        for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
+            if not _spine_behind(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior):
+                continue
+            if _inside_bone(hu_slice, blob["centre"], blob["radius"], spacing_ji):
+                continue
+            if best is None or blob["score"] > best[3]:
+                best = (k, blob["centre"], blob["radius"], blob["score"])
+    return best
+
+
+class _Trace:
+    """One vessel followed through the axial slices: centre (j, i) and radius (mm) per slice."""
+
+    def __init__(self, name: str, k: int, centre, radius: float, step: int, min_radius: float):
+        self.name, self.step, self.min_radius = name, step, min_radius
+        self.centres = {k: np.asarray(centre, dtype=float)}
+        self.radii = {k: float(radius)}
+        self.k, self.centre, self.radius = k, np.asarray(centre, dtype=float), float(radius)
+        self.previous = None        # (cross-section mask, its (row, col) offset) in the last slice
+
+
+def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
+                    max_growth: float = 1.45, previous=None, reference_radius: float | None = None,
+                    detect_split: bool = True):
+    """The lumen cross-section continuing a trace into the next slice.
+
+    Pixels within ``lumen_hu`` (after a light smoothing) in a window around the predicted
+    ``centre`` are labelled; the components touching the predicted core (a disc of 0.6
+    ``radius``) form the candidate, clipped to ``max_growth`` ``radius`` + 2 mm. Its inscribed
+    radius and the position of that maximum give the new radius and centre.
+
+    Returns
+    -------
+    (mask, offset, centre, radius, split) or None
+        ``mask`` is the cross-section in a window starting at ``offset`` (row, col);
+        ``split`` lists (centre, radius) of the blobs the lumen split into when it is
+        much narrower than before (the bifurcation).
+    """
+    reach = radius * max_growth + 12.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    lo_ji = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi_ji = np.minimum(np.floor(centre).astype(int) + half + 1, hu_slice.shape)
+    window = hu_slice[lo_ji[0]:hi_ji[0], lo_ji[1]:hi_ji[1]].astype(np.float32)
+    if min(window.shape) < 3:
+        return None
+    smooth = ndi.gaussian_filter(window, 0.6 / np.asarray(spacing_ji))
+    inside = (smooth >= lumen_hu[0]) & (smooth <= lumen_hu[1])
+    rows, cols = np.ogrid[:window.shape[0], :window.shape[1]]
+    local = centre - lo_ji
+    dist = np.hypot((rows - local[0]) * spacing_ji[0], (cols - local[1]) * spacing_ji[1])
+    labels, _ = ndi.label(inside)
+    core = dist <= 0.6 * radius
+    if previous is not None:        # overlap with the last cross-section counts as well
+        core |= _paste(previous[0], previous[1] - lo_ji, window.shape)
+    touching = np.unique(labels[core & inside])
+    touching = touching[touching > 0]
+    if len(touching) == 0:      # the lumen left the predicted core: ended, or split into two
+        near = np.unique(labels[(dist <= radius) & inside])
+        candidate = np.isin(labels, near[near > 0]) & (dist <= max_growth * radius + 2.0)
+        if not candidate.any():
+            return None
+        edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
+        return None, lo_ji, None, float(edt.max()), _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM)
+    candidate = np.isin(labels, touching) & (dist <= max_growth * radius + 2.0)
+    edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
+    new_radius = float(edt.max())
+    split = _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM) if detect_split else []
+    if len(split) == 2 and split[1][1] >= 0.5 * split[0][1]:     # two lumens of similar size: a bifurcation
+        return None, lo_ji, None, new_radius, split
+    if new_radius < min_radius:
+        return None
+    if new_radius < 0.6 * (reference_radius or radius):
+        return None, lo_ji, None, new_radius, _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM)
+    own = np.where(dist <= max(radius, 2.0 * max(spacing_ji)), edt, 0.0)   # this vessel's centre, not a neighbour's
+    peak = np.array(np.unravel_index(np.argmax(own), own.shape), dtype=float)
+    new_radius = float(own.max()) if own.max() >= min_radius else new_radius
+    new_dist = np.hypot((rows - peak[0]) * spacing_ji[0], (cols - peak[1]) * spacing_ji[1])
+    mask = candidate & (new_dist <= 1.25 * new_radius + 1.5)
+    return mask, lo_ji, peak + lo_ji, new_radius, []
+
+
+def _paste(mask: np.ndarray, offset, shape) -> np.ndarray:
+    """``mask`` placed at ``offset`` (row, col) in an empty array of ``shape`` (clipped)."""
+    out = np.zeros(shape, dtype=bool)
+    r0, c0 = int(offset[0]), int(offset[1])
+    rs, cs = max(r0, 0), max(c0, 0)
+    re, ce = min(r0 + mask.shape[0], shape[0]), min(c0 + mask.shape[1], shape[1])
+    if re > rs and ce > cs:
+        out[rs:re, cs:ce] = mask[rs - r0:re - r0, cs - c0:ce - c0]
+    return out
+
+
+def _split_blobs(candidate, edt, offset, spacing_ji, min_radius: float) -> list:
+    """(centre, radius) of the (at most two) widest separate lumens in ``candidate``: maxima of the
+    distance map at least ``min_radius`` deep and two radii apart (the two iliacs below the
+    bifurcation, still joined by partial volume or already apart)."""
+    from skimage.feature import peak_local_max
+
+    min_distance = max(1, int(round(2 * min_radius / max(spacing_ji))))
+    peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=min_radius, num_peaks=2,
+                           exclude_border=False)
+    return [(np.asarray(p, dtype=float) + offset, float(edt[tuple(p)])) for p in peaks]
+
+
+def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, progress=None) -> list:
+    """Extend ``trace`` slice by slice until the lumen ends; paint it into ``out``.
+
+    Radius continuity (the new radius between 0.6 and ``max_growth`` times the last one,
+    smoothed) keeps the trace out of the heart, the arch's far side and side branches.
+    Returns the blobs the lumen split into where it stopped (for the iliacs), else [].
+    """
+    spacing_ji = _slice_axes_mm(ct)
+    k = trace.k + trace.step
+    while 0 <= k < ct.shape[0]:
+        recent = [trace.radii[j] for j in sorted(trace.radii, key=lambda j: -abs(j - k))[-15:]]
+        found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
+                                trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
+                                detect_split=trace.name == "aorta")
+        if found is None:
+            return []
+        mask, offset, centre, radius, split = found
+        if mask is None:
+            return [(k, c, r) for c, r in split]
+        view = out[k, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]]
+        view[mask & (view == 0)] = label
+        trace.centres[k], trace.radii[k] = centre, radius
+        trace.previous = (mask, offset)
+        trace.centre = centre
+        trace.radius = 0.7 * trace.radius + 0.3 * radius
+        trace.k = k
+        if progress is not None:
+            progress()
+        k += trace.step
+    return []
+
+
+def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, progress=None):
+    """Find the aorta and follow it up and down the CT, then the common iliacs below it.
+
+    Returns
+    -------
+    labels : numpy.ndarray of uint8
+        1 = aorta lumen, 2 = iliac lumen, per slice (no side branches yet).
+    traces : list of _Trace
+    lumen_hu : (float, float)
+        The lumen intensity range taken from the seed's statistics.
+    """
+    found = find_aorta_in_slices(ct, hu_window=hu_window, radius_mm=radius_mm)
+    if found is None:
+        raise InputError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
+                         f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice")
+    k0, centre, radius, _ = found
+    lumen_hu = _lumen_range(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct))
+    labels = np.zeros(ct.shape, dtype=np.uint8)
+    first = _lumen_in_slice(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct), lumen_hu, radius_mm[0])
+    if first is None or first[0] is None:
+        raise InputError(f"no aorta found: the blob in slice {k0} does not hold the lumen intensity {lumen_hu}")
+    mask, offset, centre, radius, _ = first
+    labels[k0, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]][mask] = 1
+    counter = _SliceCounter(ct.shape[0], progress)
+    up = _superior_step(ct)
+    traces = []
+    for step in (up, -up):
+        trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
+        traces.append(trace)
+        _follow(trace, ct, lumen_hu, labels, 1, counter)
+        if step == -up:
+            seeds = _bifurcation(ct, trace, lumen_hu)
+            if seeds:
+                _cut_trace_below(trace, seeds[0][0], labels)
+                _fill_crotch(ct, trace, seeds[0][0], lumen_hu, labels)
+            for k, c, r in seeds:
+                iliac = _Trace("iliac", k - step, c, r, step, ILIAC_MIN_RADIUS_MM)
+                traces.append(iliac)
+                _follow(iliac, ct, lumen_hu, labels, 2, counter)
+    return labels, traces, lumen_hu
+
+
+def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
+    """The two common iliacs in slice ``k`` just below an aortic cross-section (``centre``,
+    ``radius`` in the slice above), or [].
+
+    Two distance-map maxima of the lumen near the aorta, each at least ILIAC_MIN_RADIUS_MM
+    deep and at most 0.9 ``radius``, of similar size (ratio >= 0.7: the common iliacs are
+    nearly symmetric, a visceral or renal branch beside the aorta is not), at least 0.8 times the
+    sum of their radii apart (two lumens, not one flattened one), and both inside the aortic
+    cross-section above (+ 3 mm): the iliacs come out of the aorta, a neighbour (IVC, SMA) does not.
+    """
+    from skimage.feature import peak_local_max
+
+    spacing_ji = _slice_axes_mm(ct)
+    reach = 1.6 * radius + 8.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
+    window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
+                                 0.6 / np.asarray(spacing_ji))
+    edt = ndi.distance_transform_edt((window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc, sampling=spacing_ji)
+    min_distance = max(1, int(round(2 * ILIAC_MIN_RADIUS_MM / max(spacing_ji))))
+    peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=ILIAC_MIN_RADIUS_MM, num_peaks=2,
+                           exclude_border=False)
+    if len(peaks) < 2:
+        return []
+    radii = edt[tuple(peaks.T)]
+    centres = peaks.astype(float) + lo
+    apart = np.hypot(*((peaks[0] - peaks[1]) * np.asarray(spacing_ji)))
+    from_aorta = np.hypot(*((centres - centre) * np.asarray(spacing_ji)).T)
+    if (apart >= 0.8 * radii.sum() and radii.min() >= 0.7 * radii.max() and radii.max() <= 0.9 * radius
+            and np.all(from_aorta <= radius + 3.0)):
+        return [(k, c, float(r)) for c, r in zip(centres, radii)]
+    return []
+
+
+def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, tolerance_mm: float = 10.0) -> list:
+    """Where the downward aorta trace splits into the common iliacs, or [].
+
+    The split lies near or below the last slice where the trace still had the aorta's width
+    (beyond it the trace may have followed one iliac): from ``tolerance_mm`` above that slice
+    down to the trace's end, the first traced slice whose next slice holds :func:`_two_lumens`;
+    else the first such slice within ``search_mm`` below that last full-width slice or below
+    the trace's end. An aorta that keeps its width to the end of the scan has no split.
+
+    Returns
+    -------
+    list of (k, centre_ji, radius_mm), two entries or none
+    """
+    ks = sorted(aorta.centres, key=lambda k: k * aorta.step)
+    typical = float(np.median([aorta.radii[k] for k in ks]))
+    k_wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical][-1]     # the last slice of full aortic width
+    first = k_wide - aorta.step * int(round(tolerance_mm / ct.spacing[2]))
+    for k in ks:
+        below = k + aorta.step
+        if (k - first) * aorta.step >= 0 and 0 <= below < ct.shape[0]:
+            found = _two_lumens(ct, below, aorta.centres[k], aorta.radii[k], lumen_hu)
+            if found:
+                return found
+    for k_ref in dict.fromkeys((k_wide, ks[-1])):
+        for n in range(1, int(search_mm / ct.spacing[2]) + 1):
+            below = k_ref + n * aorta.step
+            if not 0 <= below < ct.shape[0]:
+                break
+            found = _two_lumens(ct, below, aorta.centres[k_ref], aorta.radii[k_ref], lumen_hu)
+            if found:
+                return found
+    return []
+
+
+def _fill_crotch(ct: Volume, aorta: _Trace, k_split: int, lumen_hu, labels: np.ndarray) -> None:
+    """Label as iliac (2) the lumen between the aorta's last slice and the slice where the two
+    iliacs are first apart (the crotch), within the aorta's reach, so the tree stays connected."""
+    k_last = max(aorta.centres, key=lambda k: k * aorta.step)
+    centre, radius = aorta.centres[k_last], aorta.radii[k_last]
+    spacing_ji = _slice_axes_mm(ct)
+    reach = 1.45 * radius + 2.0
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
+    for k in range(k_last + aorta.step, k_split + aorta.step, aorta.step):
+        window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
+                                     0.6 / np.asarray(spacing_ji))
+        view = labels[k, lo[0]:hi[0], lo[1]:hi[1]]
+        view[(window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc & (view == 0)] = 2
+
+
+def _cut_trace_below(trace: _Trace, k_cut: int, labels: np.ndarray) -> None:
+    """Forget the part of a downward trace at and beyond slice ``k_cut`` (it followed one iliac)."""
+    for k in [k for k in trace.centres if (k - k_cut) * trace.step >= 0]:
+        labels[k][labels[k] == 1] = 0
+        del trace.centres[k], trace.radii[k]
+
+
+class _SliceCounter:
+    """Calls ``progress(done, total)`` once per traced slice (capped at ``total``)."""
+
+    def __init__(self, total: int, progress):
+        self.total, self.progress, self.done = total, progress, 0
+
+    def __call__(self):
+        self.done = min(self.done + 1, self.total)
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
+def _lumen_range(hu_slice: np.ndarray, centre, radius: float, spacing_ji) -> tuple[float, float]:
+    """Lumen HU range from the seed disc: from half way to soft tissue up to below bone."""
+    rows, cols = np.ogrid[:hu_slice.shape[0], :hu_slice.shape[1]]
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= 0.6 * radius
+    values = hu_slice[disc].astype(np.float64)
+    mean, std = float(np.median(values)), float(np.std(values))
+    lo = 0.5 * (mean + SOFT_TISSUE_HU)
+    hi = min(mean + max(4.0 * std, 250.0), BONE_HU + 200.0)
+    return lo, hi
+
+
+def _coarse_factor(ct: Volume, target_mm: float) -> np.ndarray:
+    """Integer (k, j, i) block sizes bringing the voxels near ``target_mm``."""
+    spacing_kji = np.asarray(ct.spacing, dtype=float)[::-1]
+    return np.maximum(1, np.round(target_mm / spacing_kji)).astype(int)
+
+
+def _block_reduce(array: np.ndarray, factor, func) -> np.ndarray:
+    """``func`` (np.mean / np.max) over ``factor`` blocks, the array cropped to whole blocks."""
+    factor = tuple(int(f) for f in factor)
+    shape = tuple(s // f for s, f in zip(array.shape, factor))
+    cropped = array[:shape[0] * factor[0], :shape[1] * factor[1], :shape[2] * factor[2]]
+    blocks = cropped.reshape(shape[0], factor[0], shape[1], factor[1], shape[2], factor[2])
+    return func(blocks, axis=(1, 3, 5))
+
+
+def _trunk_box(labels: np.ndarray, ct: Volume, margin_mm: float) -> tuple[slice, ...]:
+    """Index box of the traced lumen grown by ``margin_mm`` in plane and along z."""
+    box = _bounding_box(labels > 0)
+    margins = np.ceil(margin_mm / np.asarray(ct.spacing)[::-1]).astype(int)
+    return tuple(slice(max(b.start - m, 0), min(b.stop + m, n)) for b, m, n in zip(box, margins, labels.shape))
+
+
+def _symmetric_eigenvalues_3d(hxx, hyy, hzz, hxy, hxz, hyz) -> np.ndarray:
+    """Eigenvalues of symmetric 3x3 matrices given by their six fields, sorted by absolute value
+    (|l1| <= |l2| <= |l3|), in closed form (trigonometric solution of the characteristic cubic)."""
+    q = (hxx + hyy + hzz) / 3.0
+    p1 = hxy ** 2 + hxz ** 2 + hyz ** 2
+    p2 = (hxx - q) ** 2 + (hyy - q) ** 2 + (hzz - q) ** 2 + 2.0 * p1
+    p = np.sqrt(p2 / 6.0) + 1e-12
+    bxx, byy, bzz = (hxx - q) / p, (hyy - q) / p, (hzz - q) / p
+    det = (bxx * (byy * bzz - (hyz / p) ** 2) - (hxy / p) * ((hxy / p) * bzz - (hyz / p) * (hxz / p))
+           + (hxz / p) * ((hxy / p) * (hyz / p) - byy * (hxz / p)))
+    phi = np.arccos(np.clip(det / 2.0, -1.0, 1.0)) / 3.0
+    e1 = q + 2.0 * p * np.cos(phi)
+    e3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    e2 = 3.0 * q - e1 - e3
+    values = np.stack([e1, e2, e3])
+    order = np.argsort(np.abs(values), axis=0)
+    return np.take_along_axis(values, order, axis=0)
+
+
+def tubularity_3d(volume: np.ndarray, sigmas_vox, *, blob_beta: float = 0.5) -> np.ndarray:
+    """Bright-tube response of a 3D array, maximum over scales (Sato / Frangi family).
+
+    At each scale the Hessian of the Gaussian-smoothed volume (finite differences) gives
+    eigenvalues ``|l1| <= |l2| <= |l3|``; a bright tube has ``l2, l3 < 0`` and ``l1 ~ 0``. The
+    response is ``sigma^2 (-l2)`` where ``l2, l3 < 0``, damped by ``exp(-(l1 / l2)^2 / (2
+    blob_beta^2))`` when ``l1 < 0`` too (a blob: kidney, heart chamber, bowel loop).
+    """
+    volume = np.asarray(volume, dtype=np.float32)
+    best = np.zeros_like(volume)
+    for sigma in sigmas_vox:
+        smooth = ndi.gaussian_filter(volume, sigma, mode="nearest")
+        gk, gj, gi = np.gradient(smooth)
+        hkk, hkj, hki = np.gradient(gk)
+        hjj, hji = np.gradient(gj, axis=(1, 2))
+        hii = np.gradient(gi, axis=2)
+        l1, l2, l3 = _symmetric_eigenvalues_3d(hii, hjj, hkk, hji, hki, hkj)
+        tube = (l2 < 0) & (l3 < 0)
+        blob = np.where(l1 < 0, np.exp(-(l1 / np.where(l2 == 0, -1e-12, l2)) ** 2 / (2 * blob_beta ** 2)), 1.0)
+        np.maximum(best, np.where(tube, sigma ** 2 * -l2 * blob, 0.0).astype(np.float32), out=best)
+    return best
+
+
+def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_SIGMAS_MM,
+                  reach_mm: float = BRANCH_REACH_MM, voxel_mm: float = 1.5, min_vesselness: float = 0.04):
+    """Side branches (renal, visceral, iliac continuations) connected to the traced trunk.
+
+    On a copy reduced to about ``voxel_mm`` voxels around the trunk, bright tubular voxels
+    (:func:`tubularity_3d` over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
+    ``lumen_hu``, away from cortical bone) are kept if they connect to the trunk within
+    ``reach_mm`` (geodesic steps through the candidates); round blobs (kidneys, heart, bowel)
+    respond weakly to the tubular filter and stay out. The result is brought back to the CT
+    grid and intersected with the lumen intensity range.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        Branch voxels on the CT grid (not including ``trunk``).
+    """
+    box = _trunk_box(trunk, ct, reach_mm)
+    factor = _coarse_factor(ct, voxel_mm)
+    hu = np.asarray(ct.array[box], dtype=np.float32)
+    coarse = _block_reduce(hu, factor, np.mean)
+    coarse_trunk = _block_reduce(trunk[box] > 0, factor, np.max)
+    bone = ndi.binary_dilation(_block_reduce(hu > BONE_HU, factor, np.max), iterations=1)
+    coarse_mm = np.asarray(ct.spacing, dtype=float)[::-1] * factor
+    sigmas = [s / float(coarse_mm.mean()) for s in sigmas_mm]
+    contrast = float(lumen_hu[0] * 2 - SOFT_TISSUE_HU) - SOFT_TISSUE_HU
+    tubular = tubularity_3d(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas) > min_vesselness * contrast
+    candidate = tubular & (coarse >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (coarse <= lumen_hu[1]) & ~bone
+    seeds = ndi.binary_dilation(coarse_trunk, iterations=1) & candidate
+    steps = int(math.ceil(reach_mm / float(coarse_mm.min())))
+    reached = ndi.binary_dilation(seeds, iterations=steps, mask=candidate | coarse_trunk) & ~coarse_trunk
+    full = np.zeros(trunk.shape, dtype=bool)
+    if reached.any():
+        grown = ndi.binary_dilation(reached, iterations=1)
+        upsampled = np.repeat(np.repeat(np.repeat(grown, factor[0], 0), factor[1], 1), factor[2], 2)
+        region = tuple(slice(b.start, b.start + n) for b, n in zip(box, upsampled.shape))
+        smooth = ndi.gaussian_filter(np.asarray(ct.array[region], dtype=np.float32),
+                                     0.6 / np.asarray(ct.spacing)[::-1])
+        full[region] = upsampled & (smooth >= lumen_hu[0]) & (smooth <= lumen_hu[1])
+    return full & (trunk == 0)
+
+
+def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, branches: bool = True,
+                         progress=None, postprocess: bool = True, return_labels: bool = False):
+    """Lumen mask of the aorta tree without any training (the fallback that always works).
+
+    1. :func:`find_aorta_in_slices`: the roundest bright blob in front of the spine.
+    2. :func:`trace_aorta`: follow it up and down slice by slice (overlap with the predicted
+       core, radius continuity), then the two common iliacs below the bifurcation; the
+       lumen range comes from the seed's own statistics.
+    3. :func:`grow_branches`: tubular bright voxels connected to the trunk (renals, visceral
+       arteries, iliac continuations); heart, kidneys, bowel and bone are not tubes.
+
+    Parameters
+    ----------
+    ct : Volume
+        Contrast CT in HU (any spacing, slice thickness and field of view).
+    progress : callable, optional
+        ``progress(done_slices, total_slices)`` while tracing.
+    return_labels : bool
+        Also return a label Volume: 1 aorta, 2 iliacs, 3 side branches.
+
+    Returns
+    -------
+    Volume (and the label Volume)
+        Boolean lumen mask on the CT grid.
+    """
+    _check_ct(ct)
+    labels, _, lumen_hu = trace_aorta(ct, hu_window=hu_window, radius_mm=radius_mm, progress=progress)
+    if branches:
+        labels[grow_branches(ct, labels, lumen_hu)] = 3
+    mask = ct.with_array(labels > 0)
+    if postprocess:
+        mask = postprocess_mask(mask)
+    if progress is not None:
+        progress(ct.shape[0], ct.shape[0])
+    if return_labels:
+        return mask, ct.with_array(np.where(mask.array, labels, 0).astype(np.uint8))
+    return mask

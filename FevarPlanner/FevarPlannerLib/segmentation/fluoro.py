@@ -1,0 +1,378 @@
+"""Fluoroscopy frame -> vessel mask: Frangi vesselness, hysteresis and local contrast, with or without
+the pre-operative tree as a prior; choosing the frame of a run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.filters import apply_hysteresis_threshold
+
+from ..files import InputError
+from ..quality import DEFORMATION_MARGIN_MM, FluoroPrior
+from .threshold import _remove_small_objects
+
+
+def _downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """Block mean (float32) by an integer ``factor``; the last rows / columns padded by replication.
+
+    Sums of strided views: no float64 copy and no copy of the full-resolution ``image`` (any
+    numeric dtype) beyond one float32 pass over its rows.
+    """
+    if factor == 1:
+        return np.asarray(image, dtype=np.float32)
+    pad = ((0, (-image.shape[0]) % factor), (0, (-image.shape[1]) % factor))
+    if any(p for _, p in pad):
+        image = np.pad(image, pad, mode="edge")
+    rows = image[0::factor].astype(np.float32)
+    for k in range(1, factor):
+        rows += image[k::factor]
+    blocks = rows[:, 0::factor].copy()
+    for k in range(1, factor):
+        blocks += rows[:, k::factor]
+    blocks *= np.float32(1.0 / factor ** 2)
+    return blocks
+
+
+def _linear_weights(n_coarse: int, factor: int, n_fine: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Source indices and weights of linear interpolation from a block-mean grid to the fine grid.
+
+    Fine pixel centres sit at ``(u + 0.5) / factor - 0.5`` on the coarse grid, where the block
+    means sit (``align_corners=False``); positions outside the coarse grid take the edge value.
+    """
+    position = np.clip((np.arange(n_fine) + 0.5) / factor - 0.5, 0.0, n_coarse - 1)
+    below = np.floor(position).astype(np.intp)
+    above = np.minimum(below + 1, n_coarse - 1)
+    return below, above, (position - below).astype(np.float32)
+
+
+def _upsample(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear upsampling (float32) of a block-mean grid back onto the full grid of ``shape``,
+    done separably: rows, then columns."""
+    if factor == 1:
+        return image
+    image = np.asarray(image, dtype=np.float32)
+    below, above, weight = _linear_weights(image.shape[0], factor, shape[0])
+    rows = image[below]
+    rows += weight[:, None] * (image[above] - rows)
+    below, above, weight = _linear_weights(image.shape[1], factor, shape[1])
+    full = rows[:, below]
+    full += weight * (rows[:, above] - full)
+    return full
+
+
+def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-normalised Hessian eigenvalues (|l1| <= |l2|) of a Gaussian-smoothed image."""
+    smooth = ndi.gaussian_filter(image, sigma, mode="nearest")
+    hrr = np.empty_like(smooth)
+    hcc = np.empty_like(smooth)
+    hrr[1:-1] = smooth[2:] - 2 * smooth[1:-1] + smooth[:-2]
+    hrr[0], hrr[-1] = hrr[1], hrr[-2]
+    hcc[:, 1:-1] = smooth[:, 2:] - 2 * smooth[:, 1:-1] + smooth[:, :-2]
+    hcc[:, 0], hcc[:, -1] = hcc[:, 1], hcc[:, -2]
+    grad_r = np.gradient(smooth, axis=0)
+    hrc = np.gradient(grad_r, axis=1)
+    scale = sigma ** 2
+    half_trace = 0.5 * (hrr + hcc) * scale
+    root = np.sqrt((0.5 * (hrr - hcc)) ** 2 + hrc ** 2) * scale
+    a, b = half_trace + root, half_trace - root
+    swap = np.abs(a) > np.abs(b)
+    return np.where(swap, b, a), np.where(swap, a, b)
+
+
+def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("bright",), beta: float = 0.5,
+               c_fraction: float = 0.5) -> dict:
+    """Multi-scale Frangi vesselness of a 2D image, for bright and / or dark vessels.
+
+    For each scale the Hessian eigenvalues ``l1, l2`` (``|l1| <= |l2|``) give
+    ``V = exp(-Rb^2 / (2 beta^2)) (1 - exp(-S^2 / (2 c^2)))`` with ``Rb = l1 / l2``,
+    ``S = sqrt(l1^2 + l2^2)`` and ``c = c_fraction * max S``; ``V = 0`` where ``l2`` has the
+    wrong sign for the polarity (``l2 < 0`` for bright vessels, ``> 0`` for dark ones).
+
+    Returns
+    -------
+    dict
+        ``polarity -> V``, the maximum over scales (float32, same shape as ``image``).
+    """
+    image = np.asarray(image, dtype=np.float32)
+    best = {polarity: np.zeros_like(image) for polarity in polarities}
+    for sigma in sigmas:
+        l1, l2 = _hessian_eigenvalues(image, float(sigma))
+        structure = l1 ** 2 + l2 ** 2
+        c2 = (c_fraction ** 2) * float(structure.max()) + 1e-12
+        rb2 = (l1 / np.where(l2 == 0, 1e-12, l2)) ** 2
+        response = np.exp(-rb2 / (2 * beta ** 2)) * (1 - np.exp(-structure / (2 * c2)))
+        for polarity, running in best.items():
+            right_sign = (l2 < 0) if polarity == "bright" else (l2 > 0)
+            np.maximum(running, np.where(right_sign, response, 0.0), out=running)
+    return best
+
+
+def _grey_frame(image: np.ndarray, photometric: str | None) -> np.ndarray:
+    """The frame as a float32 grey image (RGB averaged), MONOCHROME1 turned to MONOCHROME2."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[-1] in (3, 4):
+        image = image[..., :3].mean(axis=-1)
+    if image.ndim != 2 or min(image.shape) < 1:
+        raise InputError(f"fluoroscopy frame must be 2D (or RGB), got shape {image.shape}")
+    image = image.astype(np.float32, copy=False)
+    if not np.isfinite(image).all():
+        raise InputError("fluoroscopy frame contains NaN or infinite values")
+    if photometric is not None and photometric.upper() == "MONOCHROME1":
+        image = -image
+    return image
+
+
+def _normalise(image: np.ndarray) -> np.ndarray:
+    """``image`` scaled to [0, 1] by its 0.5 / 99.5 percentiles."""
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    if hi <= lo:
+        raise InputError("fluoroscopy frame is flat (no contrast)")
+    return np.clip((image - lo) / (hi - lo), 0.0, 1.0)
+
+
+def _local_contrast(image: np.ndarray, radius: int) -> np.ndarray:
+    """White top-hat: ``image`` minus its grey opening with a (2 radius + 1)^2 square."""
+    size = 2 * radius + 1
+    return image - ndi.grey_dilation(ndi.grey_erosion(image, size=(size, size)), size=(size, size))
+
+
+def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, vessels: str = "auto",
+                   photometric: str | None = None,
+                   sigmas=(1.0, 2.0, 3.0, 4.5), work_size: int = 256, high: float = 0.25, low: float = 0.08,
+                   contrast_fraction: float = 0.35, min_area_fraction: float = 0.002) -> np.ndarray:
+    """Binary vessel mask of a fluoroscopy / DSA frame on the frame's pixel grid.
+
+    The frame (MONOCHROME1 inverted when ``photometric`` says so) is reduced by a block mean
+    to about ``work_size`` pixels, normalised, and turned so that vessels are bright. Frangi
+    vesselness over ``sigmas`` (pixels of the reduced grid) is hysteresis-thresholded at
+    ``high`` / ``low`` times its 99.5th percentile to find the vessel tree; its extent is then
+    refined by local contrast (white top-hat above ``contrast_fraction`` of the tree's median
+    contrast), objects smaller than ``min_area_fraction`` of the frame are dropped, and the
+    slightly smoothed result is upsampled bilinearly to the input grid and cut at 0.5.
+
+    With a ``prior`` (the pre-operative tree projected through P, :class:`FluoroPrior`) the
+    search is confined to a band around the projected tree, widened by the expected
+    deformation (:data:`DEFORMATION_MARGIN_MM`); the polarity is read off the frame (inside
+    the projected tree darker or brighter than around it, so subtracted and plain frames of
+    either polarity work); the Frangi scales follow the projected radii; a white top-hat
+    removes bone, soft tissue, table and collimator edges (broad or step-like structures);
+    long, straight components thinner than the vessel expected there (wires, catheters,
+    sheaths) are dropped. A (n, rows, cols) run is reduced to its frame with the most
+    contrast inside the projected tree (:func:`select_frame`).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2D frame (any numeric dtype; RGB is averaged) or a (n, rows, cols) run.
+    prior : FluoroPrior, optional
+        Where the vessels must be; None keeps the prior-free behaviour.
+    vessels : {'dark', 'bright', 'auto'}
+        Vessel polarity after the photometric correction; ``'auto'`` picks the one with the
+        stronger tubular response (without a prior) or the one the prior sees (with it).
+    photometric : str, optional
+        DICOM Photometric Interpretation; ``'MONOCHROME1'`` inverts the grey scale.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        Vessel mask, same shape as (one frame of) ``image``.
+    """
+    if vessels not in ("dark", "bright", "auto"):
+        raise ValueError(f"vessels must be 'dark', 'bright' or 'auto', got {vessels!r}")
+    frames = _frames(image)
+    image = frames[select_frame(image, prior, photometric=photometric)] if len(frames) > 1 else image
+    frame = _grey_frame(image, photometric)
+    if prior is not None:
+        return _segment_fluoro_with_prior(frame, prior, vessels, work_size, high, low, contrast_fraction,
+                                          min_area_fraction)
+    factor = max(1, int(round(max(frame.shape) / work_size)))
+    small = _normalise(_downsample(frame, factor))
+    responses = vesselness(small, sigmas, polarities=("bright", "dark") if vessels == "auto" else (vessels,))
+    if vessels == "auto":    # the polarity with the stronger tubular responses
+        vessels = max(responses, key=lambda polarity: float(np.percentile(responses[polarity], 98)))
+    oriented = small if vessels == "bright" else 1.0 - small
+    vessel = _vessel_region(oriented, responses[vessels], max(sigmas), high, low, contrast_fraction)
+    vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
+    soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)     # smooth edges before upsampling
+    return _upsample(soft, factor, frame.shape) > 0.5
+
+
+def _vessel_region(oriented: np.ndarray, response: np.ndarray, max_sigma: float, high: float, low: float,
+                   contrast_fraction: float, reference: float | None = None) -> np.ndarray:
+    """Binary vessel mask on the reduced grid: the hysteresis tree widened by local contrast.
+
+    ``reference`` (default: the 99.5th percentile of ``response``) is what ``high`` and ``low``
+    are fractions of."""
+    reference = (float(np.percentile(response, 99.5)) if reference is None else reference) + 1e-12
+    tree = apply_hysteresis_threshold(response / reference, low, high)
+    if not tree.any():
+        return tree
+    radius = int(math.ceil(3 * max_sigma))
+    contrast = _local_contrast(oriented, radius)
+    tree_contrast = float(np.median(contrast[tree]))
+    if tree_contrast <= 0:
+        return tree
+    near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max_sigma)))
+    vessel = (contrast > contrast_fraction * tree_contrast) & near_tree
+    labels, _ = ndi.label(vessel)
+    touching = np.unique(labels[tree & vessel])
+    return np.isin(labels, touching[touching > 0])
+
+
+# ----------------------------------------------------------------------------------------
+# Fluoroscopy with the pre-operative tree as a prior
+# ----------------------------------------------------------------------------------------
+
+def _frames(image: np.ndarray) -> list[np.ndarray]:
+    """The frames of a run: a (n, rows, cols) stack, or one 2D (or RGB) frame."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[-1] not in (3, 4):
+        return [image[n] for n in range(image.shape[0])]
+    return [image]
+
+
+def _polarity_by_prior(small: np.ndarray, distance: np.ndarray, nearest: np.ndarray, prior: FluoroPrior,
+                       factor: int) -> str:
+    """'dark' or 'bright': the sign of (inside the projected tree) - (a ring just outside it)."""
+    radius = prior.radii_px[nearest] / factor
+    core = distance <= np.maximum(0.5 * radius, 1.0)
+    ring = (distance > radius + 2.0) & (distance <= 2.0 * radius + 6.0)
+    if not core.any() or not ring.any():
+        return "dark"
+    return "dark" if np.median(small[core]) < np.median(small[ring]) else "bright"
+
+
+def frame_contrast_in_prior(frame: np.ndarray, prior: FluoroPrior, *, photometric=None, work_size: int = 256) -> float:
+    """|median inside the projected tree - median of a ring around it| over the frame's spread."""
+    grey = _grey_frame(frame, photometric)
+    factor = max(1, int(round(max(grey.shape) / work_size)))
+    small = _downsample(grey, factor)
+    spread = float(np.subtract(*np.percentile(small, [99.5, 0.5])))
+    if spread <= 0:
+        return 0.0
+    distance, nearest = prior.rasterise(small.shape, factor)
+    radius = prior.radii_px[np.maximum(nearest, 0)] / factor
+    core = distance <= np.maximum(0.5 * radius, 1.0)
+    ring = (distance > radius + 2.0) & (distance <= 2.0 * radius + 6.0)
+    if not core.any() or not ring.any():
+        return 0.0
+    return abs(float(np.median(small[core]) - np.median(small[ring]))) / spread
+
+
+def select_frame(image: np.ndarray, prior: FluoroPrior | None = None, *, photometric=None) -> int:
+    """Index of the frame of a run with the most contrast inside the projected tree.
+
+    Without a prior: the frame with the strongest top-hat contrast (the fullest vessels).
+    """
+    frames = _frames(image)
+    if len(frames) == 1:
+        return 0
+    if prior is not None:
+        scores = [frame_contrast_in_prior(f, prior, photometric=photometric) for f in frames]
+    else:
+        scores = []
+        for f in frames:
+            small = _downsample(_grey_frame(f, photometric), max(1, int(round(max(f.shape[:2]) / 128))))
+            lo, hi = np.percentile(small, [0.5, 99.5])
+            scores.append(0.0 if hi <= lo else float(np.percentile(_local_contrast(-(small - lo) / (hi - lo), 4), 99)))
+    return int(np.argmax(scores))
+
+
+def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, straightness: float = 0.08,
+                           width_ratio: float = 0.55, min_length: float = 20.0) -> np.ndarray:
+    """Components that look like a wire, catheter or sheath: long, very straight and thinner than
+    the vessel expected where they lie. Returns the mask of those components."""
+    labels, n = ndi.label(mask)
+    devices = np.zeros_like(mask)
+    for index, region in enumerate(ndi.find_objects(labels), start=1):
+        if region is None:
+            continue
+        component = labels[region] == index
+        coords = np.argwhere(component).astype(float)
+        if len(coords) < 3:
+            continue
+        centred = coords - coords.mean(axis=0)
+        eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(coords)), 0.0))
+        length = 2.0 * math.sqrt(3.0) * eigen[1]
+        width = len(coords) / max(length, 1.0)
+        expected = float(np.median(expected_width[region][component]))
+        if length >= min_length and eigen[0] / max(eigen[1], 1e-9) <= straightness and width < width_ratio * expected:
+            devices[region] |= component
+    return devices
+
+
+def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4) -> np.ndarray:
+    """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
+    (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
+    bowel loop touching it can."""
+    from skimage.morphology import skeletonize
+
+    if not vessel.any():
+        return vessel
+    spine = skeletonize(vessel)
+    distance, (ri, ci) = ndi.distance_transform_edt(~spine, return_indices=True)
+    return distance <= slack * radius[ri, ci] + 1.0
+
+
+def _prior_scales(prior: FluoroPrior, factor: int, n_scales: int) -> np.ndarray:
+    """Frangi scales (px of the reduced grid) spanning 0.6 x the projected radii (5th-99th percentile)."""
+    r_min = max(float(np.percentile(prior.radii_px, 5)) / factor, 0.8)
+    r_max = max(float(np.percentile(prior.radii_px, 99)) / factor, r_min)
+    return np.geomspace(max(0.6 * r_min, 0.8), max(0.6 * r_max, 1.0), n_scales)
+
+
+def _percentile_among_zeros(values: np.ndarray, q: float, total: int) -> float:
+    """``np.percentile`` (linear) of ``values`` (>= 0) padded with zeros to ``total`` entries,
+    without building the padded array: the cropped response ranks as the whole grid's would."""
+    values = values.ravel()
+    zeros = total - values.size
+    position = q / 100.0 * (total - 1) - zeros
+    if position < 0:
+        return 0.0
+    below = int(math.floor(position))
+    low_high = np.partition(values, [below, min(below + 1, values.size - 1)])
+    low, high = float(low_high[below]), float(low_high[min(below + 1, values.size - 1)])
+    if below == -1:
+        low = 0.0
+    return low + (position - below) * (high - low)
+
+
+def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: str, work_size: int,
+                               high: float, low: float, contrast_fraction: float, min_area_fraction: float,
+                               n_scales: int = 4):
+    """Vessel mask of one grey frame, looking only in the band around the projected tree.
+
+    Everything runs on the band's bounding box (padded by the filters' reach), read off the
+    prior once per grid (:meth:`FluoroPrior.band`); thresholds that are fractions of the
+    whole reduced grid (response percentile, smallest object) keep counting the whole grid.
+    """
+    factor = max(1, int(round(max(frame.shape) / work_size)))
+    small_shape = (-(-frame.shape[0] // factor), -(-frame.shape[1] // factor))
+    sigmas = _prior_scales(prior, factor, n_scales)
+    reach = int(math.ceil(4 * sigmas[-1])) + int(math.ceil(3 * sigmas[-1])) + 2
+    where = prior.band(small_shape, factor, reach)
+    rows, cols = where.box
+    crop = frame[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor]
+    small = _normalise(_downsample(crop, factor))
+    distance, nearest, radius, band = where.distance, where.nearest, where.radius, where.band
+    if vessels == "auto":
+        vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
+    oriented = small if vessels == "bright" else 1.0 - small
+    response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
+    total = small_shape[0] * small_shape[1]
+    reference = _percentile_among_zeros(response, 99.5, total)
+    vessel = _vessel_region(oriented, response, float(sigmas[-1]), high, low, contrast_fraction,
+                            reference=reference) & band
+    vessel &= _within_expected_width(vessel, radius)
+    thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
+    vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
+    vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
+    vessel = _remove_small_objects(vessel, min_area_fraction * total)
+    soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
+    full = np.zeros(frame.shape, dtype=bool)
+    full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \
+        _upsample(soft, factor, crop.shape) > 0.5
+    return full
