@@ -554,3 +554,26 @@ def test_a_ct_only_case_hands_its_segmented_lumen_to_the_quality_gate_and_qc(tmp
     result = pipeline.plan_case(image_only)
     assert seen[0] is result.qc.lumen
     assert seg.dice(result.qc.lumen, io.load_case(case).aorta_mask) >= 0.8
+
+
+def test_a_blurred_vertebral_body_is_not_taken_for_the_aorta():
+    """Blurred, the 3 mm cortex falls below BONE_HU and joins the cancellous core into one round
+    blob larger and rounder than the lumen; its edge is brighter than its middle, a lumen's is not."""
+    jj, ii = np.mgrid[0:128, 0:128]
+    axial = np.full((128, 128), 40.0)
+    vertebra = np.hypot(jj - 75, ii - 64)
+    axial[vertebra <= 18] = 700.0
+    axial[vertebra <= 15] = 250.0
+    axial[(np.abs(ii - 64) <= 4) & (jj > 88) & (jj < 125)] = 1000.0     # spinous process
+    axial[np.hypot(jj - 40, ii - 64) <= 9] = 300.0                       # a lumen narrower than the vertebra
+    axial = ndi.gaussian_filter(axial, 1.5)
+    ct = Volume(np.repeat(axial[None], 12, axis=0).astype(np.int16), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3))
+    k, centre, radius, _ = seg.find_aorta_in_slices(ct)
+    assert np.hypot(*(centre - (40, 64))) <= 2 and 7 <= radius <= 10
+    from FevarPlannerLib.segmentation import classical
+
+    blobs = {int(round(b["centre"][0])) // 20: b for b in classical._round_blobs(axial, (1.0, 1.0), (150, 600), (7, 22))}
+    assert set(blobs) == {2, 3}                          # the lumen (row 40) and the vertebral body (row 75)
+    assert blobs[3]["radius"] > blobs[2]["radius"]
+    assert classical._inside_bone(axial, blobs[3]["centre"], blobs[3]["radius"], (1.0, 1.0))
+    assert not classical._inside_bone(axial, blobs[2]["centre"], blobs[2]["radius"], (1.0, 1.0))

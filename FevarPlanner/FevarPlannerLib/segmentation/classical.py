@@ -91,8 +91,11 @@ def _spine_behind(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji,
 
 def _inside_bone(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, ring_mm: float = 4.0,
                  max_fraction: float = 0.25) -> bool:
-    """True if a ring just outside the blob is largely cortical bone (a vertebral body's
-    cancellous core is as bright and as round as the aorta, but the aorta is never walled by bone)."""
+    """True if a ring just outside the blob is largely cortical bone, or if the blob brightens
+    towards its edge (a vertebral body's cancellous core is as bright and as round as the aorta,
+    but the aorta is never walled by bone; blurred, a thin cortex falls below :data:`BONE_HU`
+    and joins the blob, whose edge is then brighter than its middle, while a lumen fades
+    towards its wall)."""
     reach = radius_mm + ring_mm
     half = np.ceil(reach / np.asarray(spacing_ji)).astype(int) + 1
     lo = np.maximum(np.floor(centre_ji).astype(int) - half, 0)
@@ -100,7 +103,13 @@ def _inside_bone(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, 
     rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
     dist = np.hypot((rows - centre_ji[0]) * spacing_ji[0], (cols - centre_ji[1]) * spacing_ji[1])
     ring = (dist > radius_mm + 0.5) & (dist <= reach)
-    return bool(ring.any() and (hu_slice[lo[0]:hi[0], lo[1]:hi[1]][ring] > BONE_HU).mean() > max_fraction)
+    if not ring.any():
+        return False
+    window = hu_slice[lo[0]:hi[0], lo[1]:hi[1]]
+    shell = (dist > radius_mm - ring_mm) & (dist <= radius_mm)
+    middle = dist <= max(radius_mm - ring_mm, 0.5 * radius_mm)
+    walled = bool(shell.any() and middle.any() and np.median(window[shell]) > np.median(window[middle]))
+    return walled or bool((window[ring] > BONE_HU).mean() > max_fraction)
 
 
 def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, step_mm: float = 5.0):
