@@ -8,9 +8,10 @@ from PIL import Image
 from FevarPlannerLib.centerline import ANATOMY_LABELS, Centerline
 from FevarPlannerLib.export import (
     RESULT_VERSION, OverlayLayer, build_result_dict, centerline_layer, path_layer, read_centerline_vtp, read_path_markups,
-    read_result_json, render_centerlines_3d, render_overlay, validate_result, write_centerline_vtp,
+    read_result_json, render_centerlines_3d, render_overlay, validate_result, write_centerline_vtp, warning_lines,
     write_path_markups, write_result_json)
 from FevarPlannerLib.io import InputError
+from FevarPlannerLib.conventions import PALETTE
 from FevarPlannerLib.planning import CatheterPath, plan_path
 from FevarPlannerLib.projection import CArmGeometry, project, projection_matrix_from_carm
 
@@ -263,6 +264,30 @@ def test_overlay_of_projected_centrelines_and_skeleton(tmp_path, tree):
         render_overlay(target, np.full((4, 4), np.nan))
     render_overlay(target, np.zeros((517, 613)), layers=[path_layer("path", P, tree.points[[11, 10, 5]], "red")])
     assert _png(target).shape[:2] == (517 + 28, 613)
+
+
+def test_overlay_draws_plausibility_warnings_in_the_warning_colour(tmp_path):
+    rows, cols = 240, 480
+    image = np.random.default_rng(4).normal(100.0, 5.0, (rows, cols))
+    warnings = ["2D fit of renal_left is poor (9.1 px mean); its pre-operative shape kept, carried rigidly "
+                "with the aorta", "anatomy length changed by 14 %"]
+    plain, warned = tmp_path / "plain.png", tmp_path / "warned.png"
+    render_overlay(plain, image)
+    render_overlay(warned, image, warnings=warnings)
+    before, after = _png(plain)[:rows, :cols], _png(warned)[:rows, :cols]
+    changed = np.abs(after - before).max(axis=2) > 30
+    rr, cc = np.nonzero(changed)
+    # the box sits in the bottom-left corner and leaves the top and right of the frame alone
+    assert changed.sum() > 2000
+    assert rr.min() > rows / 3 and cc.min() < 10 and cc.max() < 0.7 * cols
+    warning_rgb = np.array(PALETTE["warning"]) * 255
+    coloured = (np.abs(after - warning_rgb).max(axis=2) < 40)
+    assert coloured.sum() > 300 and (np.abs(before - warning_rgb).max(axis=2) < 40).sum() == 0
+    lines = warning_lines(warnings, cols)
+    assert len(lines) >= 3 and all(len(line) <= int(0.5 * cols / 5.5) for line in lines)
+    assert lines[0].startswith("! 2D fit") and lines[-1].startswith("! anatomy length")
+    many = warning_lines([f"warning {i}" for i in range(20)], cols)
+    assert len(many) == 6 and many[-1] == "(+15 more lines in result.json)"
 
 
 def test_3d_render_is_an_anterior_head_up_picture(tmp_path, tree):

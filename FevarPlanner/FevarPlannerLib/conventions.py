@@ -43,4 +43,5 @@ PALETTE = {
     "skeleton2d": (1.0, 0.90, 0.10),   # yellow
     "truth": (1.0, 1.0, 1.0),          # white
     "surface": (0.93, 0.72, 0.66),     # translucent flesh
+    "warning": (1.0, 0.30, 0.30),      # light red: plausibility warnings
 }

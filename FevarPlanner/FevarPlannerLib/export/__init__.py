@@ -19,7 +19,8 @@ format (every name is re-exported here):
 from __future__ import annotations
 
 from .markups import IDENTITY_ORIENTATION, MARKUPS_SCHEMA, read_path_markups, write_path_markups
-from .overlay import OverlayLayer, ROLE_NAMES, centerline_layer, path_layer, render_overlay, view_name
+from .overlay import (OverlayLayer, ROLE_NAMES, centerline_layer, path_layer, render_overlay, view_name,
+                      warning_lines)
 from .overlay import _orientation_marks  # the tests draw the marks alone
 from .picture3d import polydata_actor, render_centerlines_3d, tube_actor
 from .summary import FIT_NAMES, METRIC_NAMES, format_metric, summary_rows
@@ -48,6 +49,7 @@ __all__ = [
     "path_layer",
     "render_overlay",
     "view_name",
+    "warning_lines",
     "render_centerlines_3d",
     "tube_actor",
     "polydata_actor",

@@ -4,6 +4,7 @@ with the view's name, orientation marks and a scale bar.
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,10 +146,52 @@ def _orientation_marks(axes, P, at, rows: int, cols: int) -> None:
               va="bottom")
 
 
+#: At most this many warning lines are drawn; the rest are counted ("+N more") and stay in result.json.
+MAX_WARNING_LINES = 6
+#: Approximate width of one 8 pt character in pixels at the overlay's 100 dpi.
+_CHAR_PX = 5.5
+
+
+def warning_lines(warnings, cols: int, max_lines: int = MAX_WARNING_LINES) -> list[str]:
+    """The plausibility warnings wrapped to about half the frame width (clear of the scale bar), at most ``max_lines`` lines.
+
+    Parameters
+    ----------
+    warnings : sequence of str
+        One entry per warning (result.json ``warnings``).
+    cols : int
+        Frame width in pixels.
+    max_lines : int
+        Lines drawn at most; a last line says how many more are in result.json.
+
+    Returns
+    -------
+    list of str
+        Each warning starts with "! "; its continuation lines are indented.
+    """
+    width = max(24, int(0.5 * cols / _CHAR_PX))
+    lines = []
+    for warning in warnings:
+        lines += textwrap.wrap(str(warning), width=width, initial_indent="! ", subsequent_indent="  ") or ["!"]
+    if len(lines) > max_lines:
+        hidden = len(lines) - (max_lines - 1)
+        lines = lines[:max_lines - 1] + [f"(+{hidden} more lines in result.json)"]
+    return lines
+
+
+def _warning_box(axes, lines: list[str], rows: int, cols: int, color) -> None:
+    """The warning lines in a dark box at the frame's bottom-left corner (the title is top left,
+    the scale bar bottom right)."""
+    axes.text(0.01 * cols, 0.99 * rows, "\n".join(lines), color=_rgb(color), fontsize=8, ha="left",
+              va="bottom", family="monospace", linespacing=1.2,
+              bbox={"facecolor": "black", "alpha": 0.75, "pad": 3.0, "edgecolor": _rgb(color)})
+
+
 def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = None,
                    layers=(), line_px: float = 2.0, dot_px: float = 3.0, legend_height_px: int = 28,
                    min_width_px: int = 480, title: str | None = None, P: np.ndarray | None = None,
-                   anchor=None, skeleton_color=PALETTE["skeleton2d"]) -> None:
+                   anchor=None, skeleton_color=PALETTE["skeleton2d"], warnings=(),
+                   warning_color=PALETTE["warning"]) -> None:
     """Draw the frame in grey with coloured layers on top and save it as a PNG (atomically).
 
     The frame fills the top-left ``rows x cols`` pixels of the PNG at 1:1, so the layer
@@ -175,6 +218,11 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
         LPS, e.g. the anatomy's centre) and a millimetre scale bar at ``anchor``'s depth.
     skeleton_color : color
         Colour of the 2D skeleton dots.
+    warnings : sequence of str
+        Plausibility warnings (result.json ``warnings``), drawn wrapped in a box at the
+        frame's bottom-left corner (:func:`warning_lines`); none: no box.
+    warning_color : color
+        Colour of the warning text and box edge.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -209,6 +257,8 @@ def render_overlay(path, image: np.ndarray, *, skeleton2d: np.ndarray | None = N
     if title:
         axes.text(0.01 * cols, 0.01 * rows, title, color="white", fontsize=9, ha="left", va="top",
                   bbox={"facecolor": "black", "alpha": 0.55, "pad": 2.0, "edgecolor": "none"})
+    if warnings:
+        _warning_box(axes, warning_lines(warnings, cols), rows, cols, warning_color)
     axes.set_xlim(-0.5, cols - 0.5)
     axes.set_ylim(rows - 0.5, -0.5)
     if handles:

@@ -128,7 +128,7 @@ def _write_output_set(result: PlanResult, folder: Path) -> dict:
     ]
     export.render_overlay(paths["overlay.png"], result.fluoro_image, skeleton2d=result.skeleton2d_points,
                           layers=layers, title=picture_title(result), P=result.P,
-                          anchor=result.deformed.points.mean(axis=0))
+                          anchor=result.deformed.points.mean(axis=0), warnings=result.warnings)
     if result.qc is not None:
         paths[QC_NAME] = folder / QC_NAME
         quality.write_segmentation_qc(paths[QC_NAME], result.qc)
