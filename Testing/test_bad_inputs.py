@@ -119,6 +119,13 @@ def _flags(r: Run) -> Path:
     return folder
 
 
+def _flag_file(r: Run, option: str, name: str) -> Path:
+    """``name`` in the flags folder, given to the command as ``option`` (the caller makes it, or not)."""
+    path = _flags(r) / name
+    r.args += [option, str(path)]
+    return path
+
+
 def _write(path: Path, data: bytes) -> None:
     path.unlink(missing_ok=True) if not path.is_dir() else shutil.rmtree(path)
     path.write_bytes(data)
@@ -131,6 +138,19 @@ def _truncate(path: Path, keep: float = 0.5) -> None:
 
 def _random_bytes(path: Path, n: int = 4096) -> None:
     _write(path, np.random.default_rng(7).integers(0, 256, n, dtype=np.uint8).tobytes())
+
+
+def broken_file(name: str, category: str, *, keep: float, truncated: str, random: str) -> None:
+    """Register the three file-level breaks of a case file: 0 bytes ("empty"), cut to ``keep`` of
+    its length (message words ``truncated``) and 4 KiB of random bytes (words ``random``)."""
+    bad(category, "zero_bytes", name, "empty")(lambda r: _write(r.case / name, b""))
+    bad(category, "truncated", name, truncated)(lambda r: _truncate(r.case / name, keep))
+    bad(category, "random_bytes", name, random)(lambda r: _random_bytes(r.case / name))
+
+
+def _text_file(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
 
 
 def _fifo(path: Path) -> None:
@@ -146,6 +166,25 @@ def _link(path: Path, target) -> None:
 def _folder(path: Path) -> None:
     path.unlink(missing_ok=True)
     path.mkdir()
+
+
+def not_a_plain_file(name: str, category: str, *kinds: str) -> None:
+    """Register breaks that put something other than a plain file of the case at ``name``:
+    ``"fifo"`` (a named pipe), ``"is_a_folder"``, ``"broken_link"`` and ``"link_out_of_case"``
+    (a link to a good copy outside the case folder)."""
+    suffix = Path(name).suffix
+
+    def link_out_of_case(r):
+        shutil.copy2(r.case / name, r.tmp / f"elsewhere{suffix}")
+        _link(r.case / name, r.tmp / f"elsewhere{suffix}")
+
+    breaks = {"fifo": ("named pipe", lambda r: _fifo(r.case / name)),
+              "is_a_folder": ("is a folder", lambda r: _folder(r.case / name)),
+              "broken_link": ("broken link", lambda r: _link(r.case / name, r.tmp / f"absent{suffix}")),
+              "link_out_of_case": ("outside the case folder", link_out_of_case)}
+    for kind in kinds:
+        words, mutate = breaks[kind]
+        bad(category, kind, name, words)(mutate)
 
 
 def _nrrd(path: Path, header: dict, data: bytes = b"", encoding: str = "raw") -> None:
@@ -212,16 +251,7 @@ def _every_slice(case: Path, **tags) -> None:
 M = "aorta_mask.nrrd"
 
 
-@bad("aorta_mask", "zero_bytes", M, "empty")
-def _(r): _write(r.case / M, b"")
-
-
-@bad("aorta_mask", "truncated", M, "cannot read")
-def _(r): _truncate(r.case / M, 0.6)
-
-
-@bad("aorta_mask", "random_bytes", M, "cannot read")
-def _(r): _random_bytes(r.case / M)
+broken_file(M, "aorta_mask", keep=0.6, truncated="cannot read", random="cannot read")
 
 
 @bad("aorta_mask", "header_only", M, "cannot read")
@@ -332,42 +362,23 @@ def _(r):
                                            "ElementDataFile = /etc/hostname\n")
 
 
-@bad("aorta_mask", "fifo", M, "named pipe")
-def _(r): _fifo(r.case / M)
+not_a_plain_file(M, "aorta_mask", "fifo", "is_a_folder", "broken_link", "link_out_of_case")
 
 
 @bad("aorta_mask", "link_to_dev_zero", M, "character device")
 def _(r): _link(r.case / M, "/dev/zero")
 
 
-@bad("aorta_mask", "link_out_of_case", M, "outside the case folder")
-def _(r):
-    shutil.copy2(r.case / M, r.tmp / "elsewhere.nrrd")
-    _link(r.case / M, r.tmp / "elsewhere.nrrd")
-
-
-@bad("aorta_mask", "broken_link", M, "broken link")
-def _(r): _link(r.case / M, r.tmp / "absent.nrrd")
-
-
-@bad("aorta_mask", "is_a_folder", M, "is a folder")
-def _(r): _folder(r.case / M)
-
-
 @bad("aorta_mask", "flag_missing_file", "nope.nrrd", "no such file")
-def _(r): r.args += ["--aorta-mask", str(_flags(r) / "nope.nrrd")]
+def _(r): _flag_file(r, "--aorta-mask", "nope.nrrd")
 
 
 @bad("aorta_mask", "flag_fifo", "pipe.nrrd", "named pipe")
-def _(r):
-    _fifo(_flags(r) / "pipe.nrrd")
-    r.args += ["--aorta-mask", str(_flags(r) / "pipe.nrrd")]
+def _(r): _fifo(_flag_file(r, "--aorta-mask", "pipe.nrrd"))
 
 
 @bad("aorta_mask", "png_given_as_mask", "mask.png", "3D")
-def _(r):
-    shutil.copy2(r.case / "fluoro_mask.png", _flags(r) / "mask.png")
-    r.args += ["--aorta-mask", str(_flags(r) / "mask.png")]
+def _(r): shutil.copy2(r.case / "fluoro_mask.png", _flag_file(r, "--aorta-mask", "mask.png"))
 
 
 # --------------------------------------------------------------------------- skeleton3d
@@ -406,16 +417,7 @@ def _(r): r.args += ["--skeleton3d", str(r.case / M)]
 F = "fluoro.dcm"
 
 
-@bad("fluoro", "zero_bytes", F, "empty")
-def _(r): _write(r.case / F, b"")
-
-
-@bad("fluoro", "truncated", F, "fluoro.dcm")
-def _(r): _truncate(r.case / F, 0.5)
-
-
-@bad("fluoro", "random_bytes", F, "not a readable DICOM")
-def _(r): _random_bytes(r.case / F)
+broken_file(F, "fluoro", keep=0.5, truncated="fluoro.dcm", random="not a readable DICOM")
 
 
 @bad("fluoro", "sid_nan", F, "DistanceSourceToDetector", "nan")
@@ -480,21 +482,15 @@ def _(r): _link(r.case / F, "/dev/urandom")
 
 
 @bad("fluoro", "flag_fifo", "pipe.dcm", "named pipe")
-def _(r):
-    _fifo(_flags(r) / "pipe.dcm")
-    r.args += ["--fluoro", str(_flags(r) / "pipe.dcm")]
+def _(r): _fifo(_flag_file(r, "--fluoro", "pipe.dcm"))
 
 
 @bad("fluoro", "flag_text_file", "notes.txt", "unknown image format")
-def _(r):
-    (_flags(r) / "notes.txt").write_text("hello")
-    r.args += ["--fluoro", str(_flags(r) / "notes.txt")]
+def _(r): _flag_file(r, "--fluoro", "notes.txt").write_text("hello")
 
 
 @bad("fluoro", "flag_folder", "frames", "is a folder")
-def _(r):
-    (_flags(r) / "frames").mkdir()
-    r.args += ["--fluoro", str(_flags(r) / "frames")]
+def _(r): _flag_file(r, "--fluoro", "frames").mkdir()
 
 
 @bad("fluoro", "flat_frame", "fluoro.png", "flat")
@@ -545,16 +541,7 @@ def _(r): r.args += ["--frame", "-1"]
 K = "fluoro_mask.png"
 
 
-@bad("fluoro_mask", "zero_bytes", K, "empty")
-def _(r): _write(r.case / K, b"")
-
-
-@bad("fluoro_mask", "truncated", K, "not a readable image")
-def _(r): _truncate(r.case / K, 0.4)
-
-
-@bad("fluoro_mask", "random_bytes", K, "not a readable image")
-def _(r): _random_bytes(r.case / K)
+broken_file(K, "fluoro_mask", keep=0.4, truncated="not a readable image", random="not a readable image")
 
 
 @bad("fluoro_mask", "all_black", K, "no foreground")
@@ -582,18 +569,7 @@ def _(r):
 def _(r): _png_with_size(r.case / K, 200_000, 200_000)
 
 
-@bad("fluoro_mask", "fifo", K, "named pipe")
-def _(r): _fifo(r.case / K)
-
-
-@bad("fluoro_mask", "is_a_folder", K, "is a folder")
-def _(r): _folder(r.case / K)
-
-
-@bad("fluoro_mask", "link_out_of_case", K, "outside the case folder")
-def _(r):
-    shutil.copy2(r.case / K, r.tmp / "mask.png")
-    _link(r.case / K, r.tmp / "mask.png")
+not_a_plain_file(K, "fluoro_mask", "fifo", "is_a_folder", "link_out_of_case")
 
 
 @bad("fluoro_mask", "nan_tiff", "fluoro_mask.tif", "NaN")
@@ -698,26 +674,11 @@ def _(r):
     _set_P(r.case, (shift @ _P(r.case)).tolist())
 
 
-@bad("geometry", "is_a_folder", G, "is a folder")
-def _(r): _folder(r.case / G)
-
-
-@bad("geometry", "broken_link", G, "broken link")
-def _(r): _link(r.case / G, r.tmp / "absent.json")
-
-
-@bad("geometry", "fifo", G, "named pipe")
-def _(r): _fifo(r.case / G)
-
-
-@bad("geometry", "link_out_of_case", G, "outside the case folder")
-def _(r):
-    shutil.copy2(r.case / G, r.tmp / "other.json")
-    _link(r.case / G, r.tmp / "other.json")
+not_a_plain_file(G, "geometry", "fifo", "is_a_folder", "broken_link", "link_out_of_case")
 
 
 @bad("geometry", "flag_missing", "nope.json", "no such file")
-def _(r): r.args += ["--geometry", str(_flags(r) / "nope.json")]
+def _(r): _flag_file(r, "--geometry", "nope.json")
 
 
 # --------------------------------------------------------------------------- gt.json (ground truth)
@@ -996,9 +957,7 @@ def _(r):
 
 
 @bad("out", "is_a_file", "out.txt", "not a folder")
-def _(r):
-    r.out = r.tmp / "out.txt"
-    r.out.write_text("keep me")
+def _(r): r.out = _text_file(r.tmp / "out.txt", "keep me")
 
 
 @bad("out", "holds_other_files", "thesis", "not a FevarPlanner output set")
@@ -1163,9 +1122,7 @@ def _(r):
 
 
 @bad("case", "is_a_file", "case.txt", "does not exist")
-def _(r):
-    r.case = r.tmp / "case.txt"
-    r.case.write_text("not a folder")
+def _(r): r.case = _text_file(r.tmp / "case.txt", "not a folder")
 
 
 @bad("case", "is_a_fifo", "case_fifo", "does not exist")

@@ -53,6 +53,29 @@ def tree():
     return Centerline(points, np.array(edges), labels)
 
 
+def _storage(scene, storage_class, path):
+    """A storage node of ``storage_class`` in ``scene``, pointed at ``path``."""
+    storage = storage_class()
+    scene.AddNode(storage)
+    storage.SetFileName(str(path))
+    return storage
+
+
+def _save(scene, storage_class, node, path):
+    """Write ``node`` to ``path`` through Slicer's own storage node; that node."""
+    storage = _storage(scene, storage_class, path)
+    assert storage.WriteData(node) == 1
+    return storage
+
+
+def _load(scene, node_class, storage_class, path):
+    """A new ``node_class`` node read from ``path`` through Slicer's own storage node; (node, storage)."""
+    node = scene.AddNewNodeByClass(node_class)
+    storage = _storage(scene, storage_class, path)
+    assert storage.ReadData(node) == 1
+    return node, storage
+
+
 def _model_points_ras(node) -> np.ndarray:
     return np.array([node.GetPolyData().GetPoint(i) for i in range(node.GetPolyData().GetNumberOfPoints())])
 
@@ -65,10 +88,7 @@ def test_a_model_slicer_saved_reads_back_in_lps(scene, tree, tmp_path, suffix):
     stale.SetName("coordinateSystem")
     stale.InsertNextValue("RAS")
     node.GetPolyData().GetFieldData().AddArray(stale)
-    storage = slicer.vtkMRMLModelStorageNode()
-    scene.AddNode(storage)
-    storage.SetFileName(str(tmp_path / f"model{suffix}"))
-    assert storage.WriteData(node) == 1
+    _save(scene, slicer.vtkMRMLModelStorageNode, node, tmp_path / f"model{suffix}")
     back = export.read_centerline_vtp(tmp_path / f"model{suffix}")
     assert np.abs(back.points - tree.points).max() < TOLERANCE_MM
     np.testing.assert_array_equal(back.edges, tree.edges)
@@ -78,10 +98,8 @@ def test_a_model_slicer_saved_reads_back_in_lps(scene, tree, tmp_path, suffix):
 @pytest.mark.parametrize("suffix", [".vtp", ".vtk"])
 def test_a_model_slicer_saved_in_ras_reads_back_in_lps(scene, tree, tmp_path, suffix):
     node = fp.centerline_to_model_node(scene, tree, "recovered", role="deformed")
-    storage = slicer.vtkMRMLModelStorageNode()
-    scene.AddNode(storage)
+    storage = _storage(scene, slicer.vtkMRMLModelStorageNode, tmp_path / f"model{suffix}")
     storage.SetCoordinateSystem(slicer.vtkMRMLStorageNode.CoordinateSystemRAS)
-    storage.SetFileName(str(tmp_path / f"model{suffix}"))
     assert storage.WriteData(node) == 1
     back = export.read_centerline_vtp(tmp_path / f"model{suffix}")
     assert np.abs(back.points - tree.points).max() < TOLERANCE_MM
@@ -89,11 +107,7 @@ def test_a_model_slicer_saved_in_ras_reads_back_in_lps(scene, tree, tmp_path, su
 
 def test_our_vtp_loads_in_slicer_where_it_belongs_and_survives_a_resave(scene, tree, tmp_path):
     export.write_centerline_vtp(tmp_path / "ours.vtp", tree)
-    node = scene.AddNewNodeByClass("vtkMRMLModelNode")
-    storage = slicer.vtkMRMLModelStorageNode()
-    scene.AddNode(storage)
-    storage.SetFileName(str(tmp_path / "ours.vtp"))
-    assert storage.ReadData(node) == 1
+    node, storage = _load(scene, "vtkMRMLModelNode", slicer.vtkMRMLModelStorageNode, tmp_path / "ours.vtp")
     assert np.abs(_model_points_ras(node) - fp.lps_to_ras(tree.points)).max() < TOLERANCE_MM
     assert np.abs(fp.model_node_to_centerline(node).points - tree.points).max() < TOLERANCE_MM
     storage.SetFileName(str(tmp_path / "resaved.vtp"))
@@ -119,15 +133,11 @@ def test_space_tag_wins_over_the_legacy_tag(tree):
 def test_path_markups_load_in_slicer_and_slicer_saved_ones_read_back(scene, tree, tmp_path):
     points = tree.points[:8]
     export.write_path_markups(tmp_path / "path.mrk.json", points)
-    reader = slicer.vtkMRMLMarkupsJsonStorageNode()
-    scene.AddNode(reader)
+    reader = _storage(scene, slicer.vtkMRMLMarkupsJsonStorageNode, tmp_path / "path.mrk.json")
     curve = reader.AddNewMarkupsNodeFromFile(str(tmp_path / "path.mrk.json"))
     ras = np.array([curve.GetNthControlPointPositionWorld(i) for i in range(curve.GetNumberOfControlPoints())])
     assert np.abs(ras - fp.lps_to_ras(points)).max() < TOLERANCE_MM
-    writer = slicer.vtkMRMLMarkupsJsonStorageNode()
-    scene.AddNode(writer)
-    writer.SetFileName(str(tmp_path / "resaved.mrk.json"))
-    assert writer.WriteData(curve) == 1
+    _save(scene, slicer.vtkMRMLMarkupsJsonStorageNode, curve, tmp_path / "resaved.mrk.json")
     assert np.abs(export.read_path_markups(tmp_path / "resaved.mrk.json") - points).max() < TOLERANCE_MM
 
 
@@ -147,11 +157,8 @@ def _index_to_ras(node) -> np.ndarray:
 def test_our_nrrd_volume_loads_in_slicer_and_slicer_saved_ones_read_back(scene, tmp_path):
     volume = _oblique_volume()
     io.write_volume(tmp_path / "ct.nrrd", volume)
-    node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
-    storage = slicer.vtkMRMLVolumeArchetypeStorageNode()
-    scene.AddNode(storage)
-    storage.SetFileName(str(tmp_path / "ct.nrrd"))
-    assert storage.ReadData(node) == 1
+    node, storage = _load(scene, "vtkMRMLScalarVolumeNode", slicer.vtkMRMLVolumeArchetypeStorageNode,
+                          tmp_path / "ct.nrrd")
     corner = np.array([7, 6, 5, 1.0])  # i, j, k
     expected_ras = fp.lps_to_ras(volume.index_to_lps([5, 6, 7]))
     assert np.abs((_index_to_ras(node) @ corner)[:3] - expected_ras).max() < TOLERANCE_MM
@@ -183,17 +190,11 @@ def test_segmentation_saved_by_slicer_reads_back_on_the_ct_grid(scene, tmp_path)
     segmentation = fp.mask_to_segmentation_node(scene, ct.with_array(mask), ct_node)
     assert segmentation.GetSegmentation().GetNumberOfSegments() == 1
     assert segmentation.GetSegmentation().GetNthSegment(0).GetName() == "aorta"
-    storage = slicer.vtkMRMLSegmentationStorageNode()
-    scene.AddNode(storage)
-    storage.SetFileName(str(tmp_path / "aorta.seg.nrrd"))
-    assert storage.WriteData(segmentation) == 1
+    _save(scene, slicer.vtkMRMLSegmentationStorageNode, segmentation, tmp_path / "aorta.seg.nrrd")
 
     other = slicer.vtkMRMLScene()
-    loaded = other.AddNewNodeByClass("vtkMRMLSegmentationNode")
-    reader = slicer.vtkMRMLSegmentationStorageNode()
-    other.AddNode(reader)
-    reader.SetFileName(str(tmp_path / "aorta.seg.nrrd"))
-    assert reader.ReadData(loaded) == 1
+    loaded, _ = _load(other, "vtkMRMLSegmentationNode", slicer.vtkMRMLSegmentationStorageNode,
+                      tmp_path / "aorta.seg.nrrd")
     back = fp.segmentation_node_to_mask(loaded, fp.volume_to_node(other, ct, "CT"), "aorta")
     np.testing.assert_array_equal(back.array, mask)
     assert np.abs(back.index_to_lps_matrix - ct.index_to_lps_matrix).max() < TOLERANCE_MM
