@@ -12,10 +12,13 @@ and benchmarks through ``benchmarks/common.py``. Four groups:
   with exact branch tips and lengths.
 * **Registration cases**: C-arm views, a labelled AAA-like centreline tree deformed in the
   image plane with its dense 2D projection, and an arc bent along the X-rays.
+* **Phantom cases**: the pipeline tests' AP phantom (:data:`PHANTOM_PARAMS` with changes), its
+  pre-operative model, and a centreline projected and drawn as a 2D skeleton mask.
 """
 
 import numpy as np
 
+from FevarPlannerLib import benchmark, phantom, pipeline
 from FevarPlannerLib.centerline import Centerline
 from FevarPlannerLib.io import Volume
 from FevarPlannerLib.projection import (CArmGeometry, carm_axes, project, projection_matrix_from_carm,
@@ -326,3 +329,31 @@ def bent_arc(n=41, bend_mm=10.0):
     rays = preop - source_position(carm(0.0))
     rays /= np.linalg.norm(rays, axis=1)[:, None]
     return preop, preop + bend_mm * np.sin(np.pi * s)[:, None] * rays, rays, chain_edges(n)
+
+
+# ---------------------------------------------------------------------------------------
+# Phantom cases of the pipeline tests
+# ---------------------------------------------------------------------------------------
+
+#: An AP view of a phantom without the optional branches and without misalignment; each test
+#: module changes what it studies (a bend, a turned upper aorta, ...).
+PHANTOM_PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
+                      primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
+                      misalign_rotation_deg=0.0, bend_anterior_deg=0.0)
+
+
+def phantom_case(name: str = "phantom", seed: int = 11, **changes):
+    """A phantom case drawn with ``default_rng(seed)`` from :data:`PHANTOM_PARAMS` with ``changes``."""
+    params = phantom.random_params(np.random.default_rng(seed), **{**PHANTOM_PARAMS, **changes})
+    return phantom.generate_case(params, name=name)
+
+
+def preop_model(case):
+    """The pre-operative model of a phantom case, from its rasterised pre-operative lumen."""
+    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+
+
+def drawn_mask(centerline: Centerline, P: np.ndarray, shape) -> np.ndarray:
+    """The simulation protocol's 2D side: ``centerline`` projected with ``P`` (eq. 1) and drawn
+    one pixel thin on a frame of ``shape`` (rows, cols)."""
+    return benchmark.draw_skeleton_mask(project(P, centerline.points), centerline.edges, shape)

@@ -17,21 +17,19 @@ import pytest
 from FevarPlannerLib import evaluation, graph, matching, phantom, pipeline
 from FevarPlannerLib.phantom import Anatomy, Vessel
 from FevarPlannerLib.projection import pixels_per_mm, project
+from fixtures import phantom_case, preop_model
 
-PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
-              primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
-              misalign_rotation_deg=0.0, misalign_rotation3d_deg=(0.0, 0.0, 0.0), bend_anterior_deg=0.0)
 SEED = 5
 
 
 @pytest.fixture(scope="module")
 def case():
-    return phantom.generate_case(phantom.random_params(np.random.default_rng(SEED), **PARAMS), name="m")
+    return phantom_case("m", seed=SEED, misalign_rotation3d_deg=(0.0, 0.0, 0.0))
 
 
 @pytest.fixture(scope="module")
 def preop(case):
-    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    return preop_model(case)
 
 
 def frame_mask(case, anatomy):

@@ -8,21 +8,17 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib import benchmark, evaluation, export, matching, phantom, pipeline, skeleton
-from FevarPlannerLib.projection import project
-
-PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
-              primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
-              misalign_rotation_deg=0.0, bend_anterior_deg=0.0)
+from fixtures import drawn_mask, phantom_case, preop_model
 
 
 @pytest.fixture(scope="module")
 def case():
-    return phantom.generate_case(phantom.random_params(np.random.default_rng(11), **PARAMS), name="t")
+    return phantom_case("t")
 
 
 @pytest.fixture(scope="module")
 def preop(case):
-    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    return preop_model(case)
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +28,7 @@ def intra(case):
 
 def simulated_mask(case, centerline, P=None):
     """The simulation protocol's 2D side: a 3D skeleton projected and drawn."""
-    P = case.P_true if P is None else P
-    return benchmark.draw_skeleton_mask(project(P, centerline.points), centerline.edges, (case.carm.rows, case.carm.cols))
+    return drawn_mask(centerline, case.P_true if P is None else P, (case.carm.rows, case.carm.cols))
 
 
 def test_preop_graph_is_labelled_anatomy(preop):
@@ -221,10 +216,9 @@ def test_a_2d_fork_the_3d_tree_lacks_gives_no_confident_wrong_answer():
     """Internal iliacs in the frame only (a distal fork): the matching puts the aorta on the
     wrong chain (measured without the checks: 10.2 mm, 2D 17.4 px, against 1.1 mm for SV);
     the checks see the aorta stretched by a third and fall back to SV."""
-    base = {**PARAMS, "internal_iliacs": False}
-    plain = phantom.generate_case(phantom.random_params(np.random.default_rng(5), **base))
-    forked = phantom.generate_case(phantom.random_params(np.random.default_rng(5), **{**base, "internal_iliacs": True}))
-    preop = pipeline.preop_from_lumen(phantom.rasterize_lumen(plain.preop, plain.grid))
+    plain = phantom_case(seed=5)
+    forked = phantom_case(seed=5, internal_iliacs=True)
+    preop = preop_model(plain)
     mask = simulated_mask(plain, forked.intraop.to_centerline())
     gt = plain.intraop.to_centerline()
     errors = {}

@@ -11,12 +11,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from FevarPlannerLib import benchmark, evaluation, io, phantom, pipeline
-from FevarPlannerLib.projection import project, projection_matrix_from_carm, write_geometry_json
-
-PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
-              primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
-              misalign_rotation_deg=0.0, bend_anterior_deg=12.0)
+from FevarPlannerLib import evaluation, io, phantom, pipeline
+from FevarPlannerLib.projection import projection_matrix_from_carm, write_geometry_json
+from fixtures import drawn_mask, phantom_case, preop_model
 
 
 def view_geometry(case, primary_deg: float):
@@ -27,19 +24,14 @@ def view_geometry(case, primary_deg: float):
     return projection_matrix_from_carm(carm, isocentre), carm
 
 
-def drawn_mask(centerline, P, carm):
-    """The simulation protocol's 2D side: the true centreline projected and drawn."""
-    return benchmark.draw_skeleton_mask(project(P, centerline.points), centerline.edges, (carm.rows, carm.cols))
-
-
 @pytest.fixture(scope="module")
 def case():
-    return phantom.generate_case(phantom.random_params(np.random.default_rng(11), **PARAMS), name="bent")
+    return phantom_case("bent", bend_anterior_deg=12.0)
 
 
 @pytest.fixture(scope="module")
 def preop(case):
-    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    return preop_model(case)
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +40,7 @@ def frames(case):
     out = {}
     for angle in (0, 45, 60):
         P, carm = view_geometry(case, angle)
-        out[angle] = (drawn_mask(truth, P, carm), P)
+        out[angle] = (drawn_mask(truth, P, (carm.rows, carm.cols)), P)
     return out
 
 

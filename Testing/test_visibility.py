@@ -15,10 +15,7 @@ import pytest
 from FevarPlannerLib import evaluation, io, phantom, pipeline
 from FevarPlannerLib.pipeline.visibility import _collimated_bands
 from FevarPlannerLib.projection import project, write_geometry_json
-
-PARAMS = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
-              primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
-              misalign_rotation_deg=0.0, bend_anterior_deg=0.0, upper_bend_deg=15.0)
+from fixtures import phantom_case, preop_model
 CUT_BELOW_TOP_MM = 45
 
 
@@ -72,12 +69,12 @@ def test_a_frame_without_shutters_has_no_bands_and_a_flat_border_line_still_coun
 
 @pytest.fixture(scope="module")
 def case():
-    return phantom.generate_case(phantom.random_params(np.random.default_rng(11), **PARAMS), name="clipped")
+    return phantom_case("clipped", upper_bend_deg=15.0)
 
 
 @pytest.fixture(scope="module")
 def preop(case):
-    return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    return preop_model(case)
 
 
 @pytest.fixture(scope="module")
