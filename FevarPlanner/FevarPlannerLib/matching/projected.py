@@ -1,21 +1,4 @@
-"""Graph matching and soft assignment between the 3D and the 2D skeleton graphs.
-
-Equation numbers are those of the paper's source, where Definition 1's adjacency is eq.
-(2): eq. (3) initialises ``M``, eq. (4) assigns branches, eq. (5) trunks.
-
-Paper section II-B: trunks and junctions are matched first by ranked geodesic length,
-then branches by the similarity of their tangents (eta_s = 1, eta_t = 10 along the
-branch; 3D tangents projected through P) under the junction correspondence. Each matched
-pair is then soft-assigned: branches by equal projected path length (eq. 4), trunks by
-equal proportion of path length (eq. 5). The result gives every assigned 3D node its 2D
-target ``t_j = X M[:, j]``.
-
-Beyond the paper: both graphs also carry anatomical labels (graph.label_anatomy), and
-where the tangent matching and the labels disagree, or the trunk ranks are ambiguous,
-every consistent candidate is kept; the caller deforms with each and keeps the one with
-the lowest final energy and 3D implausibility (Algorithm 2 run once per candidate).
-
-Matching against the projected pre-operative tree (:func:`match_by_projection`, beyond the
+"""Matching against the projected pre-operative tree (:func:`match_by_projection`, beyond the
 paper). Algorithm 1 in 2D keeps the five longest branches, and a frame often shows
 branches that the 3D tree lacks: the internal / external iliac fork below a common iliac,
 accessory renal arteries, side branches off the aorta, spurs from a wide sac. Ranked by
@@ -32,42 +15,23 @@ assignment (``linear_sum_assignment``) pairs 3D branches with distinct 2D ends, 
 "no partner" column per 3D branch at :data:`NO_PARTNER_PX`; 2D ends left over stay
 unmatched. The junctions, trunks and branch chains are then read off the 2D tree spanned
 by the matched ends, so a 2D branch hanging off the wrong junction costs the stretch of
-aorta between the two junctions. These candidates join the paper's; the caller keeps the
-one of least :func:`candidate_score` (the energy after the deformation plus the 3D
-implausibility of the result).
+aorta between the two junctions. These candidates join the paper's
+(:func:`matching.candidates.candidate_correspondences`).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csgraph
 
-from .graph import Classification, SkeletonGraph
-from .projection import image_directions, project
+from ..graph import Classification, SkeletonGraph
+from ..projection import project
+from .paper import _FORBIDDEN, Correspondence
 
-__all__ = [
-    "Correspondence",
-    "SoftAssignment",
-    "branch_tangents",
-    "match_trunks",
-    "match_branches",
-    "match_by_projection",
-    "candidate_correspondences",
-    "candidate_score",
-    "soft_assign",
-    "ETA_S",
-    "ETA_T",
-]
+__all__ = ["match_by_projection", "NO_PARTNER_PX"]
 
-#: Tangent of a branch: from its node ``ETA_S`` to its node ``ETA_T`` (paper Sec. III, 1-based
-#: in the paper, so nodes 1 and 10 there are indices 0 and 9 here).
-ETA_S = 1
-ETA_T = 10
-_FORBIDDEN = 1e6
 #: Cost (px) of leaving a 3D branch without a 2D partner: a pairing whose projected branch
 #: and 2D path lie further apart than this (:func:`_branch_costs`) is worse than none (the
 #: branch then follows its neighbours by TPS). Measured on the phantoms: the right partner
@@ -90,268 +54,7 @@ MAX_ALTERNATIVES = 1
 TURN_PX_PER_RAD = 20.0
 #: Samples per curve in the mean closest distance of :func:`_curve_distances`.
 _SAMPLES = 16
-#: Weight (px^2) per share of the 3D nodes left unassigned, in :func:`candidate_score`:
-#: a candidate that leaves a branch without partner wins over one that pairs it only when
-#: the pairing fits worse than this many px (RMS) after the deformation.
-UNASSIGNED_PX2 = 25.0
 
-
-@dataclass
-class Correspondence:
-    """Which 3D branch/trunk goes with which 2D one.
-
-    Attributes
-    ----------
-    branch_pairs : list of (int, int)
-        ``(index into c3.branches, index into c2.branches)``; for a projection match the
-        index of the preserved 2D branch that ends where the chain ends, or None when the
-        chain ends on a 2D branch that Algorithm 1 omitted.
-    trunk_pairs : list of (numpy.ndarray, numpy.ndarray)
-        Matched node chains ``(3D nodes, 2D nodes)``, ordered from matched junction to
-        matched junction.
-    junction_pairs : dict
-        3D junction node -> 2D junction node.
-    source : str
-        How it was found ("projection", "tangent", "labels"), for the report.
-    branch_chains : dict
-        3D branch index -> 2D node chain from its junction to its end (eq. 4's 2D side);
-        by default the preserved 2D branch of ``branch_pairs``.
-    """
-
-    branch_pairs: list
-    trunk_pairs: list
-    junction_pairs: dict
-    source: str = ""
-    branch_chains: dict = field(default_factory=dict)
-
-    def key(self) -> tuple:
-        """Which 3D branch goes to which 2D end node: candidates that agree on it are duplicates
-        (their junctions differ by a node or two at most)."""
-        return tuple(sorted((int(i3), int(chain[-1])) for i3, chain in self.branch_chains.items()))
-
-
-def _with_chains(correspondence: Correspondence, c2: Classification) -> Correspondence:
-    correspondence.branch_chains = {i3: np.asarray(c2.branches[i2].nodes) for i3, i2 in correspondence.branch_pairs}
-    return correspondence
-
-
-@dataclass
-class SoftAssignment:
-    """The soft assignment matrix ``M`` (n2 x n3, eqs. 3-5) and the 2D target of each 3D node.
-
-    Attributes
-    ----------
-    M : scipy.sparse.csr_matrix, shape (n2, n3)
-    targets : numpy.ndarray, shape (n3, 2)
-        ``X M`` column-wise; NaN for unassigned nodes.
-    assigned : numpy.ndarray of bool, shape (n3,)
-    correspondence : Correspondence
-    """
-
-    M: sp.csr_matrix
-    targets: np.ndarray
-    assigned: np.ndarray
-    correspondence: Correspondence = field(repr=False)
-
-
-def branch_tangents(graph: SkeletonGraph, branches, P: np.ndarray | None = None,
-                    eta_s: int = ETA_S, eta_t: int = ETA_T) -> np.ndarray:
-    """Unit tangents of branches in the image plane (paper: T, similarity S = T^T T).
-
-    The tangent runs from node ``eta_s`` to node ``eta_t`` of the branch (counted from its
-    junction, 1-based as in the paper, clipped to the branch). 3D branches are projected
-    through ``P`` first so that 2D and 3D tangents are comparable.
-    """
-    tangents = np.zeros((len(branches), 2))
-    for row, branch in enumerate(branches):
-        nodes = branch.nodes
-        start = nodes[min(eta_s - 1, len(nodes) - 1)]
-        stop = nodes[min(eta_t - 1, len(nodes) - 1)]
-        ends = graph.positions[[start, stop]]
-        if graph.dim == 3:
-            ends = project(P, ends)
-        vector = ends[1] - ends[0]
-        norm = np.linalg.norm(vector)
-        tangents[row] = vector / norm if norm > 0 else vector
-    return tangents
-
-
-def _oriented_trunk(graph: SkeletonGraph, trunk, superior: np.ndarray) -> np.ndarray:
-    """Trunk nodes ordered from its more superior junction to the other one."""
-    nodes = trunk.nodes
-    heights = graph.positions[[nodes[0], nodes[-1]]] @ superior
-    return nodes if heights[0] >= heights[1] else nodes[::-1]
-
-
-def _backbone(graph: SkeletonGraph, classification: Classification, superior: np.ndarray) -> np.ndarray:
-    """The aortic chain from the most superior junction to the most inferior one."""
-    junctions = np.asarray(classification.junction_nodes)
-    heights = graph.positions[junctions] @ superior
-    top, bottom = junctions[np.argmax(heights)], junctions[np.argmin(heights)]
-    return np.asarray(graph.shortest_path(top, bottom))
-
-
-def match_trunks(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
-                 P: np.ndarray) -> list[tuple[list, dict]]:
-    """Trunk and junction correspondences by ranked geodesic length (paper Sec. II-B-3).
-
-    Returns candidate ``(trunk_pairs, junction_pairs)``: the rank match when both graphs
-    have the same number of trunks and it maps junctions consistently; otherwise the
-    backbone match (the aortic chain from the top junction to the bifurcation, as one
-    trunk), which survives a renal junction that splits in one view and not the other.
-    """
-    at = g3.positions[c3.kept_nodes()].mean(axis=0)
-    sup3, sup2 = np.array([0.0, 0.0, 1.0]), image_directions(P, at)[1]
-    candidates = []
-    if len(c3.trunks) == len(c2.trunks) and c3.trunks:
-        order3 = np.argsort([-t.length for t in c3.trunks], kind="stable")
-        order2 = np.argsort([-t.length for t in c2.trunks], kind="stable")
-        pairs, junctions, consistent = [], {}, True
-        for i3, i2 in zip(order3, order2):
-            n3 = _oriented_trunk(g3, c3.trunks[i3], sup3)
-            n2 = _oriented_trunk(g2, c2.trunks[i2], sup2)
-            for a, b in ((n3[0], n2[0]), (n3[-1], n2[-1])):
-                consistent &= junctions.setdefault(int(a), int(b)) == int(b)
-            pairs.append((n3, n2))
-        if consistent and len(set(junctions.values())) == len(junctions):
-            candidates.append((pairs, junctions))
-    if c3.trunks and c2.trunks and not candidates:
-        b3, b2 = _backbone(g3, c3, sup3), _backbone(g2, c2, sup2)
-        if len(b3) > 1 and len(b2) > 1:
-            junctions = {int(b3[0]): int(b2[0]), int(b3[-1]): int(b2[-1])}
-            candidates.append(([(b3, b2)], junctions))
-    if not candidates:
-        raise ValueError(f"no trunk to match: {len(c3.trunks)} trunk(s) in 3D, {len(c2.trunks)} in 2D")
-    return candidates
-
-
-def _nearest_matched_junction(graph: SkeletonGraph, junction: int, matched) -> int:
-    """The matched junction closest (geodesically) to ``junction``."""
-    matched = np.asarray(sorted(matched))
-    distances = graph.geodesic_from(int(junction))[matched]
-    return int(matched[np.argmin(distances)])
-
-
-def match_branches(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
-                   P: np.ndarray, junction_pairs: dict) -> list[tuple[int, int]]:
-    """Branch pairs maximising tangent similarity ``S = T2^T T3`` under the junctions.
-
-    A 3D branch may pair with a 2D branch leaving the 2D junction that corresponds to its
-    own junction; a branch on a junction left unmatched (a split renal junction) counts as
-    leaving the nearest matched junction.
-    """
-    t3 = branch_tangents(g3, c3.branches, P)
-    t2 = branch_tangents(g2, c2.branches)
-    similarity = t3 @ t2.T
-    anchor3 = [_nearest_matched_junction(g3, b.junction, junction_pairs) for b in c3.branches]
-    inverse = {v: k for k, v in junction_pairs.items()}
-    anchor2 = [inverse[_nearest_matched_junction(g2, b.junction, inverse)] for b in c2.branches]
-    allowed = np.equal.outer(anchor3, anchor2)
-    cost = np.where(allowed, -similarity, _FORBIDDEN)
-    rows, cols = linear_sum_assignment(cost)
-    return [(int(r), int(c)) for r, c in zip(rows, cols) if allowed[r, c]]
-
-
-def _pairs_by_label(c3: Classification, c2: Classification) -> list[tuple[int, int]]:
-    index2 = {b.label: i for i, b in enumerate(c2.branches) if b.label != "other"}
-    return [(i, index2[b.label]) for i, b in enumerate(c3.branches) if b.label in index2]
-
-
-def candidate_correspondences(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph,
-                              c2: Classification, P: np.ndarray) -> list[Correspondence]:
-    """Every consistent correspondence worth deforming with (duplicates removed).
-
-    For each trunk candidate, the tangent-similarity branch match (the paper's) and the
-    anatomical-label match where it differs; then the matches against the projected 3D tree
-    (:func:`match_by_projection`) that pair some 3D branch with another 2D end (a 2D branch
-    the 3D tree lacks taken for a main one, or a 3D branch the frame does not show). The
-    paper's match stays first (the pose refinement fits on the first).
-    """
-    found = {}
-    try:
-        trunk_candidates = match_trunks(g3, c3, g2, c2, P)
-    except ValueError:
-        trunk_candidates = []
-    for trunk_pairs, junction_pairs in trunk_candidates:
-        for source, branch_pairs in (("tangent", match_branches(g3, c3, g2, c2, P, junction_pairs)),
-                                     ("labels", _pairs_by_label(c3, c2))):
-            if len(branch_pairs) < len(c3.branches):
-                continue
-            candidate = _with_chains(Correspondence(branch_pairs, trunk_pairs, junction_pairs, source), c2)
-            found.setdefault(candidate.key(), candidate)
-    for projected in match_by_projection(g3, c3, g2, c2, P):
-        found.setdefault(projected.key(), projected)
-    if not found:
-        if not trunk_candidates:
-            match_trunks(g3, c3, g2, c2, P)  # raises, saying what is missing
-        raise ValueError("no consistent branch correspondence between the 3D and 2D skeletons")
-    return list(found.values())
-
-
-def _cumulative_length(points: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
-
-
-def _assign_by_arc_length(s3: np.ndarray, nodes2: np.ndarray, x2: np.ndarray):
-    """Soft weights placing each 3D arc position ``s3`` between two consecutive 2D nodes.
-
-    Implements the common core of eqs. (4) and (5): for the 2D node ``i`` with
-    ``c_i <= s < c_{i+1}``, ``m(i+1, j) = (s - c_i) / |x_{i+1} - x_i|`` and
-    ``m(i, j) = 1 - m(i+1, j)``; a 3D node beyond the 2D chain gets no weight.
-    """
-    c2 = _cumulative_length(x2)
-    inside = s3 <= c2[-1] + 1e-9
-    i = np.clip(np.searchsorted(c2, s3, side="right") - 1, 0, len(c2) - 2)
-    step = c2[i + 1] - c2[i]
-    m_next = np.where(step > 0, (s3 - c2[i]) / np.where(step > 0, step, 1.0), 0.0)
-    m_next = np.clip(m_next, 0.0, 1.0)
-    return inside, nodes2[i], nodes2[i + 1], 1.0 - m_next, m_next
-
-
-def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
-                P: np.ndarray, correspondence: Correspondence) -> SoftAssignment:
-    """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
-
-    A node assigned by several chains (a junction) keeps its first assignment: trunks
-    first, so junctions follow the aortic chain.
-    """
-    n2, n3 = len(g2.positions), len(g3.positions)
-    rows, cols, vals = [], [], []
-    assigned = np.zeros(n3, dtype=bool)
-
-    def add(nodes3, s3, nodes2):
-        inside, lo, hi, w_lo, w_hi = _assign_by_arc_length(s3, nodes2, g2.positions[nodes2])
-        fresh = inside & ~assigned[nodes3]
-        j = nodes3[fresh]
-        rows.extend([lo[fresh], hi[fresh]])
-        cols.extend([j, j])
-        vals.extend([w_lo[fresh], w_hi[fresh]])
-        assigned[j] = True
-
-    for nodes3, nodes2 in correspondence.trunk_pairs:
-        # eq. (5): 3D path length scaled by lambda2 / lambda3 (equal proportion of length)
-        s3 = _cumulative_length(g3.positions[nodes3])
-        lam2 = _cumulative_length(g2.positions[nodes2])[-1]
-        add(np.asarray(nodes3), s3 * (lam2 / s3[-1]) if s3[-1] > 0 else s3, np.asarray(nodes2))
-    chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
-    for i3, nodes2 in chains.items():
-        nodes3 = c3.branches[i3].nodes
-        # eq. (4): projected 3D path length equals 2D path length
-        s3 = _cumulative_length(project(P, g3.positions[nodes3]))
-        add(np.asarray(nodes3), s3, np.asarray(nodes2))
-
-    if not vals:
-        raise ValueError("the correspondence assigns no 3D node")
-    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n2, n3))
-    M.sum_duplicates()
-    targets = np.full((n3, 2), np.nan)
-    targets[assigned] = (M.T @ g2.positions)[assigned]  # t_j = X M[:, j]
-    return SoftAssignment(M, targets, assigned, correspondence)
-
-
-# ---------------------------------------------------------------------------------------
-# Matching against the projected pre-operative tree (beyond the paper; module docstring)
-# ---------------------------------------------------------------------------------------
 
 class _Polylines:
     """Several polylines stored end to end, for arc lengths and resampling in one pass each."""
@@ -698,20 +401,3 @@ def match_by_projection(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph
     found = [_from_matched_ends(g3, c3, g2, c2, P, {i3: int(ends2[c]) for i3, c in v.items()}, contracted)
              for v in variants]
     return [c for c in found if c is not None]
-
-
-def candidate_score(energy: float, assigned_fraction: float, preop_points: np.ndarray, deformed_points: np.ndarray,
-                    edges: np.ndarray, alpha: float) -> float:
-    """Which deformed candidate to keep: the registration energy plus its 3D implausibility.
-
-    ``energy`` is eq. (6) after the deformation (on the assigned nodes). Added: the length
-    term of eq. (6) over every kept edge, TPS-filled nodes included (a vessel stretched or
-    compressed where no data held it), weighted by ``alpha`` as in eq. (6); and
-    :data:`UNASSIGNED_PX2` times the share of 3D nodes the candidate leaves unassigned, so
-    that leaving a branch without partner does not win by fitting less.
-    """
-    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    rest = np.linalg.norm(preop_points[edges[:, 0]] - preop_points[edges[:, 1]], axis=1)
-    now = np.linalg.norm(deformed_points[edges[:, 0]] - deformed_points[edges[:, 1]], axis=1)
-    stretch = float(np.mean(((now - rest) / np.maximum(rest, 1e-9)) ** 2)) if len(edges) else 0.0
-    return float(energy) + alpha * stretch + UNASSIGNED_PX2 * (1.0 - float(assigned_fraction))

@@ -1,0 +1,154 @@
+"""What each scenario kind draws from its seed (:func:`plan_scenarios`): the tree's shape, its
+deformation, the views and the frame options of every case of a benchmark set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from .tree import SIDES, TreeShape, random_shape
+from .deformations import Deformation
+
+__all__ = [
+    "View",
+    "Scenario",
+    "plan_scenarios",
+    "KINDS",
+    "OUT_OF_PLANE_SEVERITIES_DEG",
+    "ANGULATED_VIEWS_DEG",
+    "SECOND_VIEW_DEG",
+]
+
+#: The scenario kinds, one benchmark set each.
+KINDS = ("out_of_plane", "straightening", "clipped", "distal_forks", "wide_sac", "extra_branches", "misaligned",
+         "angulated", "two_views", "image_only")
+#: Severities of the out-of-plane set, degrees (bend at the bifurcation and along each iliac).
+OUT_OF_PLANE_SEVERITIES_DEG = (0.0, 5.0, 10.0, 20.0)
+#: Angulated views of the angulated set: (primary, LAO +; secondary, cranial +), degrees.
+ANGULATED_VIEWS_DEG = ((30.0, 15.0), (-30.0, -15.0), (30.0, -15.0), (-30.0, 15.0))
+#: Angle of the second view from the main (AP) one in the two-view set, degrees.
+SECOND_VIEW_DEG = (30.0, 50.0, 70.0, 90.0)
+
+
+@dataclass
+class View:
+    """One C-arm view: angles (degrees), optional top clipping and a misaligned given pose."""
+
+    name: str = "main"
+    primary_deg: float = 0.0
+    secondary_deg: float = 0.0
+    clip_top_mm: float | None = None      # the top border cuts the aorta this far below its top
+    misalign_shift_px: tuple = (0.0, 0.0)
+    misalign_rotation_deg: float = 0.0
+
+
+@dataclass
+class Scenario:
+    """Everything one case is made of (JSON-ready through :meth:`to_dict`)."""
+
+    name: str
+    kind: str
+    seed: int
+    shape: TreeShape
+    deformation: Deformation
+    views: list = field(default_factory=lambda: [View()])
+    sid_mm: float = 1150.0
+    sod_mm: float = 760.0
+    detector_pixel_mm: float = 0.6
+    info: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"version": 1, "family": "scenarios", "name": self.name, "kind": self.kind, "seed": self.seed,
+                "shape": self.shape.to_dict(), "deformation": self.deformation.to_dict(),
+                "views": [asdict(v) for v in self.views], "sid_mm": self.sid_mm, "sod_mm": self.sod_mm,
+                "detector_pixel_mm": self.detector_pixel_mm, **self.info}
+
+
+def _signed(rng: np.random.Generator, low: float, high: float) -> float:
+    return float(rng.choice([-1.0, 1.0]) * rng.uniform(low, high))
+
+
+def _base_deformation(rng: np.random.Generator, out_of_plane_deg: tuple = (3.0, 8.0)) -> Deformation:
+    """A moderate deformation in any direction: what a stiff wire does on every kind of case."""
+    return Deformation(
+        aorta_bend_deg=float(rng.uniform(2.0, 6.0)), aorta_dir_deg=float(rng.uniform(0.0, 360.0)),
+        bifurcation_bend_deg=float(rng.uniform(*out_of_plane_deg)), bifurcation_dir_deg=float(rng.uniform(0, 360)),
+        iliac_bend_deg=tuple(float(v) for v in rng.uniform(*out_of_plane_deg, size=2)),
+        iliac_dir_deg=tuple(float(v) for v in rng.uniform(0.0, 360.0, size=2)),
+        straighten=tuple(float(v) for v in rng.uniform(0.2, 0.5, size=2)),
+        renal_shift_mm=tuple(_signed(rng, 0.5, 3.0) for _ in SIDES),
+        renal_tilt_deg=tuple(_signed(rng, 1.0, 8.0) for _ in SIDES))
+
+
+def _out_of_plane_direction(rng: np.random.Generator) -> float:
+    """A bend direction at least half out of an AP frame's plane: within 45 degrees of 0 or 180."""
+    return float(rng.choice([0.0, 180.0]) + rng.uniform(-45.0, 45.0))
+
+
+def _out_of_plane(rng: np.random.Generator, severity: float) -> Deformation:
+    """Bends of ``severity`` degrees at the bifurcation and along each iliac, forwards or
+    backwards and obliquely (:func:`_out_of_plane_direction`), so that severity means depth.
+
+    The aorta bends only in the frontal plane (90 degrees), so at severity 0 nothing moves in depth.
+    """
+    return Deformation(aorta_bend_deg=float(rng.uniform(1.0, 4.0)), aorta_dir_deg=90.0,
+                       bifurcation_bend_deg=severity, bifurcation_dir_deg=_out_of_plane_direction(rng),
+                       iliac_bend_deg=(severity, severity),
+                       iliac_dir_deg=(_out_of_plane_direction(rng), _out_of_plane_direction(rng)))
+
+
+def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, Deformation, list, dict]:
+    """Shape overrides, deformation, views and info of case ``index`` of ``kind``."""
+    shape, views, info = {}, [View()], {}
+    deformation = _base_deformation(rng)
+    if kind == "out_of_plane":
+        severity = OUT_OF_PLANE_SEVERITIES_DEG[index % len(OUT_OF_PLANE_SEVERITIES_DEG)]
+        deformation, info = _out_of_plane(rng, severity), {"severity_deg": severity}
+    elif kind == "straightening":
+        shape = {"tortuosity_mm": tuple(float(v) for v in rng.uniform(5.0, 9.0, size=2)),
+                 "tortuosity_waves": tuple(float(v) for v in rng.uniform(1.5, 2.5, size=2))}
+        deformation = replace(deformation, straighten=tuple(float(v) for v in rng.uniform(0.6, 0.9, size=2)))
+    elif kind == "clipped":
+        views = [View(clip_top_mm=float(rng.uniform(25.0, 45.0)))]
+    elif kind == "distal_forks":
+        shape = {"internal_iliacs": "frame"}
+    elif kind == "wide_sac":
+        shape = {"sac_radius": float(rng.uniform(28.0, 36.0)), "sac_length": float(rng.uniform(95.0, 120.0))}
+    elif kind == "extra_branches":
+        shape = {"sma": True, "coeliac": True, "accessory_renal": str(rng.choice(SIDES)), "lumbars": "frame",
+                 "internal_iliacs": "ct"}
+    elif kind == "misaligned":
+        views = [View(misalign_shift_px=(_signed(rng, 3.0, 8.0), _signed(rng, 3.0, 8.0)),
+                      misalign_rotation_deg=_signed(rng, 2.0, 4.0))]
+    elif kind == "angulated":
+        primary, secondary = ANGULATED_VIEWS_DEG[index % len(ANGULATED_VIEWS_DEG)]
+        views = [View(primary_deg=primary, secondary_deg=secondary)]
+    elif kind == "image_only":
+        info = {"images": True}
+    elif kind == "two_views":
+        angle = SECOND_VIEW_DEG[index % len(SECOND_VIEW_DEG)] * (1.0 if index % 2 == 0 else -1.0)
+        name = f"{'lao' if angle > 0 else 'rao'}{abs(angle):g}"
+        views = [View(), View(name=name, primary_deg=angle)]
+        info = {"second_view_deg": abs(angle)}
+    else:
+        raise ValueError(f"unknown scenario kind {kind!r}; choose one of {', '.join(KINDS)}")
+    return shape, deformation, views, info
+
+
+def plan_scenarios(kind: str, n: int, seed: int = 0) -> list[Scenario]:
+    """``n`` scenarios of ``kind``, drawn from ``seed`` (the kind's own stream of it)."""
+    if n < 1:
+        raise ValueError(f"number of scenarios must be positive, got {n}")
+    stream = np.random.SeedSequence([seed, KINDS.index(kind) if kind in KINDS else len(KINDS)])
+    scenarios = []
+    for index, child in enumerate(stream.spawn(n)):
+        rng = np.random.default_rng(child)
+        case_seed = int(rng.integers(0, 2**31 - 1))
+        overrides, deformation, views, info = _kind_plan(kind, index, rng)
+        shape = random_shape(rng, **overrides)
+        scenarios.append(Scenario(f"{kind}_{index:02d}", kind, case_seed, shape, deformation, views,
+                                  sid_mm=float(rng.uniform(1050.0, 1200.0)), sod_mm=float(rng.uniform(720.0, 800.0)),
+                                  info=info))
+    return scenarios
