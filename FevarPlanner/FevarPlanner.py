@@ -22,6 +22,12 @@ The only file of the project that imports ``slicer`` (and, inside the Slicer app
 
 Coordinates: the core works in DICOM LPS millimetres; Slicer's scene is RAS. The conversion
 ``RAS = (-x, -y, z)`` happens here and nowhere else.
+
+Why one file of about a thousand lines: Slicer loads a scripted module from one
+``<Module>.py`` that holds the module, widget, logic and test classes side by side (its
+scripted-module template and the ``slicerMacroBuildScriptedModule`` convention); splitting
+the MRML adapters into a package beside it would put a second ``slicer``-importing file in
+the core's reach. Everything that is not Slicer glue lives in :mod:`FevarPlannerLib`.
 """
 
 from __future__ import annotations
