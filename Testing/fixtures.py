@@ -17,6 +17,7 @@ and benchmarks through ``benchmarks/common.py``. Four groups:
 """
 
 import numpy as np
+import pytest
 
 from FevarPlannerLib import benchmark, phantom, pipeline
 from FevarPlannerLib.centerline import Centerline
@@ -357,3 +358,18 @@ def drawn_mask(centerline: Centerline, P: np.ndarray, shape) -> np.ndarray:
     """The simulation protocol's 2D side: ``centerline`` projected with ``P`` (eq. 1) and drawn
     one pixel thin on a frame of ``shape`` (rows, cols)."""
     return benchmark.draw_skeleton_mask(project(P, centerline.points), centerline.edges, shape)
+
+
+def phantom_case_fixtures(name: str, seed: int = 11, **changes):
+    """Module-scoped pytest fixtures ``case`` (:func:`phantom_case`) and ``preop`` (its
+    :func:`preop_model`); a test module binds them as ``case, preop = phantom_case_fixtures(...)``."""
+
+    @pytest.fixture(scope="module")
+    def case():
+        return phantom_case(name, seed, **changes)
+
+    @pytest.fixture(scope="module")
+    def preop(case):
+        return preop_model(case)
+
+    return case, preop

@@ -17,19 +17,12 @@ import pytest
 from FevarPlannerLib import evaluation, graph, matching, phantom, pipeline
 from FevarPlannerLib.phantom import Anatomy, Vessel
 from FevarPlannerLib.projection import pixels_per_mm, project
-from fixtures import phantom_case, preop_model
+from fixtures import phantom_case_fixtures
 
 SEED = 5
 
 
-@pytest.fixture(scope="module")
-def case():
-    return phantom_case("m", seed=SEED, misalign_rotation3d_deg=(0.0, 0.0, 0.0))
-
-
-@pytest.fixture(scope="module")
-def preop(case):
-    return preop_model(case)
+case, preop = phantom_case_fixtures("m", seed=SEED, misalign_rotation3d_deg=(0.0, 0.0, 0.0))
 
 
 def frame_mask(case, anatomy):

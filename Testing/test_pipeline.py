@@ -8,17 +8,10 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib import benchmark, evaluation, export, matching, phantom, pipeline, skeleton
-from fixtures import drawn_mask, phantom_case, preop_model
+from fixtures import drawn_mask, phantom_case, phantom_case_fixtures, preop_model
 
 
-@pytest.fixture(scope="module")
-def case():
-    return phantom_case("t")
-
-
-@pytest.fixture(scope="module")
-def preop(case):
-    return preop_model(case)
+case, preop = phantom_case_fixtures("t")
 
 
 @pytest.fixture(scope="module")

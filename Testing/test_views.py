@@ -13,7 +13,7 @@ import pytest
 
 from FevarPlannerLib import evaluation, io, phantom, pipeline
 from FevarPlannerLib.projection import projection_matrix_from_carm, write_geometry_json
-from fixtures import drawn_mask, phantom_case, preop_model
+from fixtures import drawn_mask, phantom_case_fixtures
 
 
 def view_geometry(case, primary_deg: float):
@@ -24,14 +24,7 @@ def view_geometry(case, primary_deg: float):
     return projection_matrix_from_carm(carm, isocentre), carm
 
 
-@pytest.fixture(scope="module")
-def case():
-    return phantom_case("bent", bend_anterior_deg=12.0)
-
-
-@pytest.fixture(scope="module")
-def preop(case):
-    return preop_model(case)
+case, preop = phantom_case_fixtures("bent", bend_anterior_deg=12.0)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import pytest
 from FevarPlannerLib import evaluation, io, phantom, pipeline
 from FevarPlannerLib.pipeline.visibility import _collimated_bands
 from FevarPlannerLib.projection import project, write_geometry_json
-from fixtures import phantom_case, preop_model
+from fixtures import phantom_case_fixtures
 CUT_BELOW_TOP_MM = 45
 
 
@@ -67,14 +67,7 @@ def test_a_frame_without_shutters_has_no_bands_and_a_flat_border_line_still_coun
     assert _collimated_bands(image) == {"top": 0, "bottom": 0, "left": 0, "right": 7}
 
 
-@pytest.fixture(scope="module")
-def case():
-    return phantom_case("clipped", upper_bend_deg=15.0)
-
-
-@pytest.fixture(scope="module")
-def preop(case):
-    return preop_model(case)
+case, preop = phantom_case_fixtures("clipped", upper_bend_deg=15.0)
 
 
 @pytest.fixture(scope="module")

@@ -49,26 +49,10 @@ and 3D errors, their statistics, the label restriction) and ``depth``.
 
 from __future__ import annotations
 
+from . import depth, distances, metrics
 from .depth import (MAIN_VESSELS, MIN_OUT_OF_PLANE_MM, closest_points_on_graph, depth_analysis, depth_floor,
                     depth_floor_points, ray_components)
 from .distances import SegmentIndex, graph_index, point_to_graph, point_to_segments
 from .metrics import common_labels, distance_statistics, error_2d, error_3d, evaluate, restrict_to_labels
 
-__all__ = [
-    "point_to_segments",
-    "SegmentIndex",
-    "point_to_graph",
-    "graph_index",
-    "distance_statistics",
-    "error_2d",
-    "error_3d",
-    "restrict_to_labels",
-    "common_labels",
-    "evaluate",
-    "closest_points_on_graph",
-    "depth_floor_points",
-    "depth_floor",
-    "ray_components",
-    "depth_analysis",
-    "MAIN_VESSELS",
-]
+__all__ = [*distances.__all__, *metrics.__all__, *depth.__all__]

@@ -12,6 +12,7 @@ candidates  every correspondence worth deforming with (the paper's, the labels',
 ==========  ===========================================================================
 """
 
+from . import candidates, paper, projected
 from .candidates import UNASSIGNED_PX2, candidate_correspondences, candidate_score
 from .paper import (ETA_S, ETA_T, Correspondence, SoftAssignment, branch_tangents, match_branches, match_trunks,
                     soft_assign)
@@ -20,16 +21,4 @@ from .projected import (AMBIGUOUS_PX, COVERAGE_PX, MAX_ALTERNATIVES, NO_PARTNER_
                         match_by_projection)
 from .projected import _SAMPLES, _curve_distances, _turned_residual  # the tests check the curve costs alone
 
-__all__ = [
-    "Correspondence",
-    "SoftAssignment",
-    "branch_tangents",
-    "match_trunks",
-    "match_branches",
-    "match_by_projection",
-    "candidate_correspondences",
-    "candidate_score",
-    "soft_assign",
-    "ETA_S",
-    "ETA_T",
-]
+__all__ = [*paper.__all__, *projected.__all__, *candidates.__all__]
