@@ -1270,7 +1270,8 @@ def test_two_runs_into_one_folder_leave_one_whole_set(good, reference_sets, tmp_
     out = tmp_path / "out"
     runs = [_cli_process(["plan", str(good["mask"]), "--out", str(out), "--method", method])
             for method in ("rigid", "proposed")]
-    assert [run.wait() for run in runs] == [0, 0]
+    codes = [run.wait() for run in runs]
+    assert codes == [0, 0], [run.stderr.read().decode(errors="replace") for run in runs]
     after = _without_timings(snapshot(out))
     assert after in (_without_timings(sets["rigid"]), _without_timings(sets["proposed"]))
     assert not list(tmp_path.glob(".out.*"))

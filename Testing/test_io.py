@@ -513,3 +513,19 @@ def test_json_inputs_refuse_deep_nesting_and_points_that_are_not_numbers(tmp_pat
     (tmp_path / "gt.json").write_text(json.dumps({"intraop_centerline": {"points": [[0, 0, 1], [0, 1, 1]],
                                                                          "edges": [[0, 1]]}}))
     assert io.read_ground_truth(tmp_path / "gt.json").points.shape == (2, 3)
+
+
+def test_a_folder_that_appears_before_the_rename_is_exchanged_not_overwritten(tmp_path):
+    from FevarPlannerLib import files
+
+    new, folder = tmp_path / "new", tmp_path / "out"
+    new.mkdir()
+    (new / "result.json").write_text("new")
+    folder.mkdir()
+    (folder / "result.json").write_text("other run")
+    assert files._moved_into_free_place(new, folder) is False
+    assert (new / "result.json").read_text() == "new"
+    assert (folder / "result.json").read_text() == "other run"
+    files.swap_folder(new, folder)
+    assert (folder / "result.json").read_text() == "new"
+    assert not new.exists()

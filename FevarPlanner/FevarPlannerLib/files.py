@@ -174,6 +174,17 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(code, os.strerror(code), str(b))
 
 
+def _moved_into_free_place(new: Path, folder: Path) -> bool:
+    """Rename ``new`` to the absent ``folder``; False when another run put a folder there first."""
+    try:
+        os.replace(new, folder)
+    except OSError as exc:
+        if exc.errno in (errno.ENOTEMPTY, errno.EEXIST):
+            return False
+        raise
+    return True
+
+
 def swap_folder(new: Path, folder: Path) -> None:
     """Put the complete folder ``new`` in the place of ``folder`` and delete the old one.
 
@@ -182,8 +193,7 @@ def swap_folder(new: Path, folder: Path) -> None:
     only once the new one is in place.
     """
     new, folder = Path(new), Path(folder)
-    if not os.path.lexists(folder):
-        os.replace(new, folder)
+    if not os.path.lexists(folder) and _moved_into_free_place(new, folder):
         return
     if _exchange(new, folder):
         shutil.rmtree(new)
