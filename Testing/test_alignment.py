@@ -151,3 +151,14 @@ def test_a_misaligned_frame_is_corrected(deformed_case):
     assert _error_3d(frame, truth) < aligned + 1.0 < uncorrected
     with pytest.raises(ValueError, match="pose mode"):
         pipeline.register_frame(preop, mask, wrong, refine_pose="maybe")
+
+
+def test_the_pose_option_of_plan():
+    from FevarPlannerLib.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse(["plan", "case", "--out", "o"]).pose == "auto"
+    assert parse(["plan", "case", "--out", "o", "--pose", "off"]).pose == "off"
+    assert parse(["plan", "case", "--out", "o", "--refine-pose"]).pose == "on"
+    with pytest.raises(SystemExit):
+        parse(["plan", "case", "--out", "o", "--pose", "maybe"])
