@@ -35,6 +35,10 @@ MAX_RESIDUAL_FRACTION = 0.5
 #: to the frame's stable vessels. A misaligned ``P`` puts all of them off; a deformation
 #: (renals pulled by the wire) leaves the upper aorta where ``P`` put it.
 REGION_GAIN_PX = 0.5
+#: The reference region (the upper aorta, the stiffest) must carry the offset: its mean
+#: distance to the frame under ``P`` must be at least this fraction of the offset. Renals
+#: that moved with the kidneys while the aorta stayed in place are deformation.
+REFERENCE_FRACTION = 0.5
 #: A stable point further than this from the frame's stable vessels counts as this far.
 DISTANCE_CAP_PX = 30.0
 #: A correction turning the frame further than this is a failed fit, not a misalignment.
@@ -152,7 +156,8 @@ def _best_closest_point_fit(source, curve, P, starts, tree):
 
 
 def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, targets: dict | None = None,
-                       force: bool = False, min_offset_px: float = MIN_OFFSET_PX) -> PoseCheck:
+                       reference: str | None = None, force: bool = False,
+                       min_offset_px: float = MIN_OFFSET_PX) -> PoseCheck:
     """Is the frame misaligned against ``P``? The in-plane rigid fit and the decision.
 
     Parameters
@@ -167,6 +172,8 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
     targets : dict of name -> (n, 2) array, optional
         Corresponded 2D targets of the same points (soft assignment): a coarse start for
         offsets beyond the closest points' reach. The fit starts from ``P`` as well.
+    reference : str, optional
+        The region that must carry the offset (see (d)), e.g. "upper_aorta".
     force : bool
         Apply any fit that is not a failure (too few points, turned too far), without the test.
     min_offset_px : float
@@ -182,7 +189,9 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         part and each of them comes ``REGION_GAIN_PX`` nearer (they agree on one motion). A
         deformation of the stable vessels (the renals pulled apart, the aorta bent) leaves a
         residual the rigid motion cannot remove, or leaves one region (the upper aorta) where
-        ``P`` put it.
+        ``P`` put it; (d) the ``reference`` region, if given and present, is off under ``P``
+        by at least ``REFERENCE_FRACTION`` of the offset. (A shift purely along a straight
+        upper aorta is therefore not corrected: one view cannot tell it from renals that moved.)
     """
     from scipy.spatial import cKDTree
 
@@ -218,6 +227,9 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
                      f"{check.before_px:.1f} to {check.after_px:.1f} px off the frame's")
     elif len(regions) < 2:
         check.why = f"only {', '.join(regions)} in the frame: one region cannot tell misalignment from deformation"
+    elif reference in per_region and per_region[reference][0] < REFERENCE_FRACTION * offset:
+        check.why = (f"read as deformation: {reference} is {per_region[reference][0]:.1f} px off the frame, "
+                     f"the rest {offset:.1f} px")
     elif unmoved:
         check.why = (f"read as deformation: the {offset:.1f} px offset brings {', '.join(unmoved)} no nearer to "
                      f"the frame (less than {REGION_GAIN_PX:g} px)")

@@ -99,7 +99,7 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
         nodes = nodes[assignment.assigned[nodes] & visibility.shows(projected[nodes])]
         regions[name], targets[name] = projected[nodes], assignment.targets[nodes]
     curve = g2.positions[_branch_nodes(c2, STABLE_VESSELS)]
-    return check_misalignment(regions, curve, P, targets=targets, force=mode == "on")
+    return check_misalignment(regions, curve, P, targets=targets, reference="upper_aorta", force=mode == "on")
 
 
 def _frame_projection(preop: Preoperative, view: "_ViewState", P: np.ndarray) -> None:
