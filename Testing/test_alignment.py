@@ -23,3 +23,142 @@ def test_least_squares_under_noise_and_bad_input():
     assert fit.translation[0] == pytest.approx(3.0, abs=0.15) and abs(fit.rotation_deg) < 0.05
     with pytest.raises(ValueError, match="three or more"):
         fit_in_plane_rigid(uv[:2], uv[:2], P)
+
+
+# ---------------------------------------------------------------- the pose check (issue 10)
+
+from FevarPlannerLib import alignment, benchmark, evaluation, phantom, pipeline  # noqa: E402
+
+
+def _stable_frame(rng, motion=None, region_shifts=None, noise=0.2):
+    """An upper aorta (vertical, with its top end) and two renal ostia (lateral) as projected
+    pre-operative points, and the frame's stable vessels: the same curves densely sampled,
+    moved by ``motion`` (the misalignment) and ``region_shifts`` (a deformation), noisy."""
+    curves = {"upper_aorta": np.column_stack([300.0 + 6.0 * np.sin(np.linspace(0, 2, 160)), np.linspace(100.0, 260.0, 160)]),
+              "renal_left": np.column_stack([np.linspace(302.0, 360.0, 60), 250.0 + 0.1 * np.linspace(0.0, 58.0, 60) ** 1.3]),
+              "renal_right": np.column_stack([np.linspace(238.0, 298.0, 60), 240.0 + 0.004 * np.linspace(60.0, 0.0, 60) ** 2])}
+    regions, frame = {}, []
+    for name, curve in curves.items():
+        regions[name] = curve[::5]
+        moved = curve if motion is None else motion(curve)
+        frame.append(moved + (region_shifts or {}).get(name, 0.0) + rng.normal(scale=noise, size=curve.shape))
+    return regions, np.concatenate(frame)
+
+
+def _rigid(shift, degrees, centre=(300.0, 200.0)):
+    t = np.deg2rad(degrees)
+    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    return lambda uv: (uv - centre) @ R.T + centre + shift
+
+
+def test_a_rigid_offset_of_the_stable_regions_is_corrected():
+    regions, frame = _stable_frame(np.random.default_rng(0), _rigid((9.0, -6.0), 3.0))
+    check = alignment.check_misalignment(regions, frame, P)
+    assert check.applied and "agree" in check.why
+    assert check.rotation_deg == pytest.approx(3.0, abs=0.3)
+    assert 9.0 < check.offset_px < 13.0 and check.after_px < 0.5 < 5.0 < check.before_px
+    assert not np.allclose(check.P, P)
+
+
+def test_a_small_offset_and_a_deformation_are_left_alone():
+    rng = np.random.default_rng(1)
+    small = alignment.check_misalignment(*_stable_frame(rng, _rigid((1.0, 0.5), 0.2)), P)
+    assert not small.applied and "agree" in small.why and np.array_equal(small.P, P)
+    # the wire pulls the renals apart (left up, right down), the upper aorta stays: no rigid
+    # motion explains it
+    pulled = {"renal_left": np.array([0.0, -8.0]), "renal_right": np.array([0.0, 8.0])}
+    regions, frame = _stable_frame(rng, region_shifts=pulled)
+    check = alignment.check_misalignment(regions, frame, P)
+    assert not check.applied and np.array_equal(check.P, P)
+    assert alignment.check_misalignment(regions, frame, P, force=True).applied
+
+
+def test_one_region_alone_or_too_few_points_cannot_decide():
+    regions, frame = _stable_frame(np.random.default_rng(2), _rigid((9.0, 0.0), 0.0))
+    alone = alignment.check_misalignment({"upper_aorta": regions["upper_aorta"]}, frame, P)
+    assert not alone.applied and "one region" in alone.why
+    few = alignment.check_misalignment({"renal_left": regions["renal_left"][:5]}, frame, P)
+    assert not few.applied and "too few" in few.why
+
+
+def test_robust_fit_ignores_a_few_wrong_targets():
+    rng = np.random.default_rng(5)
+    source = rng.uniform(0, 300, size=(80, 2))
+    target = _rigid((4.0, 2.0), 2.0)(source)
+    target[:8] += 40.0                                  # e.g. nodes assigned to an accessory renal
+    robust = alignment.robust_fit_in_plane_rigid(source, target, P)
+    plain = fit_in_plane_rigid(source, target, P)
+    assert robust.rotation_deg == pytest.approx(2.0, abs=0.05)
+    assert abs(plain.rotation_deg - 2.0) > 5 * abs(robust.rotation_deg - 2.0)
+
+
+def test_closest_points_refine_a_fit_along_a_curve():
+    s = np.linspace(0.0, 1.0, 400)
+    curve = np.column_stack([200.0 + 80.0 * np.cos(3.0 * s), 100.0 + 200.0 * s + 20.0 * np.sin(5.0 * s)])
+    source = curve[::10]
+    true = _rigid((3.0, -2.0), 2.0)
+    fit = alignment.closest_point_rigid(source, true(curve), P)
+    assert fit.rotation_deg == pytest.approx(2.0, abs=0.1)
+    np.testing.assert_allclose(fit.moved, true(source), atol=0.3)
+
+
+# end to end: a deformed phantom frame drawn with the true P, registered with it and with a
+# P shifted 15 px and turned 3 deg about the frame centre. The wire deforms the sac and the
+# iliacs; the upper aorta and the renals keep their place (no upper bend, no renal tilt: the
+# premise of the pose check; a bend of the stable vessels themselves is read as a turn).
+PHANTOM = dict(ct_spacing_mm=1.25, detector_pixel_mm=0.7, sma=False, coeliac=False, internal_iliacs=False,
+               primary_angle_deg=0.0, secondary_angle_deg=0.0, misalign_shift_px=(0.0, 0.0),
+               misalign_rotation_deg=0.0, bend_anterior_deg=0.0, upper_bend_deg=0.0, renal_tilt_deg=(0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def deformed_case():
+    case = phantom.generate_case(phantom.random_params(np.random.default_rng(11), **PHANTOM), name="t")
+    preop = pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    truth = case.intraop.to_centerline()
+    mask = benchmark.draw_skeleton_mask(project(case.P_true, truth.points), truth.edges,
+                                        (case.carm.rows, case.carm.cols))
+    return case, preop, mask, truth
+
+
+def _error_3d(frame, truth):
+    return evaluation.evaluate(frame.deformed, truth, frame.P, frame.skeleton2d.positions,
+                               frame.skeleton2d.edges())["3d_mm"]["mean"]
+
+
+def test_an_aligned_deformed_frame_is_untouched(deformed_case):
+    case, preop, mask, truth = deformed_case
+    auto = pipeline.register_frame(preop, mask, case.P_true)           # the default: "auto"
+    off = pipeline.register_frame(preop, mask, case.P_true, refine_pose="off")
+    pose = auto.views[0].pose_correction
+    assert pose is not None and not pose["applied"] and off.views[0].pose_correction is None
+    assert np.array_equal(auto.P, case.P_true)
+    assert np.array_equal(auto.deformed.points, off.deformed.points)
+    assert not any("disagreed" in w for w in auto.warnings)
+
+
+def test_a_misaligned_frame_is_corrected(deformed_case):
+    case, preop, mask, truth = deformed_case
+    aligned = _error_3d(pipeline.register_frame(preop, mask, case.P_true, refine_pose="off"), truth)
+    centre = ((case.carm.cols - 1) / 2.0, (case.carm.rows - 1) / 2.0)
+    wrong = in_plane_transform(case.P_true, translation=(15.0, 0.0), rotation_deg=3.0, center=centre)
+    uncorrected = _error_3d(pipeline.register_frame(preop, mask, wrong, refine_pose="off"), truth)
+    frame = pipeline.register_frame(preop, mask, wrong)
+    pose = frame.views[0].pose_correction
+    assert pose["applied"] and pose["offset_px"] > 10.0
+    assert pose["rotation_deg"] == pytest.approx(-3.0, abs=0.5)
+    assert any("disagreed" in w and "check the geometry" in w for w in frame.warnings)
+    assert _error_3d(frame, truth) < aligned + 1.0 < uncorrected
+    with pytest.raises(ValueError, match="pose mode"):
+        pipeline.register_frame(preop, mask, wrong, refine_pose="maybe")
+
+
+def test_the_pose_option_of_plan():
+    from FevarPlannerLib.cli import build_parser
+
+    parse = build_parser().parse_args
+    assert parse(["plan", "case", "--out", "o"]).pose == "auto"
+    assert parse(["plan", "case", "--out", "o", "--pose", "off"]).pose == "off"
+    assert parse(["plan", "case", "--out", "o", "--refine-pose"]).pose == "on"
+    with pytest.raises(SystemExit):
+        parse(["plan", "case", "--out", "o", "--pose", "maybe"])

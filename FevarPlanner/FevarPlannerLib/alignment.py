@@ -1,21 +1,51 @@
-"""Rigid pre-alignment (paper eq. 1) and an optional in-plane pose correction.
+"""Rigid pre-alignment (paper eq. 1) and the in-plane pose check.
 
 The paper pre-aligns the 3D skeleton with the projection matrix ``P`` alone. When the
 frame and ``P`` disagree (a moved table, a mis-calibrated C-arm: the misaligned cases of
 the paper's Fig. 5), the deformation explains the offset as a 3D shift. ``fit_in_plane_rigid``
 finds the rotation and translation of the image plane between corresponding points and
 folds it into ``P`` (``A @ P``), so that everything downstream keeps working with one matrix.
+
+``check_misalignment`` decides whether such a correction is called for. A stiff wire moves
+the iliacs and the sac; it barely moves the aorta above the renal arteries and the renal
+ostia. A misaligned ``P`` moves all of them by one in-plane rigid motion. So the
+correction is applied only when these stable regions (each fitted on its own) agree on
+one rigid offset that is larger than the pixel noise and large against what is left after
+the fit; otherwise the offset is read as deformation and ``P`` is kept.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .projection import in_plane_transform
 
-__all__ = ["PoseRefinement", "fit_in_plane_rigid"]
+__all__ = ["PoseRefinement", "PoseCheck", "fit_in_plane_rigid", "robust_fit_in_plane_rigid",
+           "check_misalignment", "MIN_OFFSET_PX"]
+
+#: Below this mean displacement of the stable points (px) the frame and ``P`` agree.
+MIN_OFFSET_PX = 2.0
+#: A misalignment is explained by the rigid fit: the stable points' mean distance to the
+#: frame's stable vessels must drop to this fraction of what it was under ``P``; a
+#: deformation leaves a distance of its own size.
+MAX_RESIDUAL_FRACTION = 0.5
+#: Every region must support the motion on its own: come at least this much nearer (mean px)
+#: to the frame's stable vessels. A misaligned ``P`` puts all of them off; a deformation
+#: (renals pulled by the wire) leaves the upper aorta where ``P`` put it.
+REGION_GAIN_PX = 0.5
+#: The reference region (the upper aorta, the stiffest) must carry the offset: its mean
+#: distance to the frame under ``P`` must be at least this fraction of the offset. Renals
+#: that moved with the kidneys while the aorta stayed in place are deformation.
+REFERENCE_FRACTION = 0.5
+#: A stable point further than this from the frame's stable vessels counts as this far.
+DISTANCE_CAP_PX = 30.0
+#: A correction turning the frame further than this is a failed fit, not a misalignment.
+MAX_ROTATION_DEG = 30.0
+#: Huber threshold in robust standard deviations (1.4826 MAD) of the residuals.
+HUBER_K = 1.345
+ROBUST_ITERATIONS = 10
 
 
 @dataclass
@@ -28,26 +58,239 @@ class PoseRefinement:
     scale: float
     cost_before: float
     cost_after: float
+    weights: np.ndarray | None = None
+    moved: np.ndarray | None = None
 
 
-def fit_in_plane_rigid(source_uv: np.ndarray, target_uv: np.ndarray, P: np.ndarray) -> PoseRefinement:
+def _weighted_kabsch(source_uv, target_uv, weights):
+    w = weights / weights.sum()
+    centre_s, centre_t = w @ source_uv, w @ target_uv
+    covariance = ((source_uv - centre_s) * w[:, None]).T @ (target_uv - centre_t)
+    theta = np.arctan2(covariance[0, 1] - covariance[1, 0], covariance[0, 0] + covariance[1, 1])
+    c, s = np.cos(theta), np.sin(theta)
+    moved = (source_uv - centre_s) @ np.array([[c, -s], [s, c]]).T + centre_t
+    return theta, centre_s, centre_t, moved
+
+
+def fit_in_plane_rigid(source_uv: np.ndarray, target_uv: np.ndarray, P: np.ndarray,
+                       weights: np.ndarray | None = None) -> PoseRefinement:
     """Least-squares rotation and translation of the image plane taking ``source`` to ``target``.
 
     The closed-form 2D Procrustes (Kabsch) solution for corresponding points, e.g. the
-    projected 3D nodes of the stable vessels and their soft-assigned 2D targets. ``cost_*``
-    are the mean squared distances (px^2) before and after.
+    projected 3D nodes of the stable vessels and their soft-assigned 2D targets, with
+    optional non-negative ``weights``. ``cost_*`` are the (weighted) mean squared distances
+    (px^2) before and after.
     """
     source_uv, target_uv = np.asarray(source_uv, float), np.asarray(target_uv, float)
     if len(source_uv) < 3 or source_uv.shape != target_uv.shape:
         raise ValueError(f"need three or more corresponding points, got {source_uv.shape} and {target_uv.shape}")
-    centre_s, centre_t = source_uv.mean(axis=0), target_uv.mean(axis=0)
-    covariance = (source_uv - centre_s).T @ (target_uv - centre_t)
-    theta = np.arctan2(covariance[0, 1] - covariance[1, 0], covariance[0, 0] + covariance[1, 1])
-    c, s = np.cos(theta), np.sin(theta)
-    moved = (source_uv - centre_s) @ np.array([[c, -s], [s, c]]).T + centre_t
+    weights = np.ones(len(source_uv)) if weights is None else np.asarray(weights, float)
+    theta, centre_s, centre_t, moved = _weighted_kabsch(source_uv, target_uv, weights)
     translation = centre_t - centre_s
     refined = in_plane_transform(P, translation=translation, rotation_deg=np.rad2deg(theta), center=centre_s)
-    before = float(np.mean(np.sum((source_uv - target_uv) ** 2, axis=1)))
-    after = float(np.mean(np.sum((moved - target_uv) ** 2, axis=1)))
+    w = weights / weights.sum()
+    before = float(w @ np.sum((source_uv - target_uv) ** 2, axis=1))
+    after = float(w @ np.sum((moved - target_uv) ** 2, axis=1))
     return PoseRefinement(refined, (float(translation[0]), float(translation[1])), float(np.rad2deg(theta)), 1.0,
-                          before, after)
+                          before, after, weights, moved)
+
+
+def robust_fit_in_plane_rigid(source_uv: np.ndarray, target_uv: np.ndarray, P: np.ndarray) -> PoseRefinement:
+    """:func:`fit_in_plane_rigid` with a Huber loss (iteratively reweighted least squares).
+
+    A few wrong correspondences (a renal target on an accessory artery, a node soft-assigned
+    to the wrong end of a branch) get weights below one instead of dragging the fit.
+    """
+    source_uv, target_uv = np.asarray(source_uv, float), np.asarray(target_uv, float)
+    weights = np.ones(len(source_uv))
+    fit = fit_in_plane_rigid(source_uv, target_uv, P, weights)
+    for _ in range(ROBUST_ITERATIONS):
+        residual = np.linalg.norm(fit.moved - target_uv, axis=1)
+        scale = max(1.4826 * np.median(residual), 0.1)      # below 0.1 px the fit is exact
+        new = np.minimum(1.0, HUBER_K * scale / np.maximum(residual, 1e-12))
+        if np.allclose(new, weights, atol=1e-4):
+            break
+        weights = new
+        fit = fit_in_plane_rigid(source_uv, target_uv, P, weights)
+    return fit
+
+
+@dataclass
+class PoseCheck:
+    """What :func:`check_misalignment` found and decided (``P``: corrected if ``applied``).
+
+    ``offset_px``: mean displacement of the stable points by the fitted motion;
+    ``before_px`` / ``after_px``: mean distance of the stable points to the frame's stable
+    vessels under the given and the fitted pose; ``regions_px``: the same per region
+    (before, after).
+    """
+
+    P: np.ndarray
+    translation_px: tuple
+    rotation_deg: float
+    offset_px: float
+    before_px: float
+    after_px: float
+    regions_px: dict = field(default_factory=dict)
+    applied: bool = False
+    why: str = ""
+
+    def to_dict(self) -> dict:
+        return {"translation_px": [round(float(t), 3) for t in self.translation_px],
+                "rotation_deg": round(float(self.rotation_deg), 3), "offset_px": round(float(self.offset_px), 3),
+                "distance_before_px": round(float(self.before_px), 3),
+                "distance_after_px": round(float(self.after_px), 3),
+                "regions_px": {k: [round(float(b), 3), round(float(a), 3)] for k, (b, a) in self.regions_px.items()},
+                "applied": bool(self.applied), "why": self.why}
+
+
+def _distances(tree, uv: np.ndarray) -> np.ndarray:
+    """Distance of each point to the nearest curve point, capped (a stray match counts as ``DISTANCE_CAP_PX``)."""
+    return np.minimum(tree.query(uv)[0], DISTANCE_CAP_PX)
+
+
+def _best_closest_point_fit(source, curve, P, starts, tree):
+    """The closest-point fit (from each start) that leaves the stable points nearest to the curve."""
+    return min((closest_point_rigid(source, curve, P, start) for start in starts),
+               key=lambda fit: _distances(tree, fit.moved).mean())
+
+
+def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, targets: dict | None = None,
+                       reference: str | None = None, force: bool = False,
+                       min_offset_px: float = MIN_OFFSET_PX) -> PoseCheck:
+    """Is the frame misaligned against ``P``? The in-plane rigid fit and the decision.
+
+    Parameters
+    ----------
+    regions : dict of name -> (n, 2) array
+        The stable regions' pre-operative nodes projected through ``P`` (e.g. "upper_aorta",
+        "renal_left", "renal_right"). Regions with fewer than three points are left out.
+    curve_uv : (m, 2) array
+        Points of the frame's stable vessels (the 2D skeleton's aorta and renal branches).
+    P : (3, 4)
+        The given projection matrix.
+    targets : dict of name -> (n, 2) array, optional
+        Corresponded 2D targets of the same points (soft assignment): a coarse start for
+        offsets beyond the closest points' reach. The fit starts from ``P`` as well.
+    reference : str, optional
+        The region that must carry the offset (see (d)), e.g. "upper_aorta".
+    force : bool
+        Apply any fit that is not a failure (too few points, turned too far), without the test.
+    min_offset_px : float
+        The smallest mean displacement treated as a misalignment.
+
+    Returns
+    -------
+    PoseCheck
+        The fit (:func:`closest_point_rigid`), the test's numbers and the decision. The
+        correction is applied when (a) the offset exceeds ``min_offset_px``, (b) it explains
+        the mismatch: the mean distance of the stable points to the frame's stable vessels
+        drops to ``MAX_RESIDUAL_FRACTION`` of what it was, and (c) two or more regions take
+        part and each of them comes ``REGION_GAIN_PX`` nearer (they agree on one motion). A
+        deformation of the stable vessels (the renals pulled apart, the aorta bent) leaves a
+        residual the rigid motion cannot remove, or leaves one region (the upper aorta) where
+        ``P`` put it; (d) the ``reference`` region, if given and present, is off under ``P``
+        by at least ``REFERENCE_FRACTION`` of the offset. (A shift purely along a straight
+        upper aorta is therefore not corrected: one view cannot tell it from renals that moved.)
+    """
+    from scipy.spatial import cKDTree
+
+    regions = {name: np.asarray(uv, float) for name, uv in regions.items() if len(uv) >= 3}
+    curve_uv = np.asarray(curve_uv, float)
+    if sum(len(uv) for uv in regions.values()) < 10 or len(curve_uv) < 3:
+        return PoseCheck(np.asarray(P, float), (0.0, 0.0), 0.0, 0.0, 0.0, 0.0,
+                         why="too few stable points (upper aorta, renal ostia) in the frame to test the pose")
+    source = np.concatenate(list(regions.values()))
+    tree = cKDTree(curve_uv)
+    starts = [None]
+    if targets is not None:
+        coarse = robust_fit_in_plane_rigid(source, np.concatenate([targets[name] for name in regions]), P)
+        if abs(coarse.rotation_deg) <= MAX_ROTATION_DEG:
+            starts.append(coarse)
+    fit = _best_closest_point_fit(source, curve_uv, P, starts, tree)
+    before, after = _distances(tree, source), _distances(tree, fit.moved)
+    offset = float(np.linalg.norm(fit.moved - source, axis=1).mean())
+    bounds = np.cumsum([0] + [len(uv) for uv in regions.values()])
+    per_region = {name: (float(before[i:j].mean()), float(after[i:j].mean()))
+                  for name, i, j in zip(regions, bounds[:-1], bounds[1:])}
+    check = PoseCheck(np.asarray(P, float), fit.translation, fit.rotation_deg, offset, float(before.mean()),
+                      float(after.mean()), per_region)
+    unmoved = [name for name, (b, a) in per_region.items() if a > b - REGION_GAIN_PX]
+    if abs(fit.rotation_deg) > MAX_ROTATION_DEG:
+        check.why = f"fit turned the frame {fit.rotation_deg:.1f} deg: a failed fit, not a misalignment"
+    elif force:
+        check.applied, check.why = True, "pose correction forced"
+    elif offset < min_offset_px:
+        check.why = f"frame and P agree: best rigid offset {offset:.1f} px (< {min_offset_px:g} px)"
+    elif check.after_px > MAX_RESIDUAL_FRACTION * check.before_px:
+        check.why = (f"read as deformation: a rigid {offset:.1f} px offset takes the stable vessels only from "
+                     f"{check.before_px:.1f} to {check.after_px:.1f} px off the frame's")
+    elif len(regions) < 2:
+        check.why = f"only {', '.join(regions)} in the frame: one region cannot tell misalignment from deformation"
+    elif reference in per_region and per_region[reference][0] < REFERENCE_FRACTION * offset:
+        check.why = (f"read as deformation: {reference} is {per_region[reference][0]:.1f} px off the frame, "
+                     f"the rest {offset:.1f} px")
+    elif unmoved:
+        check.why = (f"read as deformation: the {offset:.1f} px offset brings {', '.join(unmoved)} no nearer to "
+                     f"the frame (less than {REGION_GAIN_PX:g} px)")
+    else:
+        check.applied = True
+        check.why = (f"{', '.join(regions)} agree on one rigid offset of {offset:.1f} px (stable vessels "
+                     f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
+    if check.applied:
+        check.P = fit.P
+    return check
+
+
+#: Closest-point passes of :func:`closest_point_rigid` and the change (px) that ends them.
+ICP_ITERATIONS = 50
+ICP_SETTLED_PX = 1e-3
+#: Curve points whose local principal direction gives a point's normal.
+NORMAL_NEIGHBOURS = 7
+
+
+def _curve_normals(curve_uv: np.ndarray, tree) -> np.ndarray:
+    """Unit normal of a 2D point-sampled curve at each point (local principal direction)."""
+    _, near = tree.query(curve_uv, k=min(NORMAL_NEIGHBOURS, len(curve_uv)))
+    local = curve_uv[near] - curve_uv[near].mean(axis=1, keepdims=True)
+    _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", local, local))
+    return vectors[:, :, 0]                      # the smallest spread: across the curve
+
+
+def _huber_weights(residual: np.ndarray) -> np.ndarray:
+    scale = max(1.4826 * np.median(np.abs(residual)), 0.05)
+    return np.minimum(1.0, HUBER_K * scale / np.maximum(np.abs(residual), 1e-12))
+
+
+def closest_point_rigid(source_uv: np.ndarray, curve_uv: np.ndarray, P: np.ndarray,
+                        start: PoseRefinement | None = None) -> PoseRefinement:
+    """In-plane rigid fit of ``source`` onto a point-sampled 2D ``curve`` (2D ICP, point to line).
+
+    Refines a fit from correspondences (``start``) to sub-pixel: soft-assigned targets slide
+    along a vessel whose 2D length differs from its projected 3D length; the distance to
+    the curve along its normal does not depend on where along the vessel a point lies.
+    Gauss-Newton steps of the rotation and translation with Huber weights. Returns the fit
+    from ``source`` (through ``P``).
+    """
+    from scipy.spatial import cKDTree
+
+    source_uv, curve_uv = np.asarray(source_uv, float), np.asarray(curve_uv, float)
+    tree = cKDTree(curve_uv)
+    normals = _curve_normals(curve_uv, tree)
+    moved = source_uv.copy() if start is None else np.asarray(start.moved, float).copy()
+    for _ in range(ICP_ITERATIONS):
+        _, nearest = tree.query(moved)
+        n = normals[nearest]
+        residual = np.einsum("ij,ij->i", n, moved - curve_uv[nearest])
+        centre = moved.mean(axis=0)
+        arm = moved - centre
+        jacobian = np.column_stack([n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1], n])
+        w = _huber_weights(residual)
+        step = np.linalg.lstsq(jacobian * np.sqrt(w)[:, None], -residual * np.sqrt(w), rcond=None)[0]
+        c, s = np.cos(step[0]), np.sin(step[0])
+        new = arm @ np.array([[c, -s], [s, c]]).T + centre + step[1:]
+        change = np.linalg.norm(new - moved, axis=1).max()
+        moved = new
+        if change < ICP_SETTLED_PX:
+            break
+    return fit_in_plane_rigid(source_uv, moved, P)

@@ -131,7 +131,7 @@ def _cmd_plan(args) -> int:
     result = plan_case(args.case, args.out, method=args.method, progress=progress,
                        ct=args.ct, aorta_mask=args.aorta_mask, skeleton3d=args.skeleton3d, fluoro=args.fluoro,
                        fluoro_mask=args.fluoro_mask, geometry=args.geometry, frame=args.frame,
-                       start=args.start, target=args.target, refine_pose=args.refine_pose, segmenter=args.segmenter,
+                       start=args.start, target=args.target, refine_pose=args.pose, segmenter=args.segmenter,
                        cache=args.cache, drr=args.drr)
     ProgressBar.end_open_line()
     _print_summary(result, args.out)
@@ -352,8 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
                                               "optional masks and geometry.json (docs/DESIGN.md section 4)")
     plan.add_argument("--out", type=_output_path, required=True, help="output folder (result.json, .vtp, .mrk.json, PNGs)")
     _add_planning_options(plan)
-    plan.add_argument("--refine-pose", action="store_true",
-                      help="correct the frame's in-plane pose first (for a frame known to be misaligned)")
+    plan.add_argument("--pose", choices=("auto", "off", "on"), default="auto",
+                      help="in-plane pose check of the frame against P: auto (default) corrects P when the upper "
+                           "aorta and renal ostia agree on one rigid offset; off keeps P; on always corrects")
+    plan.add_argument("--refine-pose", dest="pose", action="store_const", const="on",
+                      help="the same as --pose on (kept for old scripts)")
     plan.add_argument("--drr", dest="drr", action="store_const", const=True, default="auto",
                       help="always write drr_check.png (default: when P comes from the C-arm tags)")
     plan.add_argument("--no-drr", dest="drr", action="store_const", const=False, help="never render the DRR check")

@@ -28,7 +28,7 @@ from ..preop import (Preoperative, SMOOTHING_ITERATIONS, _induced_edges, _timed,
                      preop_from_skeleton)
 from .case import _read_ground_truth, _vessel_mask, plan_case, prepare_preop, run_case
 from .fallback import FIT_TOLERANCE_PX, LENGTH_TOLERANCE, SV_NAME, _never_worse_than_sv, _vessels
-from .frame import (MAX_POSE_ROTATION_DEG, STABLE_VESSELS, _classify_2d, _prepare_view, _skeleton2d_graph,
+from .frame import (POSE_MODES, STABLE_VESSELS, _classify_2d, _prepare_view, _skeleton2d_graph,
                     register_frame, register_views)
 from .multiview import (CLOSEST_POINT_OUTLIER, CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM,
                         MAX_CANDIDATE_COMBINATIONS, TANGENT_MM)

@@ -78,7 +78,7 @@ def _view_summary(view: View, frame: ViewFrame, deformed: Centerline) -> dict:
     return {"name": view.name, "projection_matrix": np.asarray(frame.P).tolist(), "2d_px": fit,
             "2d_all_px": errors["2d_px"],
             "correspondence": frame.correspondence, "inputs": {k: str(v) for k, v in view.paths.items()},
-            "visibility": frame.visibility.to_dict(frame.nodes_outside)}
+            "visibility": frame.visibility.to_dict(frame.nodes_outside), "pose_correction": frame.pose_correction}
 
 
 def _drr_volume(case: Case):
@@ -100,7 +100,7 @@ def _preop_of(case: Case, preop, progress, segmenter, cache):
 
 
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
-             target: str = "renal_left", refine_pose: bool = False, alpha: float = 500.0,
+             target: str = "renal_left", refine_pose="auto", alpha: float = 500.0,
              beta: float = 10.0, segmenter: str = "classical", preop=None, cache=False, drr="auto") -> PlanResult:
     """Run the whole job on a loaded case: pre-op graph, registration to every view, path, errors.
 

@@ -15,7 +15,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from .. import baselines, evaluation, graph, matching, skeleton
-from ..alignment import fit_in_plane_rigid
+from ..alignment import PoseCheck, check_misalignment
 from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
@@ -37,11 +37,25 @@ def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> grap
     return graph.label_anatomy(c2.graph, c2, left=left, superior=superior)
 
 
-#: The vessels that a stiff wire moves least: the pose is refined on these alone, so that
-#: the deformation of the sac and the iliacs is not mistaken for a misaligned frame.
+#: The vessels that a stiff wire moves least: the pose is checked on these alone, so that
+#: the deformation of the sac and the iliacs is not mistaken for a misaligned frame. The
+#: "aorta" branch of Algorithm 1 is the aorta above its highest junction (the renals).
 STABLE_VESSELS = ("aorta", "renal_left", "renal_right")
-#: A correction turning the frame further than this is a failed fit, not a misalignment.
-MAX_POSE_ROTATION_DEG = 30.0
+#: Of a renal artery only the part this close to its ostium (mm of path from the aorta)
+#: counts as stable: further out the kidney moves with breathing and the wire.
+RENAL_OSTIUM_MM = 25.0
+#: Pose modes of :func:`register_views`: check and correct only when the frame is
+#: misaligned ("auto", the default), never ("off"), always ("on").
+POSE_MODES = ("auto", "off", "on")
+
+
+def _pose_mode(refine_pose) -> str:
+    """``refine_pose`` as one of :data:`POSE_MODES` (True / False are "on" / "off")."""
+    if refine_pose is True or refine_pose is False:
+        return "on" if refine_pose else "off"
+    if refine_pose not in POSE_MODES:
+        raise ValueError(f"unknown pose mode {refine_pose!r}; choose one of {', '.join(POSE_MODES)}")
+    return refine_pose
 
 
 def _branch_nodes(classification: graph.Classification, labels) -> np.ndarray:
@@ -49,24 +63,43 @@ def _branch_nodes(classification: graph.Classification, labels) -> np.ndarray:
     return np.concatenate(nodes) if nodes else np.empty(0, dtype=np.int64)
 
 
-def _refined_projection(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification,
-                        P: np.ndarray) -> np.ndarray:
-    """``P`` corrected in-plane on the stable vessels (upper aorta and renals).
+def _ostium_part(positions: np.ndarray, nodes: np.ndarray, length_mm: float) -> np.ndarray:
+    """The first nodes of a branch (ordered from its junction) within ``length_mm`` of path."""
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions[nodes], axis=0), axis=1))])
+    return nodes[along <= length_mm]
 
-    The stable vessels' 3D nodes are soft-assigned to their 2D targets (eqs. 4-5) under the
-    given ``P``; the rotation and translation of the image plane that lays their projections
-    onto the targets (alignment.fit_in_plane_rigid) is folded into ``P``. A rigid in-plane
-    move changes no projected length, so the assignment it was fitted on stays valid.
+
+def _stable_regions(preop: Preoperative) -> dict:
+    """3D graph nodes of each stable region: the upper aorta and each renal ostium."""
+    g3, c3 = preop.graph, preop.classification
+    regions = {}
+    for branch in c3.branches:
+        if branch.label == "aorta":
+            regions["upper_aorta"] = branch.nodes
+        elif branch.label in ("renal_left", "renal_right"):
+            regions[branch.label] = _ostium_part(g3.positions, branch.nodes, RENAL_OSTIUM_MM)
+    return regions
+
+
+def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification, P: np.ndarray,
+                visibility: "Visibility", mode: str) -> PoseCheck:
+    """Test the given ``P`` against the frame on the stable vessels (alignment.check_misalignment).
+
+    The stable regions' 3D nodes that the frame shows are projected through ``P`` and fitted
+    in-plane onto the frame's own stable branches (the 2D aorta and renal branches of
+    Algorithm 1), starting from ``P`` and from their soft-assigned targets (eqs. 4-5). The
+    fit is folded into ``P`` when the regions agree on it, or always with ``mode == "on"``.
     """
     g3, c3 = preop.graph, preop.classification
     candidate = matching.candidate_correspondences(g3, c3, g2, c2, P)[0]
     assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate)
-    stable = _branch_nodes(c3, STABLE_VESSELS)
-    stable = stable[assignment.assigned[stable]]
-    if len(stable) < 10:
-        return P
-    fit = fit_in_plane_rigid(project(P, g3.positions[stable]), assignment.targets[stable], P)
-    return fit.P if abs(fit.rotation_deg) <= MAX_POSE_ROTATION_DEG else P
+    projected = project(P, g3.positions)
+    regions, targets = {}, {}
+    for name, nodes in _stable_regions(preop).items():
+        nodes = nodes[assignment.assigned[nodes] & visibility.shows(projected[nodes])]
+        regions[name], targets[name] = projected[nodes], assignment.targets[nodes]
+    curve = g2.positions[_branch_nodes(c2, STABLE_VESSELS)]
+    return check_misalignment(regions, curve, P, targets=targets, reference="upper_aorta", force=mode == "on")
 
 
 def _frame_projection(preop: Preoperative, view: "_ViewState", P: np.ndarray) -> None:
@@ -87,6 +120,7 @@ class _ViewState:
     visible: np.ndarray | None = None
     candidates: list = field(default_factory=list)
     unclassified: str | None = None      # why Algorithm 1 failed on this view (then c2 is None)
+    pose: PoseCheck | None = None        # the in-plane pose check (None: not run)
     assignments: dict = field(default_factory=dict)     # id(correspondence) -> (correspondence, assignment)
 
     def assignment(self, preop: Preoperative, correspondence) -> matching.SoftAssignment:
@@ -114,7 +148,7 @@ def _threadpools() -> ThreadpoolController:
 
 
 def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, method: str = "proposed",
-                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0,
+                   refine_pose="auto", alpha: float = 500.0, beta: float = 10.0,
                    image: np.ndarray | None = None, name: str = "main") -> FrameResult:
     """Register the pre-operative skeleton to one frame's 2D vessel mask (the per-frame part).
 
@@ -126,11 +160,13 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
     P : (3, 4)
         Projection matrix (rigid pre-alignment, eq. 1).
     method : {"proposed", "icp-tps", "rigid"}
-    refine_pose : bool
-        Correct the in-plane pose on the stable vessels first (:func:`_refined_projection`).
-        Off by default: on deformed but aligned frames it mistakes the deformation for a
-        misalignment (benchmark: 3D error 1.1 -> 5-11 mm); it pays off only for frames
-        known to be misaligned by more than about 10 px (the robustness curves).
+    refine_pose : {"auto", "off", "on"} or bool
+        The in-plane pose check (:func:`_pose_check`, alignment.check_misalignment). "auto"
+        (the default) corrects ``P`` only when the upper aorta and both renal ostia agree on
+        one rigid in-plane offset of the frame (a misaligned ``P``, not a deformation) and
+        only for the proposed method; "on" (True) applies the fit always and to every method;
+        "off" (False) keeps ``P`` as given. What was found is in ``FrameResult.views`` and,
+        when applied, in the warnings.
     alpha, beta : float
         Weights of the length and smoothness terms (eq. 6).
     image : (rows, cols) array, optional
@@ -143,7 +179,7 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
 
 
 def register_views(preop: Preoperative, frames, *, names=None, images=None, method: str = "proposed",
-                   refine_pose: bool = False, alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
+                   refine_pose="auto", alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
     """Register the pre-operative skeleton to several frames of the same anatomy at once.
 
     Each view gets its own 2D skeleton graph, classification, candidate correspondences and
@@ -191,7 +227,8 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -
     with _timed(timings, "skeleton2d"):
         g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
     c2 = unclassified = None
-    if refine_pose or method == "proposed":
+    mode = _pose_mode(refine_pose)
+    if mode == "on" or method == "proposed":
         with _timed(timings, "graph2d"):
             try:
                 c2 = _classify_2d(g2, P, preop.centre)
@@ -200,12 +237,24 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -
                 unclassified = str(exc)
             # pixel staircase smoothed away: eq. (4) compares path lengths along it
             g2 = graph.smooth_positions(g2, SMOOTHING_ITERATIONS)
-    if refine_pose and c2 is not None:
+    visibility = frame_visibility(mask2d, image)
+    pose = None
+    if c2 is not None and (mode == "on" or (mode == "auto" and method == "proposed")):
         with _timed(timings, "pose_refinement"):
-            P = _refined_projection(preop, g2, c2, P)
-    view = _ViewState(name, P, g2, c2, frame_visibility(mask2d, image), unclassified=unclassified)
+            pose = _pose_check(preop, g2, c2, P, visibility, mode)
+        P = pose.P
+    view = _ViewState(name, P, g2, c2, visibility, unclassified=unclassified, pose=pose)
     _frame_projection(preop, view, P)
     return view
+
+
+def _pose_warning(view: "_ViewState") -> str | None:
+    """The warning of an applied pose correction: the geometry deserves a look."""
+    if view.pose is None or not view.pose.applied:
+        return None
+    (du, dv), turn = view.pose.translation_px, view.pose.rotation_deg
+    return (f"view {view.name}: frame and P disagreed by {view.pose.offset_px:.1f} px (shift {du:+.1f}, {dv:+.1f} px, "
+            f"turn {turn:+.1f} deg): corrected in-plane; check the geometry")
 
 
 def _alternatives(preop, views, trials, best, alpha, beta) -> list:
@@ -249,6 +298,7 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
             warnings.append(f"view {name} not used: {exc}")
     if not views:
         raise ValueError(f"view {names[0]}: {failures[0]}" if len(frames) > 1 else str(failures[0])) from failures[0]
+    warnings += [w for w in map(_pose_warning, views) if w]
     points = preop.centerline.points
     energy, source = None, method
     if method == "rigid":
@@ -286,7 +336,8 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
     timings["intraop"] = sum(timings.values())
     outside = [int(np.count_nonzero(~v.visible[preop.kept])) for v in views]
     frames_out = [ViewFrame(v.name, v.P, v.g2, v.c2, v.visibility, n_out,
-                            (c.source if c is not None else "nearest points") if method == "proposed" else method)
+                            (c.source if c is not None else "nearest points") if method == "proposed" else method,
+                            None if v.pose is None else v.pose.to_dict())
                   for v, n_out, c in zip(views, outside, best if method == "proposed" else [None] * len(views))]
     first = views[0]
     return FrameResult(preop.centerline.with_points(deformed), first.P, first.g2, first.c2, energy, source, timings,

@@ -27,6 +27,7 @@ class ViewFrame:
     visibility: Visibility
     nodes_outside: int = 0
     correspondence: str = ""
+    pose_correction: dict | None = None
 
 
 @dataclass
@@ -84,4 +85,6 @@ class PlanResult:
         if self.views:
             extra["views"] = [{k: v for k, v in view.items() if k != "visibility"} for view in self.views]
             extra["visibility"] = {view["name"]: view["visibility"] for view in self.views}
+            if self.views[0].get("pose_correction") is not None:
+                extra["pose_correction"] = self.views[0]["pose_correction"]
         return export.build_result_dict(self.method, self.preop, self.deformed, self.path, self.timings, **extra)
