@@ -308,6 +308,24 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     return labels, traces, lumen_hu
 
 
+def _disc_box(ct: Volume, centre, reach: float):
+    """The in-slice box ``[lo, hi)`` around ``centre`` (j, i) that holds a disc of ``reach`` mm, and the disc in it."""
+    spacing_ji = _slice_axes_mm(ct)
+    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
+    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
+    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
+    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
+    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
+    return lo, hi, disc
+
+
+def _smoothed_window(ct: Volume, k: int, lo, hi) -> np.ndarray:
+    """Slice ``k`` of the CT inside the box ``[lo, hi)``, lightly smoothed (0.6 mm Gaussian)."""
+    spacing_ji = _slice_axes_mm(ct)
+    return ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
+                               0.6 / np.asarray(spacing_ji))
+
+
 def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
     """The two common iliacs in slice ``k`` just below an aortic cross-section (``centre``,
     ``radius`` in the slice above), or [].
@@ -321,14 +339,8 @@ def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
     from skimage.feature import peak_local_max
 
     spacing_ji = _slice_axes_mm(ct)
-    reach = 1.6 * radius + 8.0
-    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
-    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
-    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
-    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
-    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
-    window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
-                                 0.6 / np.asarray(spacing_ji))
+    lo, hi, disc = _disc_box(ct, centre, 1.6 * radius + 8.0)
+    window = _smoothed_window(ct, k, lo, hi)
     edt = ndi.distance_transform_edt((window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc, sampling=spacing_ji)
     min_distance = max(1, int(round(2 * ILIAC_MIN_RADIUS_MM / max(spacing_ji))))
     peaks = peak_local_max(edt, min_distance=min_distance, threshold_abs=ILIAC_MIN_RADIUS_MM, num_peaks=2,
@@ -384,16 +396,9 @@ def _fill_crotch(ct: Volume, aorta: _Trace, k_split: int, lumen_hu, labels: np.n
     iliacs are first apart (the crotch), within the aorta's reach, so the tree stays connected."""
     k_last = max(aorta.centres, key=lambda k: k * aorta.step)
     centre, radius = aorta.centres[k_last], aorta.radii[k_last]
-    spacing_ji = _slice_axes_mm(ct)
-    reach = 1.45 * radius + 2.0
-    half = np.ceil(reach / np.asarray(spacing_ji)).astype(int)
-    lo = np.maximum(np.floor(centre).astype(int) - half, 0)
-    hi = np.minimum(np.floor(centre).astype(int) + half + 1, ct.shape[1:])
-    rows, cols = np.ogrid[lo[0]:hi[0], lo[1]:hi[1]]
-    disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= reach
+    lo, hi, disc = _disc_box(ct, centre, 1.45 * radius + 2.0)
     for k in range(k_last + aorta.step, k_split + aorta.step, aorta.step):
-        window = ndi.gaussian_filter(np.asarray(ct.array[k, lo[0]:hi[0], lo[1]:hi[1]], dtype=np.float32),
-                                     0.6 / np.asarray(spacing_ji))
+        window = _smoothed_window(ct, k, lo, hi)
         view = labels[k, lo[0]:hi[0], lo[1]:hi[1]]
         view[(window >= lumen_hu[0]) & (window <= lumen_hu[1]) & disc & (view == 0)] = 2
 
