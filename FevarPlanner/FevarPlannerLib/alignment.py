@@ -150,8 +150,12 @@ def _distances(tree, uv: np.ndarray) -> np.ndarray:
 
 
 def _best_closest_point_fit(source, curve, P, starts, tree):
-    """The closest-point fit (from each start) that leaves the stable points nearest to the curve."""
-    return min((closest_point_rigid(source, curve, P, start) for start in starts),
+    """The closest-point fit (from each start) that leaves the stable points nearest to the curve.
+
+    The curve's tree and normals are built once and shared by the starts.
+    """
+    normals = _curve_normals(curve, tree)
+    return min((_closest_point_fit(source, curve, P, start, tree, normals) for start in starts),
                key=lambda fit: _distances(tree, fit.moved).mean())
 
 
@@ -276,7 +280,11 @@ def closest_point_rigid(source_uv: np.ndarray, curve_uv: np.ndarray, P: np.ndarr
 
     source_uv, curve_uv = np.asarray(source_uv, float), np.asarray(curve_uv, float)
     tree = cKDTree(curve_uv)
-    normals = _curve_normals(curve_uv, tree)
+    return _closest_point_fit(source_uv, curve_uv, P, start, tree, _curve_normals(curve_uv, tree))
+
+
+def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals) -> PoseRefinement:
+    """:func:`closest_point_rigid` on float arrays, with the curve's KD-tree and normals given."""
     moved = source_uv.copy() if start is None else np.asarray(start.moved, float).copy()
     for _ in range(ICP_ITERATIONS):
         _, nearest = tree.query(moved)

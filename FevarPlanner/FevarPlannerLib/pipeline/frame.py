@@ -82,16 +82,19 @@ def _stable_regions(preop: Preoperative) -> dict:
 
 
 def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification, P: np.ndarray,
-                visibility: "Visibility", mode: str) -> PoseCheck:
+                visibility: "Visibility", mode: str) -> tuple[PoseCheck, list, matching.SoftAssignment]:
     """Test the given ``P`` against the frame on the stable vessels (alignment.check_misalignment).
 
     The stable regions' 3D nodes that the frame shows are projected through ``P`` and fitted
     in-plane onto the frame's own stable branches (the 2D aorta and renal branches of
     Algorithm 1), starting from ``P`` and from their soft-assigned targets (eqs. 4-5). The
     fit is folded into ``P`` when the regions agree on it, or always with ``mode == "on"``.
+    Returns the check, the candidate correspondences under ``P`` and the first one's soft
+    assignment (the registration reuses both when ``P`` is kept).
     """
     g3, c3 = preop.graph, preop.classification
-    candidate = matching.candidate_correspondences(g3, c3, g2, c2, P)[0]
+    candidates = matching.candidate_correspondences(g3, c3, g2, c2, P)
+    candidate = candidates[0]
     assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate)
     projected = project(P, g3.positions)
     regions, targets = {}, {}
@@ -99,7 +102,8 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
         nodes = nodes[assignment.assigned[nodes] & visibility.shows(projected[nodes])]
         regions[name], targets[name] = projected[nodes], assignment.targets[nodes]
     curve = g2.positions[_branch_nodes(c2, STABLE_VESSELS)]
-    return check_misalignment(regions, curve, P, targets=targets, reference="upper_aorta", force=mode == "on")
+    check = check_misalignment(regions, curve, P, targets=targets, reference="upper_aorta", force=mode == "on")
+    return check, candidates, assignment
 
 
 def _frame_projection(preop: Preoperative, view: "_ViewState", P: np.ndarray) -> None:
@@ -238,12 +242,16 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -
             # pixel staircase smoothed away: eq. (4) compares path lengths along it
             g2 = graph.smooth_positions(g2, SMOOTHING_ITERATIONS)
     visibility = frame_visibility(mask2d, image)
-    pose = None
+    pose = kept = None
     if c2 is not None and (mode == "on" or (mode == "auto" and method == "proposed")):
         with _timed(timings, "pose_refinement"):
-            pose = _pose_check(preop, g2, c2, P, visibility, mode)
+            pose, candidates, assignment = _pose_check(preop, g2, c2, P, visibility, mode)
+        if np.array_equal(pose.P, P):       # P kept: the check's matching under it stands
+            kept = candidates, {id(candidates[0]): (candidates[0], assignment)}
         P = pose.P
     view = _ViewState(name, P, g2, c2, visibility, unclassified=unclassified, pose=pose)
+    if kept is not None and method == "proposed":
+        view.candidates, view.assignments = kept
     _frame_projection(preop, view, P)
     return view
 
@@ -315,8 +323,9 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
                              f"no view could be classified (view {views[0].name}: {views[0].unclassified})")
         with _timed(timings, "matching"):
             for view in views:
-                view.candidates = [None] if view.c2 is None else matching.candidate_correspondences(
-                    preop.graph, preop.classification, view.g2, view.c2, view.P)
+                if not view.candidates:         # not already found by the pose check under this P
+                    view.candidates = [None] if view.c2 is None else matching.candidate_correspondences(
+                        preop.graph, preop.classification, view.g2, view.c2, view.P)
         combinations = list(itertools.islice(itertools.product(*[v.candidates for v in classified]),
                                              MAX_CANDIDATE_COMBINATIONS))
         with _timed(timings, "deformation"):
