@@ -92,6 +92,13 @@ def test_robust_fit_ignores_a_few_wrong_targets():
     assert abs(plain.rotation_deg - 2.0) > 5 * abs(robust.rotation_deg - 2.0)
 
 
+def test_the_fast_median_is_numpys_to_the_bit():
+    rng = np.random.default_rng(6)
+    for n in (1, 2, 3, 4, 124, 125):
+        for values in (rng.normal(scale=30.0, size=n), np.round(rng.normal(scale=3.0, size=n), 1)):
+            assert alignment._median(values) == np.median(values)
+
+
 def test_closest_points_refine_a_fit_along_a_curve():
     s = np.linspace(0.0, 1.0, 400)
     curve = np.column_stack([200.0 + 80.0 * np.cos(3.0 * s), 100.0 + 200.0 * s + 20.0 * np.sin(5.0 * s)])
