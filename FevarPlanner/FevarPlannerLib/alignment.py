@@ -102,17 +102,19 @@ def robust_fit_in_plane_rigid(source_uv: np.ndarray, target_uv: np.ndarray, P: n
     to the wrong end of a branch) get weights below one instead of dragging the fit.
     """
     source_uv, target_uv = np.asarray(source_uv, float), np.asarray(target_uv, float)
+    if len(source_uv) < 3 or source_uv.shape != target_uv.shape:
+        return fit_in_plane_rigid(source_uv, target_uv, P)      # its error message
     weights = np.ones(len(source_uv))
-    fit = fit_in_plane_rigid(source_uv, target_uv, P, weights)
+    moved = _weighted_kabsch(source_uv, target_uv, weights)[3]
     for _ in range(ROBUST_ITERATIONS):
-        residual = np.linalg.norm(fit.moved - target_uv, axis=1)
+        residual = np.linalg.norm(moved - target_uv, axis=1)
         scale = max(1.4826 * _median(residual), 0.1)      # below 0.1 px the fit is exact
         new = np.minimum(1.0, HUBER_K * scale / np.maximum(residual, 1e-12))
-        if np.allclose(new, weights, atol=1e-4):
+        if np.all(np.abs(new - weights) <= 1e-4 + 1e-5 * weights):      # np.allclose(atol=1e-4); all finite
             break
         weights = new
-        fit = fit_in_plane_rigid(source_uv, target_uv, P, weights)
-    return fit
+        moved = _weighted_kabsch(source_uv, target_uv, weights)[3]
+    return fit_in_plane_rigid(source_uv, target_uv, P, weights)
 
 
 @dataclass
