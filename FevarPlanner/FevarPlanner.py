@@ -46,7 +46,7 @@ from vtk.util import numpy_support
 from FevarPlannerLib import RESEARCH_USE_STATEMENT
 from FevarPlannerLib.centerline import Centerline
 from FevarPlannerLib.conventions import PALETTE
-from FevarPlannerLib.export import summary_rows
+from FevarPlannerLib.export import LPS_TO_RAS, summary_rows
 
 try:
     from slicer.ScriptedLoadableModule import (ScriptedLoadableModule, ScriptedLoadableModuleLogic,
@@ -111,7 +111,6 @@ KEPT_ROLES = ("aorta",)
 #: Layout name of the slice view that shows the frame (never the CT's views).
 FRAME_VIEW = "FevarFrame"
 
-LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
 
 #: Third-party modules the core imports at planning time (module -> pip requirement).
 #: Slicer ships some of them; torch is left out: only CT segmentation without a given aorta

@@ -85,6 +85,22 @@ def test_track_registers_every_frame_and_writes_csv_and_json(run_case_dir, cache
     assert again.preop_from_cache and len(again.records) == 1
 
 
+def test_track_refuses_a_frame_that_is_not_an_angiogram_and_keeps_the_others(run_case_dir, cache_dir, tmp_path):
+    folder, generated = run_case_dir
+    case = tmp_path / "case"
+    shutil.copytree(folder, case)
+    good = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                  np.random.default_rng(seed))[0] for seed in (0, 1)]
+    noise = np.random.default_rng(7).integers(0, 4096, size=good[0].shape).astype(good[0].dtype)
+    io.write_fluoro_dicom(case / "fluoro.dcm", np.stack([good[0], noise, good[1]]), generated.carm)
+    result = track_case(case)
+    refused = result.records[1]
+    assert refused.fit_2d_px is None and refused.path_length_mm is None
+    assert len(refused.warnings) == 1 and "fluoro.dcm (frame 1)" in refused.warnings[0]
+    assert "not a usable angiogram" in refused.warnings[0]
+    assert all(r.fit_2d_px is not None and r.fit_2d_px < 6.0 for r in (result.records[0], result.records[2]))
+
+
 def test_bad_option_values_fail_before_any_work(run_case_dir, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "untouched"))
     with pytest.raises(ValueError, match="target vessel must be one of"):

@@ -118,7 +118,7 @@ def _file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def preop_key(case: Case, segmenter: str = "unet") -> str:
+def preop_key(case: Case, segmenter: str = "classical") -> str:
     """The cache key of a case's pre-operative model (see the module docstring)."""
     stage = case.stage_3d
     parts = [f"stage {stage}", volume_digest(case.reference_volume), code_digest()]
@@ -185,14 +185,14 @@ def _load_entry(path: Path, key: str):
     return entry if isinstance(entry, dict) and entry.get("key") == key else None
 
 
-def preop_model(case: Case, *, segmenter: str = "unet", progress=None, cache_dir=None,
+def preop_model(case: Case, *, segmenter: str = "classical", progress=None, cache_dir=None,
                 use_cache: bool = True) -> PreopModel:
     """The case's pre-operative model: from the cache when the same inputs were seen, else computed.
 
     Parameters
     ----------
     case : Case
-    segmenter : {"unet", "threshold"}
+    segmenter : {"classical", "unet", "threshold"}
         CT segmentation for a case holding only a CT.
     progress : callable, optional
         ``progress(fraction, message)``.

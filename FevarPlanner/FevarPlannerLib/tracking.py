@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import evaluation, planning
+from . import evaluation, planning, plausibility, quality
 from .files import InputError, write_text_atomic
 from .io import load_case, read_fluoro
 
@@ -93,26 +93,41 @@ def _frame_range(n_frames: int, first: int, count: int | None, path) -> range:
 
 
 def register_run_frame(preop, case, index: int, *, method: str = "proposed", start: str = "iliac_right",
-                       target: str = "renal_left"):
+                       target: str = "renal_left", prior=None):
     """Frame ``index`` of the case's run registered against ``preop``: ``(PlanResult, times in s)``.
 
-    The frame is read (the loaded one when it is ``case.fluoro``'s), segmented (vesselness),
-    registered and its path planned; ``errors`` hold the fit to its own skeleton. Used by
+    The frame is read (the loaded one when it is ``case.fluoro``'s), segmented with the
+    projected pre-operative tree as prior, checked by the same gates as ``plan`` (the
+    frame's mask against the projected tree, its vessel tree, the result's lengths and
+    displacements: a frame that fails raises InputError), registered and its path planned;
+    ``errors`` hold the fit to its own skeleton and ``warnings`` the result's notes. Used by
     :func:`track_case` and by the workstation to play a run back.
+
+    ``prior`` (a :class:`quality.FluoroPrior` for ``preop`` and ``case.P``) may be built
+    once per run and passed in; it caches its band on the frame grid.
     """
     from .pipeline import PlanResult, register_frame
     from .segmentation import segment_fluoro
 
+    prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P) if prior is None else prior
     times = {}
     t = time.perf_counter()
     fluoro = case.fluoro if index == case.fluoro.frame else read_fluoro(case.fluoro.path, frame=index)
+    frame_path = f"{case.fluoro.path} (frame {index})"
     times["read"] = time.perf_counter() - t
     t = time.perf_counter()
-    mask = segment_fluoro(fluoro.image)
+    mask = segment_fluoro(fluoro.image, prior)
     times["segmentation"] = time.perf_counter() - t
+    try:
+        quality.check_frame_mask(mask, prior, frame=fluoro.image)
+    except quality.QualityError as exc:      # track writes no QC picture per frame
+        raise InputError(f"{frame_path}: {str(exc).replace(' (see segmentation_qc.png)', '')}") from None
     t = time.perf_counter()
     frame = register_frame(preop, mask, case.P, method=method)
     times["registration"] = time.perf_counter() - t
+    plausibility.check_vessel_tree(frame.skeleton2d.positions, frame.skeleton2d.edges(), frame.P,
+                                   preop.centerline.points, frame_path)
+    notes = plausibility.result_warnings(preop.centerline, frame.deformed, frame_path, method=method)
     t = time.perf_counter()
     path = planning.plan_path(frame.deformed, start=start, target=target)
     times["planning"] = time.perf_counter() - t
@@ -123,11 +138,12 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
                         fluoro.image, {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
                         {"fluoro": str(case.fluoro.path), "frame": index},
                         geometry=case.geometry.to_dict() if case.geometry is not None else None)
+    result.warnings.extend(frame.warnings + notes)
     return result, times
 
 
 def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
-               first: int = 0, count: int | None = None, segmenter: str = "unet", cache=True,
+               first: int = 0, count: int | None = None, segmenter: str = "classical", cache=True,
                progress=None, **case_files) -> TrackResult:
     """Register every frame of the case's multi-frame run (see the module docstring).
 
@@ -140,7 +156,7 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
         The path's vessels, checked before any work starts.
     first, count : int
         The frames to register (default all from ``first``).
-    segmenter : {"unet", "threshold"}
+    segmenter : {"classical", "unet", "threshold"}
     cache : bool or path
         Keep the pre-operative model on disk (:mod:`cache`).
     progress : callable, optional
@@ -163,6 +179,7 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
                                     cache_dir=None if cache in (True, False, None) else cache,
                                     use_cache=cache not in (False, None))
     preop, preop_seconds = model.preop, time.perf_counter() - t0
+    prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
     records, last = [], None
     for done, index in enumerate(frames):
         if progress is not None:
@@ -171,13 +188,14 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                last, times = register_run_frame(preop, case, index, method=method, start=start, target=target)
+                last, times = register_run_frame(preop, case, index, method=method, start=start, target=target,
+                                                 prior=prior)
             except (ValueError, RuntimeError) as exc:
                 records.append(FrameRecord(index, None, None, {"total": time.perf_counter() - t},
                                            [str(exc).splitlines()[0]]))
                 continue
         records.append(FrameRecord(index, last.errors["2d_px"]["mean"], last.path.length_mm, times,
-                                   sorted({str(w.message).splitlines()[0] for w in caught})))
+                                   sorted({str(w.message).splitlines()[0] for w in caught} | set(last.warnings))))
     if progress is not None:
         progress(1.0, f"{len(records)} frames")
     return TrackResult(records, preop_seconds, model.from_cache, method, last)
