@@ -529,3 +529,46 @@ def test_a_folder_that_appears_before_the_rename_is_exchanged_not_overwritten(tm
     files.swap_folder(new, folder)
     assert (folder / "result.json").read_text() == "new"
     assert not new.exists()
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+def test_staging_left_by_a_killed_run_is_removed_by_the_next_run_and_live_ones_are_kept(tmp_path):
+    from FevarPlannerLib import files
+
+    folder = tmp_path / "out"
+    folder.mkdir()
+    (folder / "result.json").write_text("old set")
+    owner = files._staging_owner()
+    host = owner.rsplit("-", 1)[0]
+    dead = tmp_path / f".out.writing.{host}-{_dead_pid()}.abc123"
+    live = tmp_path / f".out.writing.{owner}.def456"
+    elsewhere = tmp_path / f".out.writing.otherhost-{_dead_pid()}.ghi789"
+    unrelated = tmp_path / ".output.writing.x"
+    for leftover in (dead, live, elsewhere, unrelated):
+        leftover.mkdir()
+        (leftover / "overlay.png").write_bytes(b"half")
+    with files.atomic_folder(folder) as staging:
+        assert staging.name.startswith(f".out.staging.{owner}.")
+        (staging / "result.json").write_text("new set")
+    assert (folder / "result.json").read_text() == "new set"
+    assert not dead.exists()
+    assert live.exists() and elsewhere.exists() and unrelated.exists()
+    assert sorted(p.name for p in tmp_path.glob(".out.*")) == sorted([live.name, elsewhere.name])
+
+
+def test_stale_staging_is_kept_while_the_output_folder_is_missing(tmp_path):
+    from FevarPlannerLib import files
+
+    host = files._staging_owner().rsplit("-", 1)[0]
+    only_copy = tmp_path / f".out.old.{host}-{_dead_pid()}.abc123"
+    only_copy.mkdir()
+    assert files.remove_stale_staging(tmp_path / "out") == []
+    assert only_copy.exists()

@@ -10,9 +10,12 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import glob
 import json
 import os
+import re
 import shutil
+import socket
 import stat
 import tempfile
 from pathlib import Path
@@ -31,6 +34,8 @@ __all__ = [
     "write_bytes_atomic",
     "write_text_atomic",
     "swap_folder",
+    "staging_folder",
+    "remove_stale_staging",
     "atomic_folder",
 ]
 
@@ -185,6 +190,57 @@ def _moved_into_free_place(new: Path, folder: Path) -> bool:
     return True
 
 
+def _staging_owner() -> str:
+    """``host-pid`` of this process, as it appears in the names of its staging folders."""
+    return f"{socket.gethostname().replace('.', '_')}-{os.getpid()}"
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_staging(folder) -> list:
+    """Delete the staging folders that killed runs on this host left beside ``folder``.
+
+    A staging folder is named ``.<folder>.<kind>.<host>-<pid>.<random>``; it is stale when
+    its process is gone. Nothing is deleted while ``folder`` itself is absent: a run killed
+    in the middle of a non-atomic swap may have left the only copy of the old set there.
+    Returns the folders deleted.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    pattern = re.compile(r"\." + re.escape(folder.name) + r"\.(?:staging|writing|old)\."
+                         + re.escape(socket.gethostname().replace(".", "_")) + r"-(\d+)\.\w+")
+    removed = []
+    for candidate in folder.parent.glob(f".{glob.escape(folder.name)}.*"):
+        match = pattern.fullmatch(candidate.name)
+        if match and candidate.is_dir() and not candidate.is_symlink() and not _process_alive(int(match[1])):
+            shutil.rmtree(candidate, ignore_errors=True)
+            removed.append(candidate)
+    return removed
+
+
+def staging_folder(folder, kind: str, *, clean: bool = True) -> Path:
+    """A new empty folder beside ``folder`` to build its next content in.
+
+    Its name says which output it is for, why (``kind``: ``staging``, ``writing``, ``old``)
+    and which process owns it, so that the next run can remove it if that process was
+    killed (:func:`remove_stale_staging`, done here unless ``clean`` is false).
+    """
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    if clean:
+        remove_stale_staging(folder)
+    return Path(tempfile.mkdtemp(prefix=f".{folder.name}.{kind}.{_staging_owner()}.", dir=folder.parent))
+
+
 def swap_folder(new: Path, folder: Path) -> None:
     """Put the complete folder ``new`` in the place of ``folder`` and delete the old one.
 
@@ -198,7 +254,7 @@ def swap_folder(new: Path, folder: Path) -> None:
     if _exchange(new, folder):
         shutil.rmtree(new)
         return
-    old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+    old = staging_folder(folder, "old", clean=False)
     os.replace(folder, old)
     os.replace(new, folder)
     shutil.rmtree(old)
@@ -214,8 +270,7 @@ def atomic_folder(folder):
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"{folder}: exists and is not a folder")
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    tmp = staging_folder(folder, "staging")
     try:
         os.chmod(tmp, output_mode(folder=True))
         yield tmp

@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 from .. import export, quality
 from ..conventions import PALETTE
-from ..files import InputError, atomic_folder, display_path, output_mode, swap_folder
+from ..files import InputError, atomic_folder, display_path, output_mode, staging_folder, swap_folder
 from ..projection import view_label
 from .results import PlanResult
 
@@ -155,8 +154,7 @@ def write_outputs(result: PlanResult, out_dir, extra=None) -> dict:
     """
     out_dir = Path(out_dir)
     check_output_folder(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.writing.", dir=out_dir.parent))
+    staging = staging_folder(out_dir, "writing")
     try:
         os.chmod(staging, output_mode(folder=True))
         written = _write_output_set(result, staging)
