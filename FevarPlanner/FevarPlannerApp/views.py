@@ -3,12 +3,16 @@
 Both are :class:`QVTKRenderWindowInteractor` widgets. The scene is rebuilt from a
 :class:`FevarPlannerLib.pipeline.PlanResult` (plus an optional surface) by
 :meth:`set_result`; layers are switched on and off by name with :meth:`set_layer_visible`.
+A case with several views (``views/<name>/``) gives one :class:`FrameDisplay` per view
+(:func:`frame_displays`); the 2D view draws one of them at a time.
 
 Colours and names are the overlay PNG's (:data:`FevarPlannerLib.conventions.PALETTE` and
 ``FevarPlannerLib.export.ROLE_NAMES``): pre-operative orange, recovered cyan, catheter path green, 2D skeleton yellow.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import vtkmodules.qt
@@ -34,13 +38,61 @@ from FevarPlannerLib.conventions import PALETTE  # noqa: E402
 from FevarPlannerLib.export import ROLE_NAMES, centerline_to_polydata, polydata_actor, tube_actor  # noqa: E402
 from FevarPlannerLib.projection import project  # noqa: E402
 
-__all__ = ["COLORS", "polyline_polydata", "segments_polydata", "View3D", "FluoroView", "render_to_array"]
+__all__ = ["COLORS", "FrameDisplay", "frame_displays", "polyline_polydata", "segments_polydata", "View3D",
+           "FluoroView", "render_to_array"]
 
 #: RGB (0..1) of each layer, shared by both views and the legend.
 COLORS = {**{layer: PALETTE[layer] for layer in ("preop", "deformed", "path", "skeleton2d", "surface")},
           "text": (0.90, 0.92, 0.95)}
 BACKGROUND_TOP = (0.16, 0.18, 0.24)
 BACKGROUND_BOTTOM = (0.05, 0.06, 0.08)
+
+
+@dataclass
+class FrameDisplay:
+    """What the 2D view draws for one view of a result: its frame, ``P`` and 2D skeleton.
+
+    Attributes
+    ----------
+    name : str
+        ``main`` for the case folder's own frame, else the ``views/<name>/`` folder name.
+    image : numpy.ndarray, shape (rows, cols)
+        The frame (a stand-in drawn from the vessel mask when the view holds only a mask).
+    P : numpy.ndarray, shape (3, 4)
+        The view's projection matrix (after any pose correction), LPS mm to pixels.
+    skeleton_points : numpy.ndarray, shape (n, 2)
+        The view's 2D skeleton nodes ``(u, v)``.
+    skeleton_edges : numpy.ndarray, shape (m, 2)
+    fit : dict or None
+        The recovered tree's 2D fit to this view's skeleton (``mean``, ``std``, ... px).
+    """
+
+    name: str
+    image: np.ndarray
+    P: np.ndarray
+    skeleton_points: np.ndarray
+    skeleton_edges: np.ndarray
+    fit: dict | None = None
+
+
+def frame_displays(result, case=None) -> list[FrameDisplay]:
+    """One :class:`FrameDisplay` per view the registration used, in the result's order.
+
+    The first view is drawn from the result itself; the others need their frames, which
+    ``case`` (the :class:`FevarPlannerLib.io.Case` that was planned) holds. Without it, or
+    for a result of one frame (a step of a multi-frame run), only the first view is given.
+    """
+    fits = {view["name"]: view.get("2d_px") for view in getattr(result, "views", None) or []}
+    first = next(iter(fits), "main")
+    displays = [FrameDisplay(first, np.asarray(result.fluoro_image), np.asarray(result.P),
+                             np.asarray(result.skeleton2d_points), np.asarray(result.skeleton2d_edges),
+                             fits.get(first, (result.errors or {}).get("2d_px")))]
+    images = {view.name: view.fluoro.image for view in getattr(case, "views", None) or []}
+    for frame in (getattr(result, "view_frames", None) or [])[1:]:
+        if frame.name in images:
+            displays.append(FrameDisplay(frame.name, np.asarray(images[frame.name]), np.asarray(frame.P),
+                                         frame.skeleton2d.positions, frame.skeleton2d.edges(), fits.get(frame.name)))
+    return displays
 
 
 def polyline_polydata(points: np.ndarray) -> vtkPolyData:
@@ -122,8 +174,21 @@ def render_to_array(render_window) -> np.ndarray:
     return np.ascontiguousarray(pixels[::-1, :, :3])
 
 
+def _backdrop(actor: vtkTextActor, opacity: float) -> vtkTextActor:
+    """Put a dark box behind ``actor``'s text, so that it reads over a bright frame too."""
+    prop = actor.GetTextProperty()
+    prop.SetBackgroundColor(0.0, 0.0, 0.0)
+    prop.SetBackgroundOpacity(opacity)
+    return actor
+
+
 class _LayeredView(QVTKRenderWindowInteractor):
-    """A VTK view whose actors are grouped in named layers."""
+    """A VTK view whose actors are grouped in named layers.
+
+    ``TEXT_BACKDROP``: opacity of a dark box behind the title and the legend (0: none).
+    """
+
+    TEXT_BACKDROP = 0.0
 
     def __init__(self, parent=None):
         super().__init__(parent)
@@ -170,7 +235,7 @@ class _LayeredView(QVTKRenderWindowInteractor):
     def _legend(self, entries, first_row: int = 0) -> None:
         """Coloured legend lines in the top-left corner, one per ``(layer, text, color)``."""
         for index, (layer, text, color) in enumerate(entries, start=first_row):
-            actor = _text(f"\u2014 {text}", color, 15)
+            actor = _backdrop(_text(f"\u2014 {text}", color, 15), self.TEXT_BACKDROP)
             actor.GetTextProperty().SetVerticalJustificationToTop()
             self._legend_rows.append((actor, index))
             self.add_to_layer(layer, actor)
@@ -293,16 +358,18 @@ class FluoroView(_LayeredView):
     """
 
     TITLE = "Fluoroscopy  \u2014  projected through P"
+    TEXT_BACKDROP = 0.6  # the frame may be bright where the text lies
 
     def __init__(self, parent=None):
         super().__init__(parent)
         self.renderer.GradientBackgroundOff()
         self.renderer.SetBackground(0.0, 0.0, 0.0)
         self.SetInteractorStyle(vtkInteractorStyleImage())
-        self.title = _text(self.TITLE, COLORS["text"], 16, bold=True)
+        self.title = _backdrop(_text(self.TITLE, COLORS["text"], 16, bold=True), self.TEXT_BACKDROP)
         self.title.SetDisplayPosition(12, 10)
         self.renderer.AddViewProp(self.title)
         self.image_shape = None
+        self.frame: FrameDisplay | None = None
 
     @staticmethod
     def _image_slice(image: np.ndarray) -> vtkImageSlice:
@@ -321,27 +388,38 @@ class FluoroView(_LayeredView):
         actor.GetProperty().SetInterpolationTypeToNearest()
         return actor
 
-    def set_result(self, result) -> None:
-        """Show the frame of a PlanResult with its skeleton and projected centrelines."""
+    def set_result(self, result, frame: FrameDisplay | None = None) -> None:
+        """Show one view of a PlanResult: its frame, its 2D skeleton and the centrelines projected through its P.
+
+        ``frame`` (one of :func:`frame_displays`) picks the view; default the first.
+        """
+        frame = frame if frame is not None else frame_displays(result)[0]
         self.clear()
-        self.image_shape = np.asarray(result.fluoro_image).shape
-        self.add_to_layer("image", self._image_slice(result.fluoro_image))
+        self.frame = frame
+        self.image_shape = np.asarray(frame.image).shape
+        self.add_to_layer("image", self._image_slice(frame.image))
         # overlays lie between the camera (z < 0) and the image (z = 0), later ones nearer
         self.add_to_layer("skeleton2d", _line_actor(
-            segments_polydata(result.skeleton2d_points, result.skeleton2d_edges, z=-1.0), COLORS["skeleton2d"], 5.0,
+            segments_polydata(frame.skeleton_points, frame.skeleton_edges, z=-1.0), COLORS["skeleton2d"], 5.0,
             opacity=0.75))  # wide, so it shows as a halo around the thinner projected centrelines
         for layer, centerline, width, z in (("preop", result.preop, 2.0, -2.0),
                                             ("deformed", result.deformed, 2.5, -3.0)):
-            uv = project(result.P, centerline.points)
+            uv = project(frame.P, centerline.points)
             self.add_to_layer(layer, _line_actor(segments_polydata(uv, centerline.edges, z=z), COLORS[layer], width))
         self._legend([("skeleton2d", ROLE_NAMES["skeleton2d"], COLORS["skeleton2d"]),
                       ("preop", f"{ROLE_NAMES['preop']}, projected", COLORS["preop"]),
                       ("deformed", f"{ROLE_NAMES['recovered']}, projected", COLORS["deformed"])])
         self._add_path(result)
+        self.title.SetInput(self._title_text(frame))
         self.reset_camera()
 
+    @staticmethod
+    def _title_text(frame: FrameDisplay) -> str:
+        fit = f",  2D fit {frame.fit['mean']:.2f} px" if frame.fit else ""
+        return f"Fluoroscopy:  view {frame.name}{fit}"
+
     def _add_path(self, result) -> None:
-        path_uv = project(result.P, result.path.points)
+        path_uv = project(self.frame.P, result.path.points)
         path = polyline_polydata(np.column_stack([path_uv, np.full(len(path_uv), -4.0)]))
         self.add_to_layer("path", _line_actor(path, COLORS["path"], 4.0))
         self._legend([("path", f"{ROLE_NAMES['path']}, projected", COLORS["path"])], first_row=3)

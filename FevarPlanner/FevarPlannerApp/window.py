@@ -9,9 +9,10 @@ from PySide6.QtCore import QFile, QPoint, Qt, QThread, QTimer
 from PySide6.QtGui import QAction, QColor, QIcon, QImage, QKeySequence, QPainter, QPalette
 from PySide6.QtUiTools import QUiLoader
 from PySide6.QtWidgets import (QApplication, QFileDialog, QHBoxLayout, QHeaderView, QLabel, QMainWindow, QMessageBox,
-                               QPushButton, QScrollArea, QSlider, QSplitter, QTableWidgetItem, QVBoxLayout, QWidget)
+                               QPushButton, QScrollArea, QSlider, QSplitter, QTabBar, QTableWidgetItem, QVBoxLayout,
+                               QWidget)
 
-from FevarPlannerApp.views import FluoroView, View3D
+from FevarPlannerApp.views import FluoroView, FrameDisplay, View3D, frame_displays
 from FevarPlannerApp.worker import PlanOutcome, PlanRequest, PlanWorker
 from FevarPlannerLib.export import summary_rows
 
@@ -109,9 +110,11 @@ class MainWindow(QMainWindow):
         scroll.setFrameShape(QScrollArea.NoFrame)
         self.view3d = View3D()
         self.fluoro_view = FluoroView()
+        self.frames: list[FrameDisplay] = []
         views = QSplitter(Qt.Horizontal)
         views.addWidget(_titled("Recovered intra-operative anatomy (LPS, mm)", self.view3d))
         fluoro_box = _titled("Fluoroscopic frame (u \u2192, v \u2193, pixels)", self.fluoro_view)
+        fluoro_box.layout().insertWidget(1, self._view_tabs())
         fluoro_box.layout().addWidget(self._run_controls())
         views.addWidget(fluoro_box)
         views.setSizes([1, 1])
@@ -127,6 +130,23 @@ class MainWindow(QMainWindow):
             self.widget("caseDirLineEdit").setText(str(case_dir))
         self._update_run_button()
         self.statusBar().showMessage("Ready")
+
+    def _view_tabs(self) -> QTabBar:
+        """One tab per view of a case with several views (``views/<name>/``), above the frame view.
+
+        The panel's own view selector (``viewComboBox``, the one the Slicer module uses) is
+        hidden here: the tabs sit where the frames are seen.
+        """
+        self.view_tabs = QTabBar()
+        self.view_tabs.setExpanding(False)
+        self.view_tabs.setDrawBase(False)
+        self.view_tabs.setToolTip("The frames of the case's views: each shows its own 2D skeleton and the "
+                                  "centrelines projected through its own P")
+        self.view_tabs.currentChanged.connect(self.show_view)
+        self.view_tabs.setVisible(False)
+        for name in ("viewLabel", "viewComboBox"):
+            self.widget(name).setVisible(False)
+        return self.view_tabs
 
     def _run_controls(self) -> QWidget:
         """Frame slider and Play button for a multi-frame run (hidden for a single frame)."""
@@ -282,13 +302,47 @@ class MainWindow(QMainWindow):
             self._on_failed(f"frame {index}: {str(exc).splitlines()[0]}")
             return False
         outcome.result = result
-        self.fluoro_view.set_result(result)
+        self._set_views(result)
         self.view3d.update_recovered(result)
         for box, layer in DISPLAY.items():
             self._set_layer_visible(layer, self.widget(box).isChecked())
         self._fill_table(summary_rows(result))
         self.frame_label.setText(f"frame {index + 1}/{outcome.case.fluoro.n_frames}, {1000 * times['total']:.0f} ms")
         return True
+
+    def show_view(self, index: int) -> bool:
+        """Show view ``index`` of the shown result (its frame, 2D skeleton and projections); returns
+        whether it was shown. Only the 2D view is redrawn: the registration used every view at once."""
+        outcome = self.outcome
+        if outcome is None or not 0 <= index < len(self.frames):
+            return False
+        frame = self.frames[index]
+        self.fluoro_view.set_result(outcome.result, frame)
+        for box, layer in DISPLAY.items():
+            self._set_layer_visible(layer, self.widget(box).isChecked())
+        if self.view_tabs.currentIndex() != index:
+            self.view_tabs.blockSignals(True)
+            self.view_tabs.setCurrentIndex(index)
+            self.view_tabs.blockSignals(False)
+        return True
+
+    def view_names(self) -> list[str]:
+        """The names of the views the shown result can display (``main`` first)."""
+        return [frame.name for frame in self.frames]
+
+    def _set_views(self, result, case=None) -> None:
+        """One tab per view of ``result`` (shown when there are several), the first view displayed."""
+        self.frames = frame_displays(result, case)
+        self.view_tabs.blockSignals(True)
+        while self.view_tabs.count():
+            self.view_tabs.removeTab(0)
+        for frame in self.frames:
+            fit = f"  {frame.fit['mean']:.2f} px" if frame.fit else ""
+            self.view_tabs.addTab(f"{frame.name}{fit}")
+        self.view_tabs.setCurrentIndex(0)
+        self.view_tabs.blockSignals(False)
+        self.view_tabs.setVisible(len(self.frames) > 1)
+        self.fluoro_view.set_result(result, self.frames[0])
 
     def _toggle_play(self, playing: bool) -> None:
         (self._play_timer.start if playing else self._play_timer.stop)()
@@ -317,7 +371,7 @@ class MainWindow(QMainWindow):
         timings = outcome.result.timings
         message = (f"{path.start_label} \u2192 {path.target_label}: {path.length_mm:.1f} mm, "
                    f"registration {timings.get('registration', float('nan')):.2f} s, "
-                   f"total {timings.get('total', float('nan')):.2f} s")
+                   f"total {timings.get('total', float('nan')):.2f} s{self._views_note()}")
         if outcome.written:
             message += f"; saved to {Path(next(iter(outcome.written.values()))).parent}"
         self._set_status(message)
@@ -347,7 +401,7 @@ class MainWindow(QMainWindow):
         self.outcome = outcome
         self.widget("progressBar").setValue(100)
         self.view3d.set_result(outcome.result, outcome.surface)
-        self.fluoro_view.set_result(outcome.result)
+        self._set_views(outcome.result, outcome.case)
         for box, layer in DISPLAY.items():
             self._set_layer_visible(layer, self.widget(box).isChecked())
         self._fill_table(summary_rows(outcome.result))
@@ -361,7 +415,15 @@ class MainWindow(QMainWindow):
             self.frame_label.setText(f"frame {outcome.case.fluoro.frame + 1}/{frames}")
         path = outcome.result.path
         self._set_status(f"{outcome.result.method}: {path.start_label} \u2192 {path.target_label}, "
-                         f"{path.length_mm:.1f} mm")
+                         f"{path.length_mm:.1f} mm{self._views_note()}")
+
+    def _views_note(self) -> str:
+        """``"; 2 views (main, lao30)"`` for a result registered on several views, else nothing."""
+        result = self.outcome.result if self.outcome is not None else None
+        views = getattr(result, "views", None) or []
+        if len(views) < 2:
+            return ""
+        return f"; {len(views)} views ({', '.join(view['name'] for view in views)})"
 
     def show_result(self, result, surface=None) -> None:
         """Display a :class:`FevarPlannerLib.pipeline.PlanResult` (and an optional surface)."""

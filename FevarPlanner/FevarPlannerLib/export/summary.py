@@ -43,8 +43,9 @@ def format_metric(value) -> str:
 def summary_rows(result) -> list[tuple[str, str]]:
     """``(quantity, value)`` rows describing a :class:`FevarPlannerLib.pipeline.PlanResult`.
 
-    The order is the one a reader wants: what was run, the path, the errors against the
-    ground truth (when the case has one), then the timings, slowest first.
+    The order is the one a reader wants: what was run, the path, the views used, the errors
+    against the ground truth (when the case has one), with several views each view's own 2D
+    fit, then the timings, slowest first.
     """
     path = result.path
     rows = [("Method", result.method)]
@@ -62,10 +63,17 @@ def summary_rows(result) -> list[tuple[str, str]]:
     if geometry:
         rows.append(("Geometry", geometry["source"] + (" (assumed isocentre, see notes)"
                                                         if geometry.get("assumptions") else "")))
+    views = getattr(result, "views", None) or []
+    if views:
+        rows.append(("Views used", f"{len(views)} ({', '.join(view['name'] for view in views)})"))
     errors = result.errors or {}
     names = METRIC_NAMES if errors.get("3d_mm") is not None else {**METRIC_NAMES, **FIT_NAMES}
     for key, value in errors.items():
         rows.append((names.get(key, key.replace("_", " ")), format_metric(value)))
+    if len(views) > 1:
+        rows += [(f"2D fit, view {view['name']}: result \u2192 skeleton (px)",
+                  format_metric(view["2d_px"]) if view.get("2d_px") else "n/a (no node inside the frame)")
+                 for view in views]
     timings = sorted(result.timings.items(), key=lambda item: (item[0] != "total", -item[1]))
     rows += [(f"Time: {name} (s)", f"{seconds:.3f}") for name, seconds in timings]
     return rows

@@ -167,7 +167,8 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     return PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions,
                       sk_edges, views[0].fluoro.image, timings, errors,
                       {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
-                      qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings))
+                      qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings),
+                      view_frames=list(frame.views))
 
 
 def _view_frame_path(view: View):

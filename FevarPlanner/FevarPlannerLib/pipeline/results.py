@@ -55,7 +55,9 @@ class PlanResult:
 
     ``P``, ``skeleton2d_*``, ``fluoro_image`` and ``errors`` are the first view's; ``views``
     has one dict per view (name, projection matrix, 2D error, visibility, inputs) and
-    ``warnings`` what the plausibility checks replaced or doubted.
+    ``warnings`` what the plausibility checks replaced or doubted. ``view_frames`` holds, in
+    the order of ``views``, each view's :class:`ViewFrame` (its ``P`` and 2D skeleton graph),
+    for front ends that draw every view; it is not written to result.json.
     """
 
     method: str
@@ -74,6 +76,7 @@ class PlanResult:
     drr: np.ndarray | None = None
     views: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
+    view_frames: list = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
         extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs,
