@@ -303,3 +303,81 @@ def test_a_multi_frame_run_plays_back_against_the_cached_model(window, tmp_path,
     assert shown.errors["2d_px"]["mean"] < 6.0
     assert "frame 3/3" in window.frame_label.text()
     assert _green_mask(window.fluoro_view.pixels()).sum() > 200
+
+
+@pytest.fixture(scope="module")
+def two_view_case(tmp_path_factory):
+    """An independent-family two-view case (AP and LAO/RAO 30-90): masks, geometry.json, views/<name>/."""
+    from FevarPlannerLib import scenarios
+
+    scenario = scenarios.plan_scenarios("two_views", 1, seed=0)[0]
+    return scenarios.write_scenario(scenario, tmp_path_factory.mktemp("two_views") / "case")
+
+
+def _deformed_uv(view) -> np.ndarray:
+    """The (u, v) points of the recovered centreline as the 2D view draws them."""
+    polydata = view.layers["deformed"][0].GetMapper().GetInput()
+    return np.array([polydata.GetPoint(i)[:2] for i in range(polydata.GetNumberOfPoints())])
+
+
+def _inside_fraction(uv: np.ndarray, mask: np.ndarray) -> float:
+    """The share of image points ``(u, v)`` that land on a vessel pixel of ``mask``."""
+    col, row = np.rint(uv).astype(int).T
+    shown = (col >= 0) & (col < mask.shape[1]) & (row >= 0) & (row < mask.shape[0])
+    return float(np.where(shown, mask[np.clip(row, 0, mask.shape[0] - 1), np.clip(col, 0, mask.shape[1] - 1)],
+                          False).mean())
+
+
+def test_a_two_view_case_shows_each_view_with_its_own_projection(window, two_view_case, qapp, monkeypatch, tmp_path):
+    """Planned through the worker: tabs list both views; each tab shows its own frame, with the
+    recovered tree projected through its own P onto its vessels (not the other view's)."""
+    from FevarPlannerLib import io
+
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "cache"))
+    window.widget("caseDirLineEdit").setText(str(two_view_case))
+    window.run_plan()
+    window.wait_until_done()
+    assert window.last_error is None
+    second = next((two_view_case / "views").iterdir()).name
+    assert window.view_names() == ["main", second]
+    assert window.view_tabs.isVisibleTo(window) and window.view_tabs.count() == 2
+    assert not window.widget("viewComboBox").isVisibleTo(window)  # the tabs replace the panel's selector here
+    assert f"2 views (main, {second})" in window.widget("statusLabel").text()
+    table = window.widget("resultsTableWidget")
+    rows = {table.item(r, 0).text(): table.item(r, 1).text() for r in range(table.rowCount())}
+    assert rows["Views used"] == f"2 (main, {second})"
+    for name in ("main", second):
+        fit = float(rows[f"2D fit, view {name}: result \u2192 skeleton (px)"].split()[0])
+        assert 0.0 < fit < 1.5
+    result = window.outcome.result
+    masks = {"main": io.read_mask_2d(two_view_case / "fluoro_mask.png"),
+             second: io.read_mask_2d(two_view_case / "views" / second / "fluoro_mask.png")}
+    Ps = {frame.name: frame.P for frame in result.view_frames}
+    window.widget("showPathCheckBox").setChecked(False)  # the path would hide the recovered tree under it
+    qapp.processEvents()
+    shown = {}
+    for index, name in enumerate(("main", second)):
+        window.view_tabs.setCurrentIndex(index)  # as a click on the tab does
+        qapp.processEvents()
+        assert window.fluoro_view.frame.name == name
+        uv = _deformed_uv(window.fluoro_view)
+        np.testing.assert_allclose(uv, project(Ps[name], result.deformed.points), atol=1e-6)
+        other = next(n for n in masks if n != name)
+        assert _inside_fraction(uv, masks[name]) > 0.99          # on this frame's vessels ...
+        assert _inside_fraction(uv, masks[other]) < 0.97         # ... which the other view's P would miss
+        pixels = window.fluoro_view.pixels()
+        cyan = np.linalg.norm(pixels.astype(float) - np.array(COLORS["deformed"]) * 255, axis=2) < 60
+        ends = [_display_row_col(window.fluoro_view, u, v) for u, v in uv[::40]]
+        assert np.mean([cyan[row - 2:row + 3, col - 2:col + 3].any() for row, col in ends]) > 0.8
+        shown[name] = pixels
+    assert shown["main"].shape == shown[second].shape
+    assert (np.abs(shown["main"].astype(int) - shown[second].astype(int)).sum(axis=2) > 60).mean() > 0.02
+    assert f"view {second}" in window.fluoro_view.title.GetInput()
+
+
+def test_a_one_view_result_has_no_view_tabs(window, plan_result, qapp):
+    window.show_result(plan_result)
+    qapp.processEvents()
+    assert window.view_names() == ["main"] and not window.view_tabs.isVisibleTo(window)
+    assert window.show_view(1) is False
+    assert "Views used" not in dict(summary_rows(plan_result))
