@@ -3,16 +3,15 @@
 Both are :class:`QVTKRenderWindowInteractor` widgets. The scene is rebuilt from a
 :class:`FevarPlannerLib.pipeline.PlanResult` (plus an optional surface) by
 :meth:`set_result`; layers are switched on and off by name with :meth:`set_layer_visible`.
-A case with several views (``views/<name>/``) gives one :class:`FrameDisplay` per view
-(:func:`frame_displays`); the 2D view draws one of them at a time.
+A case with several views (``views/<name>/``) gives one
+:class:`FevarPlannerLib.pipeline.ViewDrawing` per view
+(:meth:`FevarPlannerLib.pipeline.PlanResult.view_drawings`); the 2D view draws one at a time.
 
 Colours and names are the overlay PNG's (:data:`FevarPlannerLib.conventions.PALETTE` and
 ``FevarPlannerLib.export.ROLE_NAMES``): pre-operative orange, recovered cyan, catheter path green, 2D skeleton yellow.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 import vtkmodules.qt
@@ -38,61 +37,13 @@ from FevarPlannerLib.conventions import PALETTE  # noqa: E402
 from FevarPlannerLib.export import ROLE_NAMES, centerline_to_polydata, polydata_actor, tube_actor  # noqa: E402
 from FevarPlannerLib.projection import project  # noqa: E402
 
-__all__ = ["COLORS", "FrameDisplay", "frame_displays", "polyline_polydata", "segments_polydata", "View3D",
-           "FluoroView", "render_to_array"]
+__all__ = ["COLORS", "polyline_polydata", "segments_polydata", "View3D", "FluoroView", "render_to_array"]
 
 #: RGB (0..1) of each layer, shared by both views and the legend.
 COLORS = {**{layer: PALETTE[layer] for layer in ("preop", "deformed", "path", "skeleton2d", "surface")},
           "text": (0.90, 0.92, 0.95)}
 BACKGROUND_TOP = (0.16, 0.18, 0.24)
 BACKGROUND_BOTTOM = (0.05, 0.06, 0.08)
-
-
-@dataclass
-class FrameDisplay:
-    """What the 2D view draws for one view of a result: its frame, ``P`` and 2D skeleton.
-
-    Attributes
-    ----------
-    name : str
-        ``main`` for the case folder's own frame, else the ``views/<name>/`` folder name.
-    image : numpy.ndarray, shape (rows, cols)
-        The frame (a stand-in drawn from the vessel mask when the view holds only a mask).
-    P : numpy.ndarray, shape (3, 4)
-        The view's projection matrix (after any pose correction), LPS mm to pixels.
-    skeleton_points : numpy.ndarray, shape (n, 2)
-        The view's 2D skeleton nodes ``(u, v)``.
-    skeleton_edges : numpy.ndarray, shape (m, 2)
-    fit : dict or None
-        The recovered tree's 2D fit to this view's skeleton (``mean``, ``std``, ... px).
-    """
-
-    name: str
-    image: np.ndarray
-    P: np.ndarray
-    skeleton_points: np.ndarray
-    skeleton_edges: np.ndarray
-    fit: dict | None = None
-
-
-def frame_displays(result, case=None) -> list[FrameDisplay]:
-    """One :class:`FrameDisplay` per view the registration used, in the result's order.
-
-    The first view is drawn from the result itself; the others need their frames, which
-    ``case`` (the :class:`FevarPlannerLib.io.Case` that was planned) holds. Without it, or
-    for a result of one frame (a step of a multi-frame run), only the first view is given.
-    """
-    fits = {view["name"]: view.get("2d_px") for view in getattr(result, "views", None) or []}
-    first = next(iter(fits), "main")
-    displays = [FrameDisplay(first, np.asarray(result.fluoro_image), np.asarray(result.P),
-                             np.asarray(result.skeleton2d_points), np.asarray(result.skeleton2d_edges),
-                             fits.get(first, (result.errors or {}).get("2d_px")))]
-    images = {view.name: view.fluoro.image for view in getattr(case, "views", None) or []}
-    for frame in (getattr(result, "view_frames", None) or [])[1:]:
-        if frame.name in images:
-            displays.append(FrameDisplay(frame.name, np.asarray(images[frame.name]), np.asarray(frame.P),
-                                         frame.skeleton2d.positions, frame.skeleton2d.edges(), fits.get(frame.name)))
-    return displays
 
 
 def polyline_polydata(points: np.ndarray) -> vtkPolyData:
@@ -369,7 +320,7 @@ class FluoroView(_LayeredView):
         self.title.SetDisplayPosition(12, 10)
         self.renderer.AddViewProp(self.title)
         self.image_shape = None
-        self.frame: FrameDisplay | None = None
+        self.frame = None  # the ViewDrawing shown
 
     @staticmethod
     def _image_slice(image: np.ndarray) -> vtkImageSlice:
@@ -388,12 +339,12 @@ class FluoroView(_LayeredView):
         actor.GetProperty().SetInterpolationTypeToNearest()
         return actor
 
-    def set_result(self, result, frame: FrameDisplay | None = None) -> None:
+    def set_result(self, result, frame=None) -> None:
         """Show one view of a PlanResult: its frame, its 2D skeleton and the centrelines projected through its P.
 
-        ``frame`` (one of :func:`frame_displays`) picks the view; default the first.
+        ``frame`` (one of ``result.view_drawings(case)``) picks the view; default the first.
         """
-        frame = frame if frame is not None else frame_displays(result)[0]
+        frame = frame if frame is not None else result.view_drawings()[0]
         self.clear()
         self.frame = frame
         self.image_shape = np.asarray(frame.image).shape
@@ -414,7 +365,7 @@ class FluoroView(_LayeredView):
         self.reset_camera()
 
     @staticmethod
-    def _title_text(frame: FrameDisplay) -> str:
+    def _title_text(frame) -> str:
         fit = f",  2D fit {frame.fit['mean']:.2f} px" if frame.fit else ""
         return f"Fluoroscopy:  view {frame.name}{fit}"
 

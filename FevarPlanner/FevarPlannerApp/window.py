@@ -12,7 +12,7 @@ from PySide6.QtWidgets import (QApplication, QFileDialog, QHBoxLayout, QHeaderVi
                                QPushButton, QScrollArea, QSlider, QSplitter, QTabBar, QTableWidgetItem, QVBoxLayout,
                                QWidget)
 
-from FevarPlannerApp.views import FluoroView, FrameDisplay, View3D, frame_displays
+from FevarPlannerApp.views import FluoroView, View3D
 from FevarPlannerApp.worker import PlanOutcome, PlanRequest, PlanWorker
 from FevarPlannerLib.export import summary_rows
 
@@ -110,7 +110,7 @@ class MainWindow(QMainWindow):
         scroll.setFrameShape(QScrollArea.NoFrame)
         self.view3d = View3D()
         self.fluoro_view = FluoroView()
-        self.frames: list[FrameDisplay] = []
+        self.drawings: list = []  # the shown result's ViewDrawings, one per view
         views = QSplitter(Qt.Horizontal)
         views.addWidget(_titled("Recovered intra-operative anatomy (LPS, mm)", self.view3d))
         fluoro_box = _titled("Fluoroscopic frame (u \u2192, v \u2193, pixels)", self.fluoro_view)
@@ -314,9 +314,9 @@ class MainWindow(QMainWindow):
         """Show view ``index`` of the shown result (its frame, 2D skeleton and projections); returns
         whether it was shown. Only the 2D view is redrawn: the registration used every view at once."""
         outcome = self.outcome
-        if outcome is None or not 0 <= index < len(self.frames):
+        if outcome is None or not 0 <= index < len(self.drawings):
             return False
-        frame = self.frames[index]
+        frame = self.drawings[index]
         self.fluoro_view.set_result(outcome.result, frame)
         for box, layer in DISPLAY.items():
             self._set_layer_visible(layer, self.widget(box).isChecked())
@@ -328,21 +328,21 @@ class MainWindow(QMainWindow):
 
     def view_names(self) -> list[str]:
         """The names of the views the shown result can display (``main`` first)."""
-        return [frame.name for frame in self.frames]
+        return [frame.name for frame in self.drawings]
 
     def _set_views(self, result, case=None) -> None:
         """One tab per view of ``result`` (shown when there are several), the first view displayed."""
-        self.frames = frame_displays(result, case)
+        self.drawings = result.view_drawings(case)
         self.view_tabs.blockSignals(True)
         while self.view_tabs.count():
             self.view_tabs.removeTab(0)
-        for frame in self.frames:
+        for frame in self.drawings:
             fit = f"  {frame.fit['mean']:.2f} px" if frame.fit else ""
             self.view_tabs.addTab(f"{frame.name}{fit}")
         self.view_tabs.setCurrentIndex(0)
         self.view_tabs.blockSignals(False)
-        self.view_tabs.setVisible(len(self.frames) > 1)
-        self.fluoro_view.set_result(result, self.frames[0])
+        self.view_tabs.setVisible(len(self.drawings) > 1)
+        self.fluoro_view.set_result(result, self.drawings[0])
 
     def _toggle_play(self, playing: bool) -> None:
         (self._play_timer.start if playing else self._play_timer.stop)()

@@ -34,9 +34,9 @@ from .multiview import (CLOSEST_POINT_OUTLIER, CLOSEST_POINT_PASSES, CLOSEST_POI
                         MAX_CANDIDATE_COMBINATIONS, TANGENT_MM)
 from .outputs import (DRR_NAME, OUTPUT_NAMES, OUTPUT_SUFFIXES, QC_NAME, check_output_folder, picture_title,
                       write_outputs)
-from .results import FrameResult, METHODS, PlanResult, ViewFrame
+from .results import FrameResult, METHODS, PlanResult, ViewDrawing, ViewFrame
 from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame_visibility
 
-__all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "FrameResult", "PlanResult", "preop_from_skeleton",
+__all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult", "preop_from_skeleton",
            "preop_from_lumen", "build_preop", "prepare_preop", "picture_title", "frame_visibility", "register_frame",
            "register_views", "run_case", "plan_case", "write_outputs"]

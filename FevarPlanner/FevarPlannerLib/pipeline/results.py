@@ -50,6 +50,33 @@ class FrameResult:
 
 
 @dataclass
+class ViewDrawing:
+    """What a front end draws for one view of a :class:`PlanResult` (:meth:`PlanResult.view_drawings`).
+
+    Attributes
+    ----------
+    name : str
+        ``main`` for the case folder's own frame, else the view's name (``views/<name>/``).
+    image : numpy.ndarray, shape (rows, cols)
+        The frame (a stand-in drawn from the vessel mask when the view holds only a mask).
+    P : numpy.ndarray, shape (3, 4)
+        The view's projection matrix (after any pose correction): LPS mm to pixels, eq. 1.
+    skeleton_points : numpy.ndarray, shape (n, 2)
+        The view's 2D skeleton nodes ``(u, v)``.
+    skeleton_edges : numpy.ndarray, shape (m, 2)
+    fit : dict or None
+        The recovered tree's 2D fit to this view's skeleton (``mean``, ``std``, ... px).
+    """
+
+    name: str
+    image: np.ndarray
+    P: np.ndarray
+    skeleton_points: np.ndarray
+    skeleton_edges: np.ndarray
+    fit: dict | None = None
+
+
+@dataclass
 class PlanResult:
     """Everything a caller shows or writes about one case (see docs/DESIGN.md section 4).
 
@@ -77,6 +104,24 @@ class PlanResult:
     views: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     view_frames: list = field(default_factory=list, repr=False)
+
+    def view_drawings(self, case=None) -> list[ViewDrawing]:
+        """One :class:`ViewDrawing` per view the registration used, in the order of ``views``.
+
+        The first view comes from the result itself; the others need their frames, which
+        ``case`` (the :class:`io.Case` that was planned) holds. Without it, or for a result of
+        one frame (a step of a multi-frame run), only the first view is given.
+        """
+        fits = {view["name"]: view.get("2d_px") for view in self.views}
+        first = next(iter(fits), "main")
+        drawings = [ViewDrawing(first, np.asarray(self.fluoro_image), np.asarray(self.P),
+                                np.asarray(self.skeleton2d_points), np.asarray(self.skeleton2d_edges),
+                                fits.get(first, (self.errors or {}).get("2d_px")))]
+        images = {view.name: view.fluoro.image for view in getattr(case, "views", None) or []}
+        drawings += [ViewDrawing(frame.name, np.asarray(images[frame.name]), np.asarray(frame.P),
+                                 frame.skeleton2d.positions, frame.skeleton2d.edges(), fits.get(frame.name))
+                     for frame in self.view_frames[1:] if frame.name in images]
+        return drawings
 
     def to_dict(self) -> dict:
         extra = {"projection_matrix": np.asarray(self.P).tolist(), "inputs": self.inputs,
