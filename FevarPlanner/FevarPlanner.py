@@ -7,7 +7,9 @@ The only file of the project that imports ``slicer`` (and, inside the Slicer app
   from DICOM, labelmaps) and segmentations both ways, centrelines as model nodes with a
   ``Radius`` array (as SlicerVMTK's Extract Centerline gives them), the catheter path as a
   locked linear markups curve, the frame in its own slice view with the projected tree as
-  an overlay that only that view shows. They need nothing but the MRML classes, so they run
+  an overlay that only that view shows; a case with several views (further frames at other
+  C-arm angles) gets one frame and one overlay set per view, and :func:`show_view` puts one
+  of them in the frame view. They need nothing but the MRML classes, so they run
   under the ``slicer-core`` wheel (pip) as well as in Slicer, and the pytest suite checks
   them there;
 * :class:`FevarPlannerParameters`: the module's parameter node (inputs and results as node
@@ -88,6 +90,11 @@ __all__ = [
     "frame_view_nodes",
     "show_frame",
     "overlay_to_model_node",
+    "result_views",
+    "show_view",
+    "extra_views",
+    "add_extra_view",
+    "remove_extra_view",
     "result_nodes",
     "remove_result_nodes",
     "FevarPlannerParameters",
@@ -106,6 +113,13 @@ STYLE = {
     "path": (PALETTE["path"], 4.0),
     "skeleton2d": (PALETTE["skeleton2d"], 2.0),
 }
+#: Node attribute naming the view (``main``, ``lao30``, ...) a frame or overlay node belongs to.
+VIEW_ATTRIBUTE = "FevarPlanner.view"
+#: Node reference from an overlay node to the frame node it is drawn on.
+FRAME_REFERENCE = "FevarPlanner.frame"
+#: The first view's name (the case folder's own frame, or the parameter node's ``fluoroVolume``):
+#: the core's ``io.MAIN_VIEW``, not imported here since the readers need packages a fresh Slicer may lack.
+MAIN_VIEW_NAME = "main"
 #: Roles whose nodes a new run keeps: the aorta segmentation may have been edited by hand.
 KEPT_ROLES = ("aorta",)
 #: Layout name of the slice view that shows the frame (never the CT's views).
@@ -458,7 +472,7 @@ def overlay_to_model_node(scene, frame_node, points_uv, edges, name: str, role: 
     node.SetAndObservePolyData(polydata)
     node.CreateDefaultDisplayNodes()
     display = node.GetDisplayNode()
-    color, width = STYLE[role.replace("overlay_", "")]
+    color, width = STYLE[_base_role(role).replace("overlay_", "")]
     display.SetColor(*color)
     display.SetLineWidth(width)
     display.SetVisibility3D(False)
@@ -469,8 +483,53 @@ def overlay_to_model_node(scene, frame_node, points_uv, edges, name: str, role: 
     return node
 
 
+def _view_role(role: str, view: str) -> str:
+    """The role of a per-view node: ``role`` for the first view, ``role:view`` for the others."""
+    return role if view == MAIN_VIEW_NAME else f"{role}:{view}"
+
+
+def _base_role(role: str) -> str:
+    """``overlay_deformed`` of ``overlay_deformed:lao30``."""
+    return role.split(":", 1)[0]
+
+
+def result_views(scene) -> list:
+    """The names of the views whose overlays are in ``scene``, in the order they were added (``main`` first)."""
+    names = []
+    for node in _nodes_of_class(scene, "vtkMRMLModelNode"):
+        name = node.GetAttribute(VIEW_ATTRIBUTE)
+        if name and node.GetAttribute(ROLE_ATTRIBUTE) and name not in names:
+            names.append(name)
+    return names
+
+
+def show_view(scene, name: str):
+    """Put view ``name``'s frame in the frame view and show only that view's overlays there.
+
+    Every view's overlay nodes stay in the scene (saved with it); those of the other views
+    are hidden. Returns the frame view's slice node.
+
+    Raises
+    ------
+    ValueError
+        ``scene`` holds no overlay of a view ``name``.
+    """
+    overlays = [node for node in _nodes_of_class(scene, "vtkMRMLModelNode")
+                if node.GetAttribute(VIEW_ATTRIBUTE) and node.GetAttribute(ROLE_ATTRIBUTE)]
+    chosen = [node for node in overlays if node.GetAttribute(VIEW_ATTRIBUTE) == name]
+    if not chosen:
+        raise ValueError(f"no view {name!r} in the scene; the views are {', '.join(result_views(scene)) or 'none'}")
+    for node in overlays:
+        node.GetDisplayNode().SetVisibility(node.GetAttribute(VIEW_ATTRIBUTE) == name)
+    return show_frame(scene, chosen[0].GetNodeReference(FRAME_REFERENCE))
+
+
 def result_nodes(scene) -> dict:
-    """This module's nodes in ``scene`` by role (``preop``, ``deformed``, ``path``, ``fluoro``, ...)."""
+    """This module's nodes in ``scene`` by role (``preop``, ``deformed``, ``path``, ``fluoro``, ...).
+
+    Per-view nodes of a view other than the first carry ``:<view>`` after the role
+    (``fluoro:lao30``, ``overlay_deformed:lao30``).
+    """
     nodes = {}
     for index in range(scene.GetNumberOfNodes()):
         node = scene.GetNthNode(index)
@@ -497,15 +556,23 @@ class FevarPlannerParameters:
     them. Inputs: ``ctVolume``, ``aortaSegmentation`` (optional: used instead of segmenting
     the CT, and the segmentation a run creates is put here, so an edit in Segment Editor is
     used on the next run), ``fluoroVolume`` (the frame), ``geometryFile`` /
-    ``fluoroFile`` (geometry.json, or the XA file whose C-arm tags give ``P``). Results:
-    ``preopModel``, ``recoveredModel``, ``pathCurve``.
+    ``fluoroFile`` (geometry.json, or the XA file whose C-arm tags give ``P``). Further views
+    of the same anatomy at other C-arm angles, one entry per view in three lists of the same
+    length: ``extraFrameVolumes`` (the frames, each view named after its node),
+    ``extraGeometryFiles`` and ``extraFluoroFiles`` (as ``geometryFile`` / ``fluoroFile``,
+    ``""`` for none). Lists are stored as ``parameterNodeWrapper``'s ``list[...]`` fields are
+    (``<field>_len`` and ``<field>_<i>``); assign a whole list to change one. Results:
+    ``preopModel``, ``recoveredModel``, ``pathCurve``, and ``shownView`` (the view in the
+    frame view).
     """
 
     NODE_FIELDS = {"ctVolume": "vtkMRMLScalarVolumeNode", "aortaSegmentation": "vtkMRMLSegmentationNode",
                    "fluoroVolume": "vtkMRMLScalarVolumeNode", "preopModel": "vtkMRMLModelNode",
                    "recoveredModel": "vtkMRMLModelNode", "pathCurve": "vtkMRMLMarkupsCurveNode"}
     VALUE_FIELDS = {"method": "proposed", "start": "iliac_right", "target": "renal_left", "geometryFile": "",
-                    "fluoroFile": ""}
+                    "fluoroFile": "", "shownView": MAIN_VIEW_NAME}
+    NODE_LIST_FIELDS = {"extraFrameVolumes": "vtkMRMLScalarVolumeNode"}
+    VALUE_LIST_FIELDS = ("extraGeometryFiles", "extraFluoroFiles")
     MODULE_NAME = "FevarPlanner"
 
     def __init__(self, node):
@@ -530,6 +597,8 @@ class FevarPlannerParameters:
         if name in self.VALUE_FIELDS:
             value = self.node.GetParameter(name)
             return self.VALUE_FIELDS[name] if value is None else value
+        if name in self.NODE_LIST_FIELDS or name in self.VALUE_LIST_FIELDS:
+            return [self._read_item(name, f"{name}_{index}") for index in range(self._list_length(name))]
         raise AttributeError(name)
 
     def __setattr__(self, name, value):
@@ -537,8 +606,30 @@ class FevarPlannerParameters:
             self.node.SetNodeReferenceID(name, value.GetID() if value is not None else None)
         elif name in self.VALUE_FIELDS:
             self.node.SetParameter(name, str(value))
+        elif name in self.NODE_LIST_FIELDS or name in self.VALUE_LIST_FIELDS:
+            self._write_list(name, list(value))
         else:
             raise AttributeError(f"FevarPlanner parameters have no field {name!r}")
+
+    def _list_length(self, name: str) -> int:
+        length = self.node.GetParameter(f"{name}_len")
+        return int(length) if length else 0
+
+    def _read_item(self, name: str, key: str):
+        return self.node.GetNodeReference(key) if name in self.NODE_LIST_FIELDS else self.node.GetParameter(key)
+
+    def _write_list(self, name: str, values: list) -> None:
+        for index in range(len(values), self._list_length(name)):  # entries beyond the new end
+            self.node.UnsetParameter(f"{name}_{index}")
+            self.node.RemoveNodeReferenceIDs(f"{name}_{index}")
+        for index, value in enumerate(values):
+            key = f"{name}_{index}"
+            if name in self.NODE_LIST_FIELDS:
+                self.node.SetParameter(key, "")
+                self.node.SetNodeReferenceID(key, value.GetID() if value is not None else None)
+            else:
+                self.node.SetParameter(key, str(value))
+        self.node.SetParameter(f"{name}_len", str(len(values)))
 
 
 class FevarPlannerLogic(ScriptedLoadableModuleLogic):
@@ -565,10 +656,17 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         return FevarPlannerParameters.of_scene(self.scene)
 
     def case_from_nodes(self, parameters):
-        """A core :class:`FevarPlannerLib.io.Case` from the parameter node's input nodes (RAS -> LPS here)."""
-        from FevarPlannerLib.io import Case, Fluoro, InputError, projection_for_frame, read_fluoro
+        """A core :class:`FevarPlannerLib.io.Case` from the parameter node's input nodes (RAS -> LPS here).
 
-        ct_node, frame_node = parameters.ctVolume, parameters.fluoroVolume
+        ``case.views`` holds the frame (``fluoroVolume`` / ``fluoroFile``, the view ``main``)
+        and each further view (``extraFrameVolumes`` with ``extraGeometryFiles`` /
+        ``extraFluoroFiles``, named after its node), each a :class:`FevarPlannerLib.io.View`
+        with its own ``P``, as :func:`FevarPlannerLib.io.load_case` builds them from
+        ``views/<name>/`` folders.
+        """
+        from FevarPlannerLib.io import Case, InputError
+
+        ct_node = parameters.ctVolume
         if ct_node is None:
             raise InputError("choose the CT volume (ctVolume)")
         ct = node_to_volume(ct_node)
@@ -577,25 +675,24 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
             mask = segmentation_node_to_mask(parameters.aortaSegmentation, ct_node)
             if not mask.array.any():
                 raise InputError(f"segmentation {parameters.aortaSegmentation.GetName()!r} is empty")
-        tagged = read_fluoro(parameters.fluoroFile) if parameters.fluoroFile else None
-        if frame_node is not None:
-            image = node_to_volume(frame_node).array[0].astype(np.float32)
-            fluoro = Fluoro(image, None, tagged.carm if tagged is not None else None,
-                            Path(parameters.fluoroFile) if tagged is not None else None,
-                            missing_tags=tagged.missing_tags if tagged is not None else ("all C-arm tags",))
-        elif tagged is not None:
-            fluoro = tagged
-        else:
+        reference = mask if mask is not None else ct
+        if parameters.fluoroVolume is None and not parameters.fluoroFile:
             raise InputError("choose the frame (fluoroVolume) or its DICOM file (fluoroFile)")
-        P, source = projection_for_frame(fluoro, mask if mask is not None else ct, parameters.geometryFile or None)
+        views = [_frame_view(MAIN_VIEW_NAME, parameters.fluoroVolume, parameters.fluoroFile, parameters.geometryFile,
+                             reference)]
+        for node, geometry, fluoro_file in extra_views(parameters):
+            views.append(_frame_view(node.GetName(), node, fluoro_file, geometry, reference))
         paths = {"ct": Path(ct_node.GetName())}
-        return Case(case_dir=None, ct=ct if mask is None else None, aorta_mask=mask, skeleton3d=None, fluoro=fluoro,
-                    fluoro_mask=None, P=P, paths=paths, available=dict(paths), geometry=source)
+        return Case(case_dir=None, ct=ct if mask is None else None, aorta_mask=mask, skeleton3d=None,
+                    fluoro=views[0].fluoro, fluoro_mask=None, P=views[0].P, paths=paths, available=dict(paths),
+                    geometry=views[0].geometry, views=views)
 
     def process(self, parameters=None, *, progress=None, cache=True):
         """Plan from the loaded nodes of ``parameters`` (default the scene's parameter node).
 
-        The pre-operative model comes from the cache (:mod:`FevarPlannerLib.cache`) when the
+        Every view (the frame and ``extraFrameVolumes``) takes part in one registration; each
+        gets its overlays, drawn on its own frame node, and the first view is shown. The
+        pre-operative model comes from the cache (:mod:`FevarPlannerLib.cache`) when the
         same CT / segmentation were seen. Returns ``(PlanResult, nodes by role)``.
         """
         from FevarPlannerLib import cache as preop_cache
@@ -606,13 +703,16 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         model = preop_cache.preop_model(case, progress=progress, use_cache=cache)
         result = run_case(case, method=parameters.method, start=parameters.start, target=parameters.target,
                           preop=model, progress=progress, drr=False)
-        nodes = self.add_result(result, model=model, frame_node=parameters.fluoroVolume,
-                                show_fluoro=parameters.fluoroVolume is None)
+        loaded = {view.name: node for view, node in zip(case.views, [parameters.fluoroVolume,
+                                                                     *parameters.extraFrameVolumes])}
+        nodes = self.add_result(result, model=model, case=case,
+                                frame_nodes={name: node for name, node in loaded.items() if node is not None})
         if parameters.aortaSegmentation is None and model.lumen is not None:
             nodes["aorta"] = mask_to_segmentation_node(self.scene, model.lumen, parameters.ctVolume)
             parameters.aortaSegmentation = nodes["aorta"]
         parameters.preopModel, parameters.recoveredModel = nodes["preop"], nodes["deformed"]
         parameters.pathCurve = nodes["path"]
+        parameters.shownView = result_views(self.scene)[0]
         return result, nodes
 
     def run(self, case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
@@ -633,7 +733,8 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         progress : callable, optional
             ``progress(fraction, message)``.
         show_fluoro : bool
-            Also add the frame as a scalar volume, in its own view with the projected tree.
+            Also add each view's frame (the folder's own and every ``views/<name>/``) as a
+            scalar volume with the projected tree; the first is shown in the frame view.
 
         Returns
         -------
@@ -649,14 +750,29 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         result = run_case(case, method=method, start=start, target=target, preop=model, progress=progress)
         if out_dir is not None:
             write_outputs(result, out_dir)
-        return result, self.add_result(result, model=model, show_fluoro=show_fluoro)
+        return result, self.add_result(result, model=model, show_fluoro=show_fluoro, case=case)
 
-    def add_result(self, result, *, show_fluoro: bool = True, model=None, frame_node=None) -> dict:
+    def add_result(self, result, *, show_fluoro: bool = True, model=None, frame_nodes=None, case=None) -> dict:
         """Replace the nodes of an earlier run by this result's; returns the nodes by role.
 
-        ``model`` (the cached pre-operative model) gives the centrelines their ``Radius``;
-        ``frame_node`` (a loaded frame) or, with ``show_fluoro``, a new frame volume is shown
-        in the frame view with the 2D skeleton and the recovered tree and path projected on it.
+        Parameters
+        ----------
+        result : FevarPlannerLib.pipeline.PlanResult
+        show_fluoro : bool
+            Add a frame volume node for each view that ``frame_nodes`` does not give.
+        model : FevarPlannerLib.cache.PreopModel, optional
+            Gives the centrelines their ``Radius``.
+        frame_nodes : dict, optional
+            View name -> a loaded frame node to draw that view's overlays on.
+        case : FevarPlannerLib.io.Case, optional
+            The planned case: its views give the further views' frames
+            (:meth:`~FevarPlannerLib.pipeline.PlanResult.view_drawings`); without it only the
+            first view is drawn.
+
+        Each drawn view's frame carries its 2D skeleton and the pre-operative tree, the
+        recovered tree and the path projected through its own ``P`` (roles ``overlay_*``,
+        with ``:<view>`` for views after the first), shown in the frame view only; the first
+        view is put there (:func:`show_view` shows another).
         """
         scene = self.scene
         remove_result_nodes(scene)
@@ -670,24 +786,125 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
                                                  radius),
             "path": path_to_curve_node(scene, result.path),
         }
-        if frame_node is None and show_fluoro:
-            frame_node = nodes["fluoro"] = fluoro_to_volume_node(scene, result.fluoro_image)
-        if frame_node is not None:
-            nodes.update(self._frame_overlays(result, frame_node))
+        frame_nodes = frame_nodes or {}
+        for drawing in result.view_drawings(case):
+            frame_node = frame_nodes.get(drawing.name)
+            if frame_node is None and show_fluoro:
+                role = _view_role("fluoro", drawing.name)
+                frame_node = nodes[role] = fluoro_to_volume_node(scene, drawing.image, _view_title("fluoroscopy",
+                                                                                                    drawing.name))
+                _tag(frame_node, role, frame_node.GetName())
+                frame_node.SetAttribute(VIEW_ATTRIBUTE, drawing.name)
+            if frame_node is not None:
+                nodes.update(self._frame_overlays(result, drawing, frame_node))
+        views = result_views(scene)
+        if views:
+            show_view(scene, views[0])
         return nodes
 
-    def _frame_overlays(self, result, frame_node) -> dict:
+    def _frame_overlays(self, result, drawing, frame_node) -> dict:
+        """One view's overlay model nodes on ``frame_node``, projected through the view's own ``P`` (eq. 1)."""
         from FevarPlannerLib.projection import project
 
         scene = self.scene
-        view = show_frame(scene, frame_node)
+        view, _ = frame_view_nodes(scene)
         path_edges = np.column_stack([np.arange(len(result.path.points) - 1), np.arange(1, len(result.path.points))])
-        layers = (("overlay_skeleton2d", "2D skeleton", result.skeleton2d_points, result.skeleton2d_edges),
-                  ("overlay_deformed", "recovered, projected", project(result.P, result.deformed.points),
+        layers = (("overlay_skeleton2d", "2D skeleton", drawing.skeleton_points, drawing.skeleton_edges),
+                  ("overlay_preop", "pre-operative, projected", project(drawing.P, result.preop.points),
+                   result.preop.edges),
+                  ("overlay_deformed", "recovered, projected", project(drawing.P, result.deformed.points),
                    result.deformed.edges),
-                  ("overlay_path", "catheter path, projected", project(result.P, result.path.points), path_edges))
-        return {role: overlay_to_model_node(scene, frame_node, uv, edges, f"FevarPlanner {name}", role, view)
-                for role, name, uv, edges in layers}
+                  ("overlay_path", "catheter path, projected", project(drawing.P, result.path.points), path_edges))
+        overlays = {}
+        for role, name, uv, edges in layers:
+            node = overlay_to_model_node(scene, frame_node, uv, edges, _view_title(name, drawing.name),
+                                         _view_role(role, drawing.name), view)
+            node.SetAttribute(VIEW_ATTRIBUTE, drawing.name)
+            node.SetNodeReferenceID(FRAME_REFERENCE, frame_node.GetID())
+            overlays[_view_role(role, drawing.name)] = node
+        return overlays
+
+    def show_view(self, name: str, parameters=None):
+        """Show view ``name`` in the frame view (:func:`show_view`) and keep it in the parameter node."""
+        slice_node = show_view(self.scene, name)
+        (parameters or self.getParameterNode()).shownView = name
+        return slice_node
+
+
+def _view_title(text: str, view: str) -> str:
+    """A node name: ``FevarPlanner <text>``, with the view's name for views after the first."""
+    return f"FevarPlanner {text}" if view == MAIN_VIEW_NAME else f"FevarPlanner {text} ({view})"
+
+
+def extra_views(parameters) -> list:
+    """The further views of a parameter node: ``(frame node, geometry file, XA file)`` per view.
+
+    Raises
+    ------
+    InputError
+        The three lists differ in length, a frame node is missing, or two views share a name
+        (or one is called ``main``, the first view's name).
+    """
+    from FevarPlannerLib.io import InputError
+
+    frames, geometries, files = (list(parameters.extraFrameVolumes), list(parameters.extraGeometryFiles),
+                                 list(parameters.extraFluoroFiles))
+    if not len(frames) == len(geometries) == len(files):
+        raise InputError(f"further views: {len(frames)} frame nodes (extraFrameVolumes), {len(geometries)} "
+                         f"geometry files (extraGeometryFiles) and {len(files)} XA files (extraFluoroFiles); "
+                         "give one of each per view ('' for none)")
+    names = [MAIN_VIEW_NAME]
+    for index, node in enumerate(frames):
+        if node is None:
+            raise InputError(f"further view {index + 1}: its frame node (extraFrameVolumes) is missing from the scene")
+        if node.GetName() in names:
+            raise InputError(f"further view {index + 1}: frame node {node.GetName()!r} has the name of another "
+                             f"view ({', '.join(names)}); rename it, its name names the view")
+        names.append(node.GetName())
+    return list(zip(frames, geometries, files))
+
+
+def add_extra_view(parameters, frame_node, geometry_file: str = "", fluoro_file: str = "") -> None:
+    """Append a further view to the parameter node: its frame node, geometry.json and/or XA file."""
+    if frame_node is None:
+        raise ValueError("a further view needs its frame node")
+    parameters.extraFrameVolumes = [*parameters.extraFrameVolumes, frame_node]
+    parameters.extraGeometryFiles = [*parameters.extraGeometryFiles, str(geometry_file or "")]
+    parameters.extraFluoroFiles = [*parameters.extraFluoroFiles, str(fluoro_file or "")]
+
+
+def remove_extra_view(parameters, index: int) -> None:
+    """Drop further view ``index`` (0 = the first after ``main``) from the parameter node."""
+    for field in ("extraFrameVolumes", "extraGeometryFiles", "extraFluoroFiles"):
+        values = list(getattr(parameters, field))
+        if 0 <= index < len(values):
+            del values[index]
+        setattr(parameters, field, values)
+
+
+def _frame_view(name: str, frame_node, fluoro_file: str, geometry_file: str, reference):
+    """One view (:class:`FevarPlannerLib.io.View`) from a frame node and/or an XA file, with its ``P``.
+
+    The image comes from ``frame_node`` when given, else from ``fluoro_file``; ``P`` from
+    ``geometry_file`` (geometry.json) or the XA file's C-arm tags, the isocentre at the
+    centre of ``reference`` (:func:`FevarPlannerLib.io.projection_for_frame`: a case
+    folder's rules).
+    """
+    from FevarPlannerLib.io import Fluoro, InputError, View, projection_for_frame, read_fluoro
+
+    tagged = read_fluoro(fluoro_file) if fluoro_file else None
+    if frame_node is not None:
+        image = node_to_volume(frame_node).array[0].astype(np.float32)
+        fluoro = Fluoro(image, None, tagged.carm if tagged is not None else None,
+                        Path(fluoro_file) if tagged is not None else Path(frame_node.GetName()),
+                        missing_tags=tagged.missing_tags if tagged is not None else ("all C-arm tags",))
+    elif tagged is not None:
+        fluoro = tagged
+    else:
+        raise InputError(f"view {name}: no frame node and no XA file")
+    P, source = projection_for_frame(fluoro, reference, geometry_file or None)
+    paths = {key: Path(value) for key, value in (("fluoro", fluoro_file), ("geometry", geometry_file)) if value}
+    return View(name, fluoro, None, P, paths, source)
 
 
 def _distance_to_label(centerline: Centerline, point_lps: np.ndarray, label: str) -> float:
@@ -740,22 +957,39 @@ def run_phantom_check(scene, work_dir, *, seed: int = 0, mask_only: bool = True)
     return check
 
 
-def run_node_check(scene, work_dir, *, seed: int = 0) -> dict:
+def _two_view_folder(work_dir, seed: int) -> Path:
+    """A two-view case of the independent scenario family (AP and a second C-arm angle), masks only."""
+    from FevarPlannerLib import scenarios
+
+    scenario = scenarios.plan_scenarios("two_views", 1, seed=seed)[0]
+    return scenarios.write_scenario(scenario, Path(work_dir) / "two_views")
+
+
+def _loaded_frame_node(scene, mask_png: Path, name: str):
+    """A frame volume node as a user would load it, drawn from a vessel mask (dark vessels on grey)."""
+    from FevarPlannerLib import io
+
+    node = fluoro_to_volume_node(scene, np.where(io.read_mask_2d(mask_png), 0.25, 0.75), name=name)
+    node.RemoveAttribute(ROLE_ATTRIBUTE)  # a loaded input, not a result
+    return node
+
+
+def run_node_check(scene, work_dir, *, seed: int = 0, two_views: bool = False) -> dict:
     """The Slicer route on a phantom: inputs as loaded nodes, through the parameter node.
 
     The phantom's lumen mask stands in for a CT (lumen 300 HU in soft tissue), its vessel
     mask for the frame, its geometry.json for ``P``. A CT view ("Red") shows the CT before
-    the run. Returns :func:`run_phantom_check`'s path numbers plus the parameter node, the
-    nodes and the CT view's composite node.
+    the run. With ``two_views`` the case is a two-view scenario (:mod:`FevarPlannerLib.scenarios`)
+    and its second view is a further frame node, named after the view, with its own
+    geometry.json. Returns :func:`run_phantom_check`'s path numbers plus the parameter
+    node, the nodes and the CT view's composite node.
     """
     from FevarPlannerLib import io
 
-    folder = _phantom_folder(work_dir, seed)
+    folder = _two_view_folder(work_dir, seed) if two_views else _phantom_folder(work_dir, seed)
     mask = io.read_mask(folder / "aorta_mask.nrrd")
     ct_node = volume_to_node(scene, mask.with_array(np.where(mask.array, 300.0, 40.0).astype(np.float32)), "CT")
-    frame = io.read_mask_2d(folder / "fluoro_mask.png")
-    frame_node = fluoro_to_volume_node(scene, np.where(frame, 0.25, 0.75), name="XA frame")
-    frame_node.RemoveAttribute(ROLE_ATTRIBUTE)  # a loaded input, not a result
+    frame_node = _loaded_frame_node(scene, folder / "fluoro_mask.png", "XA frame")
     red = scene.AddNewNodeByClass("vtkMRMLSliceCompositeNode")
     red.SetLayoutName("Red")
     red.SetBackgroundVolumeID(ct_node.GetID())
@@ -764,9 +998,14 @@ def run_node_check(scene, work_dir, *, seed: int = 0) -> dict:
     parameters.ctVolume, parameters.fluoroVolume = ct_node, frame_node
     parameters.aortaSegmentation = mask_to_segmentation_node(scene, mask, ct_node)
     parameters.geometryFile = str(folder / "geometry.json")
+    view_folders = sorted(path for path in (folder / "views").iterdir()) if two_views else []
+    for view_folder in view_folders:
+        add_extra_view(parameters, _loaded_frame_node(scene, view_folder / "fluoro_mask.png", view_folder.name),
+                       str(view_folder / "geometry.json"))
     result, nodes = logic.process(parameters)
     check = _path_check(folder, result, nodes["path"])
-    check.update({"parameters": parameters, "nodes": nodes, "ct_view": red, "folder": folder, "mask": mask})
+    check.update({"parameters": parameters, "nodes": nodes, "ct_view": red, "folder": folder, "mask": mask,
+                  "view_folders": view_folders})
     return check
 
 
@@ -806,8 +1045,10 @@ if SLICER_APPLICATION:
                 "(Zheng, Zhou, Riga and Yang, ICRA 2019). Choose the CT volume (e.g. from the DICOM "
                 "module), optionally an aorta segmentation (edit it in Segment Editor: the next run "
                 "uses it), the frame as a volume and its geometry (geometry.json or the XA file with "
-                "C-arm tags), or a case folder, and press Plan path. The frame appears in its own "
-                "view (XA) with the projected tree; the CT keeps its views.<br><br><b>"
+                "C-arm tags), or a case folder, and press Plan path. Further frames of the same "
+                "anatomy at other C-arm angles (Further views, or views/&lt;name&gt;/ in a case "
+                "folder) are registered together with it. The frame appears in its own view (XA) "
+                "with the projected tree; Frame shown picks the view; the CT keeps its views.<br><br><b>"
                 + RESEARCH_USE_STATEMENT + "</b>")
             self.parent.acknowledgementText = (
                 "Implements J.-Q. Zheng, X.-Y. Zhou, C. Riga and G.-Z. Yang, 'Towards 3D Path "
@@ -821,7 +1062,10 @@ if SLICER_APPLICATION:
             "__doc__": "The fields of FevarPlannerParameters on the same node, typed and validated by Slicer.",
             "__annotations__": {**{field: getattr(slicer, node_class)
                                    for field, node_class in FevarPlannerParameters.NODE_FIELDS.items()},
-                                **{field: str for field in FevarPlannerParameters.VALUE_FIELDS}},
+                                **{field: str for field in FevarPlannerParameters.VALUE_FIELDS},
+                                **{field: list[getattr(slicer, node_class)]
+                                   for field, node_class in FevarPlannerParameters.NODE_LIST_FIELDS.items()},
+                                **{field: list[str] for field in FevarPlannerParameters.VALUE_LIST_FIELDS}},
             **FevarPlannerParameters.VALUE_FIELDS}))
 
     class FevarPlannerWidget(ScriptedLoadableModuleWidget, slicer.util.VTKObservationMixin):
@@ -856,6 +1100,8 @@ if SLICER_APPLICATION:
             self.ui.runButton.connect("clicked()", self.onRunButton)
             for box in self.DISPLAY:
                 getattr(self.ui, box).connect("toggled(bool)", self._update_visibility)
+            self.ui.viewComboBox.connect("currentIndexChanged(int)", self._on_view_chosen)
+            self._view_names = []
             for combo, field in (("methodComboBox", "method"), ("startComboBox", "start"),
                                  ("targetComboBox", "target")):
                 getattr(self.ui, combo).connect("currentTextChanged(QString)",
@@ -888,10 +1134,54 @@ if SLICER_APPLICATION:
             self.fluoroFileLineEdit.connect("currentPathChanged(QString)",
                                             lambda path: self._set_parameter("fluoroFile", path))
             form.addRow("or XA file (C-arm tags):", self.fluoroFileLineEdit)
+            form.addRow(self._further_views())
             self.planNodesButton = qt.QPushButton("Plan path from these nodes")
             self.planNodesButton.connect("clicked()", self.onPlanNodesButton)
             form.addRow(self.planNodesButton)
             return box
+
+        def _further_views(self):
+            """Further frames of the same anatomy at other C-arm angles, each with its own geometry."""
+            box = qt.QGroupBox("Further views (other C-arm angles)")
+            box.toolTip = ("Frames taken while the wire stays in, at other C-arm angles (e.g. LAO 30): all views "
+                           "are registered together, which fixes the depth one view cannot see. Each view is "
+                           "named after its frame node.")
+            form = qt.QFormLayout(box)
+            self.extraFrameSelector = slicer.qMRMLNodeComboBox()
+            self.extraFrameSelector.nodeTypes = [FevarPlannerParameters.NODE_LIST_FIELDS["extraFrameVolumes"]]
+            self.extraFrameSelector.noneEnabled = True
+            self.extraFrameSelector.addEnabled = self.extraFrameSelector.removeEnabled = False
+            self.extraFrameSelector.setMRMLScene(slicer.mrmlScene)
+            form.addRow("Frame (XA):", self.extraFrameSelector)
+            self.extraGeometryLineEdit = ctk.ctkPathLineEdit()
+            form.addRow("Geometry (geometry.json):", self.extraGeometryLineEdit)
+            self.extraFluoroLineEdit = ctk.ctkPathLineEdit()
+            form.addRow("or XA file (C-arm tags):", self.extraFluoroLineEdit)
+            buttons = qt.QHBoxLayout()
+            self.addViewButton = qt.QPushButton("Add view")
+            self.addViewButton.connect("clicked()", self.onAddViewButton)
+            self.removeViewButton = qt.QPushButton("Remove selected")
+            self.removeViewButton.connect("clicked()", self.onRemoveViewButton)
+            buttons.addWidget(self.addViewButton)
+            buttons.addWidget(self.removeViewButton)
+            form.addRow(buttons)
+            self.extraViewsList = qt.QListWidget()
+            self.extraViewsList.maximumHeight = 80
+            form.addRow(self.extraViewsList)
+            return box
+
+        def onAddViewButton(self):  # noqa: N802
+            node = self.extraFrameSelector.currentNode()
+            if node is None or self.parameters is None:
+                return
+            add_extra_view(self.parameters, node, self.extraGeometryLineEdit.currentPath,
+                           self.extraFluoroLineEdit.currentPath)
+            self._parameters_to_gui()
+
+        def onRemoveViewButton(self):  # noqa: N802
+            if self.parameters is not None and self.extraViewsList.currentRow >= 0:
+                remove_extra_view(self.parameters, self.extraViewsList.currentRow)
+                self._parameters_to_gui()
 
         # ---------------------------------------------------------------- parameter node
         def initializeParameterNode(self):  # noqa: N802  (Slicer naming)
@@ -910,6 +1200,13 @@ if SLICER_APPLICATION:
                 selector.setCurrentNode(getattr(self.parameters, field))
             self.geometryPathLineEdit.currentPath = self.parameters.geometryFile
             self.fluoroFileLineEdit.currentPath = self.parameters.fluoroFile
+            self.extraViewsList.clear()
+            for node, geometry, fluoro_file in zip(self.parameters.extraFrameVolumes,
+                                                   self.parameters.extraGeometryFiles,
+                                                   self.parameters.extraFluoroFiles):
+                source = Path(geometry).name if geometry else (Path(fluoro_file).name + " (C-arm tags)"
+                                                               if fluoro_file else "no geometry")
+                self.extraViewsList.addItem(f"{node.GetName() if node is not None else '(missing node)'}: {source}")
             for combo, field in (("methodComboBox", "method"), ("startComboBox", "start"),
                                  ("targetComboBox", "target")):
                 getattr(self.ui, combo).currentText = getattr(self.parameters, field)
@@ -987,9 +1284,30 @@ if SLICER_APPLICATION:
             slicer.util.pip_install(" ".join(missing))
             return not missing_requirements()
 
+        def _fill_views(self, result) -> None:
+            """The view selector: one entry per view drawn (with its 2D fit), enabled for several."""
+            fits = {view["name"]: view.get("2d_px") for view in result.views}
+            self._view_names = result_views(slicer.mrmlScene)
+            combo = self.ui.viewComboBox
+            combo.blockSignals(True)
+            combo.clear()
+            for name in self._view_names:
+                fit = fits.get(name)
+                combo.addItem(f"{name}  (2D fit {fit['mean']:.2f} px)" if fit else name)
+            combo.blockSignals(False)
+            combo.enabled = len(self._view_names) > 1
+
+        def _on_view_chosen(self, index):
+            if 0 <= index < len(self._view_names):
+                self.logic.show_view(self._view_names[index], self.parameters)
+                frame = slicer.app.layoutManager().sliceWidget(FRAME_VIEW)
+                if frame is not None:
+                    frame.sliceLogic().FitSliceToAll()
+
         def _show(self, result) -> None:
-            """Table, visibility, the frame layout (frame in its own view; the CT keeps Red) and the status."""
+            """Table, views, visibility, the frame layout (frame in its own view; the CT keeps Red) and the status."""
             self._fill_table(result)
+            self._fill_views(result)
             self._update_visibility()
             layout_node = slicer.app.layoutManager().layoutLogic().GetLayoutNode()
             if not layout_node.IsLayoutDescription(FRAME_LAYOUT_ID):
@@ -999,8 +1317,10 @@ if SLICER_APPLICATION:
             if frame is not None:
                 frame.sliceLogic().FitSliceToAll()
             slicer.util.resetThreeDViews()
+            views = f"; {len(result.views)} views ({', '.join(v['name'] for v in result.views)})" \
+                if len(result.views) > 1 else ""
             self.ui.statusLabel.text = (f"{result.path.start_label} → {result.path.target_label}: "
-                                        f"{result.path.length_mm:.1f} mm in {result.timings['total']:.2f} s")
+                                        f"{result.path.length_mm:.1f} mm in {result.timings['total']:.2f} s{views}")
 
         def onPlanNodesButton(self):  # noqa: N802
             if not self._ensure_requirements():
@@ -1038,6 +1358,8 @@ if SLICER_APPLICATION:
             self.test_phantom_case()
             self.setUp()
             self.test_nodes_route()
+            self.setUp()
+            self.test_two_view_nodes_route()
 
         def test_lps_to_ras(self):
             self.assertEqual(lps_to_ras([10.0, 20.0, 30.0]).tolist(), [-10.0, -20.0, 30.0])
@@ -1069,4 +1391,19 @@ if SLICER_APPLICATION:
             curve = check["nodes"]["path"]
             self.assertTrue(curve.GetLocked())
             self.assertAlmostEqual(curve.GetCurveLengthWorld(), check["result"].path.length_mm, places=3)
+            self.delayDisplay("Test passed")
+
+        def test_two_view_nodes_route(self):
+            self.delayDisplay("Planning from two frame nodes at different C-arm angles")
+            with tempfile.TemporaryDirectory() as work_dir:
+                check = run_node_check(slicer.mrmlScene, work_dir, two_views=True)
+            self._assert_path(check)
+            second = check["view_folders"][0].name
+            self.assertEqual([view["name"] for view in check["result"].views], ["main", second])
+            self.assertEqual(result_views(slicer.mrmlScene), ["main", second])
+            frame_view, composite = frame_view_nodes(slicer.mrmlScene)
+            show_view(slicer.mrmlScene, second)
+            self.assertEqual(composite.GetBackgroundVolumeID(), check["parameters"].extraFrameVolumes[0].GetID())
+            self.assertFalse(check["nodes"]["overlay_deformed"].GetDisplayNode().GetVisibility())
+            self.assertTrue(check["nodes"][f"overlay_deformed:{second}"].GetDisplayNode().GetVisibility())
             self.delayDisplay("Test passed")

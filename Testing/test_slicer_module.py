@@ -153,7 +153,7 @@ def test_fluoro_volume_node_keeps_the_pixel_grid(scene):
         fp.fluoro_to_volume_node(scene, np.zeros((2, 2, 2)))
 
 
-OVERLAYS = {"overlay_skeleton2d", "overlay_deformed", "overlay_path"}
+OVERLAYS = {"overlay_skeleton2d", "overlay_preop", "overlay_deformed", "overlay_path"}
 
 
 def test_logic_replaces_the_nodes_of_an_earlier_run(scene, anatomy):
