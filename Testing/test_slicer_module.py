@@ -17,7 +17,7 @@ import vtk
 
 slicer = pytest.importorskip("slicer")
 
-from FevarPlannerLib import export, phantom, planning  # noqa: E402
+from FevarPlannerLib import export, io, phantom, planning  # noqa: E402
 from FevarPlannerLib.centerline import ANATOMY_LABELS  # noqa: E402
 from FevarPlannerLib.pipeline import PlanResult  # noqa: E402
 from FevarPlannerLib.projection import project  # noqa: E402
@@ -393,5 +393,140 @@ def test_application_classes_build_with_the_research_statement_and_the_wrapped_p
     assert fields["ctVolume"] is slicer.vtkMRMLScalarVolumeNode
     assert fields["aortaSegmentation"] is slicer.vtkMRMLSegmentationNode
     assert fields["pathCurve"] is slicer.vtkMRMLMarkupsCurveNode and fields["target"] is str
+    assert fields["extraFrameVolumes"] == list[slicer.vtkMRMLScalarVolumeNode]
+    assert fields["extraGeometryFiles"] == fields["extraFluoroFiles"] == list[str] and fields["shownView"] is str
     assert wrapped["class"].method == "proposed"
-    assert {"test_phantom_case", "test_nodes_route"} <= set(dir(module.FevarPlannerTest))
+    assert {"test_phantom_case", "test_nodes_route", "test_two_view_nodes_route"} <= set(dir(module.FevarPlannerTest))
+    for handler in ("onAddViewButton", "onRemoveViewButton", "_fill_views", "_on_view_chosen"):
+        assert callable(getattr(module.FevarPlannerWidget, handler))
+
+
+def test_further_views_are_kept_as_the_parameter_node_wrappers_lists(scene, tmp_path):
+    """extraFrameVolumes / extraGeometryFiles / extraFluoroFiles: <field>_len and <field>_<i>, saved with the scene."""
+    parameters = fp.FevarPlannerLogic(scene).getParameterNode()
+    assert parameters.extraFrameVolumes == [] and parameters.shownView == "main"
+    frames = [scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode") for _ in range(3)]
+    for index, node in enumerate(frames):
+        node.SetName(f"LAO{30 * (index + 1)}")
+        fp.add_extra_view(parameters, node, f"/data/view{index}/geometry.json" if index != 1 else "",
+                          "/data/lao60.dcm" if index == 1 else "")
+    fp.remove_extra_view(parameters, 0)
+    assert [node.GetName() for node in parameters.extraFrameVolumes] == ["LAO60", "LAO90"]
+    assert parameters.extraGeometryFiles == ["", "/data/view2/geometry.json"]
+    assert parameters.extraFluoroFiles == ["/data/lao60.dcm", ""]
+    node = parameters.node
+    assert node.GetParameter("extraFrameVolumes_len") == "2" and not node.GetParameter("extraGeometryFiles_2")
+    assert node.GetNodeReference("extraFrameVolumes_1") is frames[2] and node.GetNodeReference("extraFrameVolumes_2") is None
+    scene.SetURL(str(tmp_path / "scene.mrml"))
+    assert scene.Commit() == 1
+    other = slicer.vtkMRMLScene()
+    other.SetURL(str(tmp_path / "scene.mrml"))
+    other.Import()
+    loaded = fp.FevarPlannerParameters.of_scene(other)
+    assert [n.GetID() for n in loaded.extraFrameVolumes] == [frames[1].GetID(), frames[2].GetID()]
+    assert loaded.extraFluoroFiles == ["/data/lao60.dcm", ""]
+    assert [n.GetName() for n, _, _ in fp.extra_views(loaded)] == ["LAO60", "LAO90"]
+
+
+def test_further_views_need_distinct_names_and_matching_lists(scene):
+    from FevarPlannerLib.io import InputError
+
+    parameters = fp.FevarPlannerLogic(scene).getParameterNode()
+    node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
+    node.SetName("main")
+    fp.add_extra_view(parameters, node, "g.json")
+    with pytest.raises(InputError, match="'main' has the name of another view"):
+        fp.extra_views(parameters)
+    node.SetName("LAO30")
+    parameters.extraGeometryFiles = []
+    with pytest.raises(InputError, match="1 frame nodes .* 0 geometry files"):
+        fp.extra_views(parameters)
+    with pytest.raises(ValueError, match="needs its frame node"):
+        fp.add_extra_view(parameters, None)
+    assert fp.MAIN_VIEW_NAME == io.MAIN_VIEW
+
+
+@pytest.fixture(scope="module")
+def two_view_nodes(tmp_path_factory):
+    """The Slicer route with two frame nodes (AP and a second C-arm angle), each with its own geometry.json."""
+    mrml = slicer.vtkMRMLScene()
+    mrml.AddNode(slicer.vtkMRMLSelectionNode())
+    return mrml, fp.run_node_check(mrml, tmp_path_factory.mktemp("two_view_nodes"), two_views=True)
+
+
+def _overlay_uv(overlay, frame_node) -> np.ndarray:
+    """An overlay model's points back on its frame's pixel grid (u, v), through the frame's IJK-to-RAS."""
+    matrix = vtk.vtkMatrix4x4()
+    frame_node.GetIJKToRASMatrix(matrix)
+    ras_to_ijk = np.linalg.inv(np.array([[matrix.GetElement(r, c) for c in range(4)] for r in range(4)]))
+    polydata = overlay.GetPolyData()
+    ras = np.array([polydata.GetPoint(i) for i in range(polydata.GetNumberOfPoints())])
+    return (np.column_stack([ras, np.ones(len(ras))]) @ ras_to_ijk.T)[:, :2]
+
+
+def _on_vessels(uv: np.ndarray, mask: np.ndarray) -> float:
+    col, row = np.rint(uv).astype(int).T
+    inside = (col >= 0) & (col < mask.shape[1]) & (row >= 0) & (row < mask.shape[0])
+    return float(np.where(inside, mask[np.clip(row, 0, mask.shape[0] - 1), np.clip(col, 0, mask.shape[1] - 1)],
+                          False).mean())
+
+
+def test_two_frame_nodes_are_registered_together_and_each_gets_its_overlay(two_view_nodes):
+    scene, check = two_view_nodes
+    result, nodes, parameters = check["result"], check["nodes"], check["parameters"]
+    second = check["view_folders"][0].name
+    assert [view["name"] for view in result.views] == ["main", second] == fp.result_views(scene)
+    assert all(view["2d_px"]["mean"] < 1.5 for view in result.views)
+    assert check["start_right_of_aorta_mm"] > 5.0 and check["end_mm"] < 10.0
+    frames = {"main": parameters.fluoroVolume, second: parameters.extraFrameVolumes[0]}
+    masks = {"main": io.read_mask_2d(check["folder"] / "fluoro_mask.png"),
+             second: io.read_mask_2d(check["view_folders"][0] / "fluoro_mask.png")}
+    Ps = {frame.name: frame.P for frame in result.view_frames}
+    assert not np.allclose(Ps["main"], Ps[second])
+    for name, frame_node in frames.items():
+        roles = {f"{role}:{name}" if name != "main" else role for role in OVERLAYS}
+        assert roles <= set(nodes)
+        overlay = nodes[f"overlay_deformed:{name}" if name != "main" else "overlay_deformed"]
+        assert overlay.GetNodeReference(fp.FRAME_REFERENCE) is frame_node  # drawn on this view's own frame
+        assert overlay.GetAttribute(fp.VIEW_ATTRIBUTE) == name
+        uv = _overlay_uv(overlay, frame_node)
+        np.testing.assert_allclose(uv, project(Ps[name], result.deformed.points), atol=1e-6)
+        other = next(n for n in masks if n != name)
+        assert _on_vessels(uv, masks[name]) > 0.99 and _on_vessels(uv, masks[other]) < 0.97
+    assert scene.GetNumberOfNodesByClass("vtkMRMLModelNode") == 2 + 2 * len(OVERLAYS)
+
+
+def test_the_view_selector_swaps_the_frame_and_its_overlays(two_view_nodes):
+    scene, check = two_view_nodes
+    parameters, nodes = check["parameters"], check["nodes"]
+    second = check["view_folders"][0].name
+    slice_node, composite = fp.frame_view_nodes(scene)
+    assert parameters.shownView == "main" and composite.GetBackgroundVolumeID() == parameters.fluoroVolume.GetID()
+    logic = fp.FevarPlannerLogic(scene)
+    logic.show_view(second, parameters)
+    assert parameters.shownView == second
+    assert composite.GetBackgroundVolumeID() == parameters.extraFrameVolumes[0].GetID()
+    for role in OVERLAYS:
+        assert not nodes[role].GetDisplayNode().GetVisibility()
+        assert nodes[f"{role}:{second}"].GetDisplayNode().GetVisibility()
+    assert check["ct_view"].GetBackgroundVolumeID() == parameters.ctVolume.GetID()  # the CT keeps its view
+    with pytest.raises(ValueError, match="no view 'lateral'"):
+        logic.show_view("lateral")
+    logic.show_view("main")
+    assert nodes["overlay_deformed"].GetDisplayNode().GetVisibility()
+
+
+def test_the_case_folder_route_shows_every_view_of_the_folder(two_view_nodes):
+    """run(): the folder's own frame and views/<name>/ each become a frame volume with its overlays."""
+    _, check = two_view_nodes
+    scene = slicer.vtkMRMLScene()
+    scene.AddNode(slicer.vtkMRMLSelectionNode())
+    result, nodes = fp.FevarPlannerLogic(scene).run(check["folder"])
+    second = check["view_folders"][0].name
+    assert fp.result_views(scene) == ["main", second]
+    assert scene.GetNumberOfNodesByClass("vtkMRMLScalarVolumeNode") == 2
+    frame = nodes[f"fluoro:{second}"]
+    assert frame.GetAttribute(fp.VIEW_ATTRIBUTE) == second and frame.GetName() == f"FevarPlanner fluoroscopy ({second})"
+    np.testing.assert_array_equal(fp.node_to_volume(frame).array[0],
+                                  result.view_drawings(io.load_case(check["folder"]))[1].image)
+    assert nodes[f"overlay_path:{second}"].GetNodeReference(fp.FRAME_REFERENCE) is frame
