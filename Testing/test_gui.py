@@ -204,6 +204,8 @@ def test_command_line_options(tmp_path):
         cli.parse_args([str(tmp_path / "missing")])
     with pytest.raises(SystemExit):
         cli.parse_args(["--size", "10x10"])
+    with pytest.raises(SystemExit):
+        cli.parse_args([str(tmp_path), "--view", "lao30"])  # a view is chosen after a run
     args = cli.parse_args([str(tmp_path), "--method", "icp-tps", "--size", "1024x700", "--start", "iliac_left"])
     assert (args.method, args.size, args.start, args.target) == ("icp-tps", (1024, 700), "iliac_left", "renal_left")
     environ = {}
@@ -328,12 +330,19 @@ def _inside_fraction(uv: np.ndarray, mask: np.ndarray) -> float:
                           False).mean())
 
 
-def test_a_two_view_case_shows_each_view_with_its_own_projection(window, two_view_case, qapp, monkeypatch, tmp_path):
+@pytest.fixture(scope="module")
+def two_view_cache(tmp_path_factory):
+    """One pre-operative cache for the two-view tests: the CT side is worked out once."""
+    return tmp_path_factory.mktemp("two_view_cache")
+
+
+def test_a_two_view_case_shows_each_view_with_its_own_projection(window, two_view_case, two_view_cache, qapp,
+                                                                 monkeypatch):
     """Planned through the worker: tabs list both views; each tab shows its own frame, with the
     recovered tree projected through its own P onto its vessels (not the other view's)."""
     from FevarPlannerLib import io
 
-    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(two_view_cache))
     window.widget("caseDirLineEdit").setText(str(two_view_case))
     window.run_plan()
     window.wait_until_done()
@@ -381,3 +390,13 @@ def test_a_one_view_result_has_no_view_tabs(window, plan_result, qapp):
     assert window.view_names() == ["main"] and not window.view_tabs.isVisibleTo(window)
     assert window.show_view(1) is False
     assert "Views used" not in dict(summary_rows(plan_result))
+
+
+def test_main_names_the_views_when_asked_for_one_the_case_lacks(two_view_case, two_view_cache, qapp, tmp_path,
+                                                                monkeypatch, capsys):
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(two_view_cache))
+    second = next((two_view_case / "views").iterdir()).name
+    target = tmp_path / "shot.png"
+    assert cli.main([str(two_view_case), "--run", "--view", "lateral", "--screenshot", str(target)]) == 2
+    assert capsys.readouterr().err.strip().endswith(f"no view 'lateral'; the views are main, {second}")
+    assert not target.exists()

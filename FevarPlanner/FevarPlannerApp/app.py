@@ -1,4 +1,4 @@
-"""Command line of the workstation: ``fevar-planner-gui [CASE_DIR] [--run] [--screenshot PNG]``.
+"""Command line of the workstation: ``fevar-planner-gui [CASE_DIR] [--run] [--view NAME] [--screenshot PNG]``.
 
 Without a display (no ``DISPLAY`` / ``WAYLAND_DISPLAY``) Qt draws offscreen and VTK renders
 with OSMesa (``libosmesa6``), so ``--run --screenshot out.png`` works on a headless server.
@@ -52,12 +52,16 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--target", choices=TARGETS, default="renal_left", help="target vessel")
     parser.add_argument("--out", type=Path, help="also write result.json, .vtp, .mrk.json and overlay.png here")
     parser.add_argument("--run", action="store_true", help="plan the case as soon as the window opens")
+    parser.add_argument("--view", metavar="NAME",
+                        help="after the run, show this view's frame (main, or a views/<name>/ folder of the case)")
     parser.add_argument("--screenshot", type=Path, metavar="PNG",
                         help="save the window to PNG and quit (after the run, with --run)")
     parser.add_argument("--size", type=_size, default=(1600, 900), metavar="WxH", help="window size (default 1600x900)")
     args = parser.parse_args(argv)
     if args.run and args.case_dir is None:
         parser.error("--run needs a CASE_DIR")
+    if args.view is not None and not args.run:
+        parser.error("--view needs --run")
     if args.case_dir is not None and not args.case_dir.is_dir():
         parser.error(f"{args.case_dir}: case folder does not exist")
     return args
@@ -97,6 +101,13 @@ def main(argv=None) -> int:
             print(f"fevar-planner-gui: {window.last_error}", file=sys.stderr)
             if args.screenshot:
                 return 1
+        elif args.view is not None and args.view not in window.view_names():
+            print(f"fevar-planner-gui: {args.case_dir}: no view {args.view!r}; the views are "
+                  f"{', '.join(window.view_names())}", file=sys.stderr)
+            if args.screenshot:
+                return 2
+        elif args.view is not None:
+            window.show_view(window.view_names().index(args.view))
     if args.screenshot:
         app.processEvents()
         print(window.save_screenshot(args.screenshot))
