@@ -140,6 +140,11 @@ class MainWindow(QMainWindow):
         self.view_tabs = QTabBar()
         self.view_tabs.setExpanding(False)
         self.view_tabs.setDrawBase(False)
+        self.view_tabs.setStyleSheet(
+            "QTabBar::tab { padding: 3px 12px; margin-right: 3px; color: #9aa3b2; background: #2d313b;"
+            " border: 1px solid #3a3f4b; border-bottom: none; border-top-left-radius: 4px;"
+            " border-top-right-radius: 4px; }"
+            "QTabBar::tab:selected { color: #ffffff; background: #2f7fb8; border-color: #2f7fb8; }")
         self.view_tabs.setToolTip("The frames of the case's views: each shows its own 2D skeleton and the "
                                   "centrelines projected through its own P")
         self.view_tabs.currentChanged.connect(self.show_view)
@@ -337,8 +342,12 @@ class MainWindow(QMainWindow):
         while self.view_tabs.count():
             self.view_tabs.removeTab(0)
         for frame in self.drawings:
-            fit = f"  {frame.fit['mean']:.2f} px" if frame.fit else ""
-            self.view_tabs.addTab(f"{frame.name}{fit}")
+            fit = f"  (2D fit {frame.fit['mean']:.2f} px)" if frame.fit else ""
+            index = self.view_tabs.addTab(f"{frame.name}{fit}")
+            if frame.fit:
+                self.view_tabs.setTabToolTip(index, f"view {frame.name}: the recovered centreline projected through "
+                                                    f"its P lies {frame.fit['mean']:.2f} \u00b1 {frame.fit['std']:.2f} px "
+                                                    "from its 2D skeleton")
         self.view_tabs.setCurrentIndex(0)
         self.view_tabs.blockSignals(False)
         self.view_tabs.setVisible(len(self.drawings) > 1)
