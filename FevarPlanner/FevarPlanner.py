@@ -1194,6 +1194,7 @@ if SLICER_APPLICATION:
                 if first is not None:
                     self.parameters.ctVolume = first
             self._parameters_to_gui()
+            self._fill_views()
 
         def _parameters_to_gui(self):
             for field, selector in self.selectors.items():
@@ -1284,9 +1285,10 @@ if SLICER_APPLICATION:
             slicer.util.pip_install(" ".join(missing))
             return not missing_requirements()
 
-        def _fill_views(self, result) -> None:
-            """The view selector: one entry per view drawn (with its 2D fit), enabled for several."""
-            fits = {view["name"]: view.get("2d_px") for view in result.views}
+        def _fill_views(self, result=None) -> None:
+            """The view selector: one entry per view drawn in the scene (with its 2D fit when
+            ``result`` is given), the parameter node's ``shownView`` selected, enabled for several."""
+            fits = {view["name"]: view.get("2d_px") for view in result.views} if result is not None else {}
             self._view_names = result_views(slicer.mrmlScene)
             combo = self.ui.viewComboBox
             combo.blockSignals(True)
@@ -1294,6 +1296,8 @@ if SLICER_APPLICATION:
             for name in self._view_names:
                 fit = fits.get(name)
                 combo.addItem(f"{name}  (2D fit {fit['mean']:.2f} px)" if fit else name)
+            shown = self.parameters.shownView if self.parameters is not None else MAIN_VIEW_NAME
+            combo.currentIndex = self._view_names.index(shown) if shown in self._view_names else 0
             combo.blockSignals(False)
             combo.enabled = len(self._view_names) > 1
 
