@@ -345,9 +345,9 @@ class MainWindow(QMainWindow):
             fit = f"  (2D fit {frame.fit['mean']:.2f} px)" if frame.fit else ""
             index = self.view_tabs.addTab(f"{frame.name}{fit}")
             if frame.fit:
+                fit = f"{frame.fit['mean']:.2f} \u00b1 {frame.fit['std']:.2f} px"
                 self.view_tabs.setTabToolTip(index, f"view {frame.name}: the recovered centreline projected through "
-                                                    f"its P lies {frame.fit['mean']:.2f} \u00b1 {frame.fit['std']:.2f} px "
-                                                    "from its 2D skeleton")
+                                                    f"its P lies {fit} from its 2D skeleton")
         self.view_tabs.setCurrentIndex(0)
         self.view_tabs.blockSignals(False)
         self.view_tabs.setVisible(len(self.drawings) > 1)

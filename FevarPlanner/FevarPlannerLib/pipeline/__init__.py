@@ -37,6 +37,6 @@ from .outputs import (DRR_NAME, OUTPUT_NAMES, OUTPUT_SUFFIXES, QC_NAME, check_ou
 from .results import FrameResult, METHODS, PlanResult, ViewDrawing, ViewFrame
 from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame_visibility
 
-__all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult", "preop_from_skeleton",
-           "preop_from_lumen", "build_preop", "prepare_preop", "picture_title", "frame_visibility", "register_frame",
-           "register_views", "run_case", "plan_case", "write_outputs"]
+__all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult",
+           "preop_from_skeleton", "preop_from_lumen", "build_preop", "prepare_preop", "picture_title",
+           "frame_visibility", "register_frame", "register_views", "run_case", "plan_case", "write_outputs"]
