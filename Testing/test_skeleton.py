@@ -10,7 +10,10 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from FevarPlannerLib.io import Volume
-from FevarPlannerLib.skeleton import clean_mask, grid_edges, local_radius, skeletonize_2d, skeletonize_3d
+from skimage.morphology import skeletonize as skimage_skeletonize
+
+from FevarPlannerLib.skeleton import (clean_mask, grid_edges, local_radius, skeletonize_2d, skeletonize_3d,
+                                      thin_zhang_suen)
 from fixtures import aaa_grid, aaa_mask_3d, draw_tubes, y_mask_2d
 
 def neighbour_count(skeleton):
@@ -115,6 +118,32 @@ def test_skeletonize_2d_downsampled_keeps_topology_and_place():
     assert np.sum(neighbour_count(coarse) == 1) == 3
     distance, _ = cKDTree(np.argwhere(fine)).query(np.argwhere(coarse))
     assert np.percentile(distance, 95) <= 2.0
+
+
+def _random_masks(seed: int, count: int):
+    """Blobs (smoothed noise cut at a random level) and salt-and-pepper masks of random shapes."""
+    rng = np.random.default_rng(seed)
+    for k in range(count):
+        shape = tuple(rng.integers(1, 70, size=2))
+        if k % 3 == 0:
+            yield rng.random(shape) < rng.uniform(0.3, 0.95)
+        else:
+            yield ndi.gaussian_filter(rng.random(shape), rng.uniform(0.5, 5.0)) > rng.uniform(0.4, 0.6)
+
+
+def test_thin_zhang_suen_equals_scikit_image_pixel_for_pixel():
+    masks = list(_random_masks(seed=11, count=300))
+    masks += [y_mask_2d(), np.ones((9, 9), dtype=bool), np.zeros((4, 6), dtype=bool),
+              draw_tubes(np.stack(np.indices((90, 140)), axis=-1).astype(float),
+                         [(np.array([10.0, 10.0]), np.array([80.0, 130.0]), 14.0),
+                          (np.array([45.0, 70.0]), np.array([10.0, 130.0]), 4.0)])]
+    for mask in masks:
+        fast = thin_zhang_suen(mask)
+        assert fast.dtype == bool and fast.shape == mask.shape
+        np.testing.assert_array_equal(fast, skimage_skeletonize(mask))
+    # a 2x2 block thins to its upper pair (the first sub-iteration takes the lower one)
+    block = np.array([[0, 0, 0, 0], [0, 1, 1, 0], [0, 1, 1, 0], [0, 0, 0, 0]])
+    np.testing.assert_array_equal(np.argwhere(thin_zhang_suen(block)), [[1, 1], [1, 2]])
 
 
 def test_skeletonize_2d_rejects_vanishing_and_3d_masks():
