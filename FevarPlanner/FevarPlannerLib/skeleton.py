@@ -258,11 +258,11 @@ def thin_zhang_suen(mask: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray of bool, same shape.
     """
-    padded = np.pad(np.asarray(mask) != 0, 1).view(np.uint8)
+    padded = np.pad(np.asarray(mask) != 0, 1)
+    candidates = np.flatnonzero(padded & ~_inner(padded))       # inner pixels stay for now
+    padded = padded.view(np.uint8)
     flat = padded.reshape(-1)
     offsets = _neighbour_offsets(padded.shape[1])
-    candidates = np.flatnonzero(flat)
-    candidates = candidates[_ZS_BITS @ flat[offsets + candidates] != 255]     # inner pixels stay for now
     slot = np.empty(flat.size, dtype=np.intp)
     touched_before = np.empty(0, dtype=np.intp)
     quiet, step = 0, 0
@@ -270,15 +270,26 @@ def thin_zhang_suen(mask: np.ndarray) -> np.ndarray:
         around = offsets + candidates
         remove = _ZS_REMOVES[step % 2][_ZS_BITS @ flat[around]]
         flat[candidates[remove]] = 0
-        touched = around[:, remove].ravel()
-        quiet = 0 if remove.any() else quiet + 1
+        touched = np.compress(remove, around, axis=1).ravel()
+        quiet = 0 if len(touched) else quiet + 1
         # the second sub-iteration has not seen any pixel yet; later ones re-check what changed around
         kept = candidates[~remove] if step == 0 else touched_before
-        candidates = np.concatenate([kept, touched])
-        candidates = _unique_in_order(candidates[flat[candidates] != 0], slot)
+        candidates = _unique_in_order(np.concatenate([kept, touched]), slot)
+        candidates = candidates[flat[candidates] != 0]
         touched_before = touched
         step += 1
     return padded[1:-1, 1:-1].astype(bool)
+
+
+def _inner(padded: np.ndarray) -> np.ndarray:
+    """Elements of a padded 2D bool array whose 8 neighbours are all set (False on the outer ring)."""
+    inner = np.zeros_like(padded)
+    core = padded[1:-1, 1:-1].copy()
+    rows, cols = padded.shape
+    for dr, dc in itertools.product((0, 1, 2), repeat=2):
+        core &= padded[dr:rows - 2 + dr, dc:cols - 2 + dc]
+    inner[1:-1, 1:-1] = core
+    return inner
 
 
 def _half_offsets(ndim: int) -> np.ndarray:
