@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-import scipy.sparse as sp
 
 from .. import skeleton as _skeleton
 from ..io import Volume
@@ -23,15 +22,13 @@ def smooth_positions(graph: SkeletonGraph, iterations: int = 10, weight: float =
     SkeletonGraph
         Same nodes, edges and grid indices; new positions and edge lengths.
     """
-    hops = graph.adjacency.copy()
-    hops.data[:] = 1.0
-    degrees = np.asarray(hops.sum(axis=1)).ravel()
-    movable = degrees == 2
-    mean_of_neighbours = sp.diags(1.0 / np.maximum(degrees, 1.0)) @ hops
+    movable = np.flatnonzero(graph.degrees == 2)
+    first_slot = graph.adjacency.indptr[movable]
+    first, second = graph.adjacency.indices[first_slot], graph.adjacency.indices[first_slot + 1]
     positions = np.array(graph.positions, dtype=float)
     for _ in range(iterations):
-        step = mean_of_neighbours @ positions - positions
-        positions[movable] += weight * step[movable]
+        mean_of_neighbours = 0.5 * positions[first] + 0.5 * positions[second]
+        positions[movable] += weight * (mean_of_neighbours - positions[movable])
     return graph.with_positions(positions)
 
 
