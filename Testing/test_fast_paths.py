@@ -7,9 +7,10 @@ test, on small generated masks and graphs, to the bit.
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import ndimage as ndi
 
 from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
-from FevarPlannerLib.skeleton import skeletonize_2d
+from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
 from fixtures import y_mask_2d
 
 
@@ -36,3 +37,36 @@ def test_smooth_positions_equals_the_sparse_operator_to_the_bit():
         np.testing.assert_array_equal(smoothed.positions,
                                       _laplacian_smoothing_by_sparse_product(graph, iterations, weight))
         np.testing.assert_array_equal(smoothed.edges(), graph.edges())
+
+
+def _random_masks(seed: int, count: int):
+    """Blobs with holes (smoothed noise cut at a random level) and salt-and-pepper masks."""
+    rng = np.random.default_rng(seed)
+    for k in range(count):
+        shape = tuple(rng.integers(2, 60, size=2))
+        if k % 3 == 0:
+            yield rng.random(shape) < rng.uniform(0.2, 0.9)
+        else:
+            yield ndi.gaussian_filter(rng.random(shape), rng.uniform(0.7, 3.0)) > rng.uniform(0.4, 0.6)
+
+
+def test_euler_number_counts_components_minus_holes():
+    for mask in _random_masks(seed=2, count=200):
+        components = ndi.label(mask, structure=np.ones((3, 3)))[1]
+        background, regions = ndi.label(~np.pad(mask, 1))
+        holes = regions - 1 if mask.size else 0
+        assert _euler_number_2d(mask) == components - holes
+
+
+def test_clean_mask_equals_dropping_small_pieces_then_filling_holes():
+    checked = 0
+    for mask in _random_masks(seed=3, count=200):
+        labels, count = ndi.label(mask, structure=np.ones((3, 3)))
+        sizes = np.bincount(labels.ravel(), minlength=count + 1)
+        sizes[0] = 0
+        expected = ndi.binary_fill_holes((sizes >= 8)[labels])
+        if expected.sum() < 8:
+            continue
+        np.testing.assert_array_equal(clean_mask(mask, largest_component=False, min_size=8), expected)
+        checked += 1
+    assert checked > 100

@@ -98,12 +98,36 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
 
 
 def _drop_small_components(mask: np.ndarray, min_size: int = DEFAULT_MIN_SIZE) -> np.ndarray:
-    labels, _ = ndi.label(mask, structure=_full_connectivity(mask.ndim))
+    return _drop_small_counted(mask, min_size)[0]
+
+
+def _drop_small_counted(mask: np.ndarray, min_size: int) -> tuple[np.ndarray, int]:
+    """``mask`` without its components smaller than ``min_size``, and how many components it keeps."""
+    labels, count = ndi.label(mask, structure=_full_connectivity(mask.ndim))
+    if count <= 1:      # one piece (the usual vessel tree): its size without a histogram of the labels
+        big = count == 1 and np.count_nonzero(mask) >= min_size
+        return (mask, count) if big or count == 0 else (np.zeros_like(mask), 0)
     sizes = np.bincount(labels.ravel())
-    if sizes[1:].min(initial=min_size) >= min_size:
-        return mask
     sizes[0] = 0
-    return (sizes >= min_size)[labels]
+    keep = sizes >= min_size
+    if keep[1:].all():
+        return mask, count
+    return keep[labels], int(np.count_nonzero(keep))
+
+
+def _euler_number_2d(mask: np.ndarray) -> int:
+    """Components (8-connected) minus holes (4-connected background) of a 2D mask, from its 2x2 quads.
+
+    Gray's count: (Q1 - Q3 - 2 QD) / 4 over all 2x2 windows of the zero-padded mask, with
+    Q1 / Q3 the windows holding one / three foreground pixels and QD the diagonal pairs.
+    """
+    padded = np.pad(mask, 1).view(np.uint8)
+    quad = padded[:-1, :-1] + 2 * padded[:-1, 1:] + 4 * padded[1:, :-1] + 8 * padded[1:, 1:]
+    counts = np.bincount(quad.ravel(), minlength=16)
+    ones = counts[[1, 2, 4, 8]].sum()
+    threes = counts[[7, 11, 13, 14]].sum()
+    diagonals = counts[[6, 9]].sum()
+    return int(ones - threes - 2 * diagonals) // 4
 
 
 def nonzero_linear(array: np.ndarray) -> np.ndarray:
@@ -171,12 +195,13 @@ def _clean_in_box(binary: np.ndarray, fill_holes: bool, largest_component: bool,
         raise ValueError(f"mask of shape {binary.shape} is empty (no foreground)")
     box = bounding_box(binary)
     crop = binary[box]
-    kept = _largest_component(crop) if largest_component else _drop_small_components(crop, min_size)
-    size = int(kept.sum())
+    kept, count = (_largest_component(crop), 1) if largest_component else _drop_small_counted(crop, min_size)
+    size = int(np.count_nonzero(kept))
     if size < min_size:
         raise ValueError(f"mask of shape {binary.shape}: largest kept component has {size} elements, "
                          f"fewer than min_size={min_size}")
-    if fill_holes:
+    # a 2D mask whose Euler number equals its component count has no hole to fill
+    if fill_holes and not (kept.ndim == 2 and _euler_number_2d(kept) == count):
         kept = _fill_enclosed_holes(kept)
     return box, kept
 
