@@ -10,6 +10,7 @@ import scipy.sparse as sp
 from scipy import ndimage as ndi
 
 from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
+from FevarPlannerLib.segmentation import fluoro
 from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
 from fixtures import y_mask_2d
 
@@ -70,3 +71,16 @@ def test_clean_mask_equals_dropping_small_pieces_then_filling_holes():
         np.testing.assert_array_equal(clean_mask(mask, largest_component=False, min_size=8), expected)
         checked += 1
     assert checked > 100
+
+
+def test_upsampling_a_sparse_soft_mask_thresholds_like_the_full_interpolation():
+    rng = np.random.default_rng(8)
+    for trial in range(60):
+        coarse_shape = tuple(rng.integers(1, 40, size=2))
+        factor = int(rng.integers(1, 5))
+        shape = tuple(n * factor - int(rng.integers(0, factor)) for n in coarse_shape)
+        blobs = ndi.gaussian_filter((rng.random(coarse_shape) < 0.05).astype(np.float32), 0.7) * 4.0
+        soft = np.where(rng.random() < 0.1, np.zeros_like(blobs), blobs).astype(np.float32)
+        level = float(rng.choice([0.0, 0.25, 0.5]))
+        np.testing.assert_array_equal(fluoro._upsample_above(soft, factor, shape, level),
+                                      fluoro._upsample(soft, factor, shape) > level)

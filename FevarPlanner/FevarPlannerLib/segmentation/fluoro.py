@@ -64,6 +64,38 @@ def _upsample(image: np.ndarray, factor: int, shape: tuple[int, int]) -> np.ndar
     return full
 
 
+def _fine_span(below: np.ndarray, above: np.ndarray, first: int, last: int) -> slice:
+    """The fine indices whose interpolation reads a coarse index in ``first..last`` (``below`` and
+    ``above`` are non-decreasing)."""
+    return slice(int(np.searchsorted(above, first)), int(np.searchsorted(below, last, side="right")))
+
+
+def _upsample_above(image: np.ndarray, factor: int, shape: tuple[int, int], level: float) -> np.ndarray:
+    """``_upsample(image, factor, shape) > level`` for ``level >= 0`` and ``image >= 0``, interpolating
+    only where ``image`` is non-zero: elsewhere the interpolation of zeros is 0 (not above ``level``).
+
+    The same float32 operations on the same values as :func:`_upsample`, on the box of fine
+    pixels that read a non-zero coarse value.
+    """
+    found = np.zeros(shape, dtype=bool)
+    rows, cols = np.flatnonzero(image.any(axis=1)), np.flatnonzero(image.any(axis=0))
+    if not len(rows):
+        return found
+    if factor == 1:
+        return np.asarray(image) > level
+    image = np.asarray(image, dtype=np.float32)
+    below_r, above_r, weight_r = _linear_weights(image.shape[0], factor, shape[0])
+    below_c, above_c, weight_c = _linear_weights(image.shape[1], factor, shape[1])
+    span_r = _fine_span(below_r, above_r, rows[0], rows[-1])
+    span_c = _fine_span(below_c, above_c, cols[0], cols[-1])
+    part = image[below_r[span_r]]
+    part += weight_r[span_r, None] * (image[above_r[span_r]] - part)
+    full = part[:, below_c[span_c]]
+    full += weight_c[span_c] * (part[:, above_c[span_c]] - full)
+    found[span_r, span_c] = full > level
+    return found
+
+
 def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Scale-normalised Hessian eigenvalues (|l1| <= |l2|) of a Gaussian-smoothed image."""
     smooth = ndi.gaussian_filter(image, sigma, mode="nearest")
@@ -198,7 +230,7 @@ def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, ves
     vessel = _vessel_region(oriented, responses[vessels], max(sigmas), high, low, contrast_fraction)
     vessel = _remove_small_objects(vessel, min_area_fraction * vessel.size)
     soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)     # smooth edges before upsampling
-    return _upsample(soft, factor, frame.shape) > 0.5
+    return _upsample_above(soft, factor, frame.shape, 0.5)
 
 
 def _vessel_region(oriented: np.ndarray, response: np.ndarray, max_sigma: float, high: float, low: float,
@@ -373,5 +405,5 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     soft = ndi.gaussian_filter(vessel.astype(np.float32), 0.5)
     full = np.zeros(frame.shape, dtype=bool)
     full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \
-        _upsample(soft, factor, crop.shape) > 0.5
+        _upsample_above(soft, factor, crop.shape, 0.5)
     return full
