@@ -12,8 +12,8 @@ from scipy.spatial import cKDTree
 from FevarPlannerLib.io import Volume
 from skimage.morphology import skeletonize as skimage_skeletonize
 
-from FevarPlannerLib.skeleton import (clean_mask, grid_edges, local_radius, skeletonize_2d, skeletonize_3d,
-                                      thin_zhang_suen)
+from FevarPlannerLib.skeleton import (ACTIVE_SET_ABOVE_PIXELS, _thin_active_set, clean_mask, grid_edges,
+                                      local_radius, skeletonize_2d, skeletonize_3d, thin_zhang_suen)
 from fixtures import aaa_grid, aaa_mask_3d, draw_tubes, y_mask_2d
 
 def neighbour_count(skeleton):
@@ -138,12 +138,16 @@ def test_thin_zhang_suen_equals_scikit_image_pixel_for_pixel():
                          [(np.array([10.0, 10.0]), np.array([80.0, 130.0]), 14.0),
                           (np.array([45.0, 70.0]), np.array([10.0, 130.0]), 4.0)])]
     for mask in masks:
-        fast = thin_zhang_suen(mask)
+        fast = _thin_active_set(mask)       # the path of large grids, on small ones
         assert fast.dtype == bool and fast.shape == mask.shape
         np.testing.assert_array_equal(fast, skimage_skeletonize(mask))
     # a 2x2 block thins to its upper pair (the first sub-iteration takes the lower one)
-    block = np.array([[0, 0, 0, 0], [0, 1, 1, 0], [0, 1, 1, 0], [0, 0, 0, 0]])
-    np.testing.assert_array_equal(np.argwhere(thin_zhang_suen(block)), [[1, 1], [1, 2]])
+    block = np.array([[0, 0, 0, 0], [0, 1, 1, 0], [0, 1, 1, 0], [0, 0, 0, 0]], dtype=bool)
+    np.testing.assert_array_equal(np.argwhere(_thin_active_set(block)), [[1, 1], [1, 2]])
+    # a grid large enough for the public function to take that path
+    large = np.kron(masks[-1], np.ones((3, 3), dtype=bool))
+    assert large.size >= ACTIVE_SET_ABOVE_PIXELS
+    np.testing.assert_array_equal(thin_zhang_suen(large), skimage_skeletonize(large))
 
 
 def test_skeletonize_2d_rejects_vanishing_and_3d_masks():

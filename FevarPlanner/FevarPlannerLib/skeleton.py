@@ -15,9 +15,9 @@ scikit-image implements them, after the light clean-up that real masks need:
 * all work happens on the bounding box of the mask (plus a margin), never on the full grid.
 
 The 2D thinning (:func:`thin_zhang_suen`) is scikit-image's Zhang-Suen variant, pixel for
-pixel, run on the pixels that can still change: scikit-image scans the whole box in every
-sub-iteration (a 30 px wide sac takes 60 of them), here each sub-iteration looks only at the
-pixels next to one that the previous two removed.
+pixel; on large boxes it runs on the pixels that can still change: scikit-image scans the
+whole box in every sub-iteration (a 30 px wide sac takes 60 of them), here each sub-iteration
+looks only at the pixels next to one that the previous two removed.
 
 Large 2D masks are thinned at half resolution by default (``downsample``): Zhang-Suen
 thinning costs one pass over the box per pixel of vessel half-width, and on a 1024x1024
@@ -54,6 +54,7 @@ __all__ = [
     "bounding_box",
     "DEFAULT_MIN_SIZE",
     "DOWNSAMPLE_ABOVE_PIXELS",
+    "ACTIVE_SET_ABOVE_PIXELS",
 ]
 
 #: Components smaller than this many pixels/voxels are noise (used when not keeping only the largest).
@@ -61,6 +62,10 @@ DEFAULT_MIN_SIZE = 64
 
 #: 2D masks whose bounding box holds more pixels than this are thinned at half resolution.
 DOWNSAMPLE_ABOVE_PIXELS = 400_000
+#: Grids of at least this many pixels are thinned by following the changes (:func:`thin_zhang_suen`);
+#: below it scikit-image's full scans are cheaper (measured: 0.5 against 1.2 ms at 27 000 px,
+#: 10.6 against 5.9 ms at 245 000 px of a 1024 x 1024 frame's vessel box).
+ACTIVE_SET_ABOVE_PIXELS = 100_000
 
 
 def as_binary(mask: np.ndarray, what: str = "mask") -> np.ndarray:
@@ -269,10 +274,10 @@ def thin_zhang_suen(mask: np.ndarray) -> np.ndarray:
     """Zhang-Suen thinning of a 2D mask, equal pixel for pixel to ``skimage.morphology.skeletonize``.
 
     Each sub-iteration removes, all at once, the pixels whose neighbourhood code is in that
-    sub-iteration's table, until a whole pass (both sub-iterations) removes nothing. A
-    pixel's verdict changes only when its neighbourhood does, so after the first pass only
-    the foreground neighbours of the pixels removed in the two previous sub-iterations are
-    looked at; the work follows the shrinking border instead of the whole box.
+    sub-iteration's table, until a whole pass (both sub-iterations) removes nothing. On a
+    grid of at least :data:`ACTIVE_SET_ABOVE_PIXELS` pixels only the pixels whose
+    neighbourhood changed are looked at (:func:`_thin_active_set`); on smaller ones
+    scikit-image's compiled scans of the whole grid cost less.
 
     Parameters
     ----------
@@ -283,7 +288,23 @@ def thin_zhang_suen(mask: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray of bool, same shape.
     """
-    padded = np.pad(np.asarray(mask) != 0, 1)
+    binary = np.asarray(mask) != 0
+    if binary.ndim != 2:
+        raise ValueError(f"thin_zhang_suen: expected a 2D mask, got shape {binary.shape}")
+    if binary.size < ACTIVE_SET_ABOVE_PIXELS:
+        return _skimage_skeletonize(binary)
+    return _thin_active_set(binary)
+
+
+def _thin_active_set(binary: np.ndarray) -> np.ndarray:
+    """:func:`thin_zhang_suen` looking only at pixels that can change.
+
+    A pixel's verdict changes only when its neighbourhood does, so after the first pass only
+    the foreground neighbours of the pixels removed in the two previous sub-iterations are
+    looked at: the work follows the shrinking border instead of scanning the whole box (a
+    30 px wide sac takes 60 sub-iterations).
+    """
+    padded = np.pad(binary, 1)
     candidates = np.flatnonzero(padded & ~_inner(padded))       # inner pixels stay for now
     padded = padded.view(np.uint8)
     flat = padded.reshape(-1)

@@ -12,7 +12,6 @@ from skimage.filters import apply_hysteresis_threshold
 
 from ..files import InputError
 from ..quality import DEFORMATION_MARGIN_MM, FluoroPrior
-from ..skeleton import thin_zhang_suen
 from .threshold import _remove_small_objects
 
 
@@ -341,9 +340,11 @@ def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float 
     """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
     (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
     bowel loop touching it can."""
+    from skimage.morphology import skeletonize
+
     if not vessel.any():
         return vessel
-    spine = thin_zhang_suen(vessel)
+    spine = skeletonize(vessel)
     distance, (ri, ci) = ndi.distance_transform_edt(~spine, return_indices=True)
     return distance <= slack * radius[ri, ci] + 1.0
 
