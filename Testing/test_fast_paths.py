@@ -8,8 +8,10 @@ test, on small generated masks and graphs, to the bit.
 import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage as ndi
+from scipy.sparse import csgraph
 
 from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
+from FevarPlannerLib.graph.skeleton_graph import _walk_back
 from FevarPlannerLib.segmentation import fluoro
 from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
 from fixtures import y_mask_2d
@@ -84,3 +86,15 @@ def test_upsampling_a_sparse_soft_mask_thresholds_like_the_full_interpolation():
         level = float(rng.choice([0.0, 0.25, 0.5]))
         np.testing.assert_array_equal(fluoro._upsample_above(soft, factor, shape, level),
                                       fluoro._upsample(soft, factor, shape) > level)
+
+
+def test_walk_back_follows_dijkstra_predecessors_to_the_source():
+    graph = SkeletonGraph.from_image(skeletonize_2d(y_mask_2d()))
+    _, predecessors = csgraph.dijkstra(graph.adjacency, indices=0, return_predecessors=True)
+    for node in (0, 7, len(graph) - 1, int(np.argmax(predecessors))):
+        path = [node]
+        while predecessors[path[-1]] >= 0:
+            path.append(int(predecessors[path[-1]]))
+        walked = _walk_back(predecessors, node)
+        assert walked.dtype == np.int64
+        np.testing.assert_array_equal(walked, path)

@@ -449,7 +449,8 @@ def local_radius(mask: np.ndarray, indices: np.ndarray, spacing=None) -> np.ndar
         return radii
     box = bounding_box(binary, pad=1)
     start = np.array([b.start for b in box])
-    edge = np.argwhere(_boundary(binary[box])) + start
+    boundary = _boundary(binary[box])
+    edge = np.stack(np.unravel_index(nonzero_linear(boundary), boundary.shape), axis=1) + start
     tree = cKDTree(edge * spacing)
     radii[inside] = tree.query(indices[inside] * spacing)[0] + 0.5 * float(spacing.min())
     return radii

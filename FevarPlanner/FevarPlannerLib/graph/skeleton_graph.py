@@ -205,8 +205,11 @@ class SkeletonGraph:
 def _walk_back(predecessors: np.ndarray, node: int) -> np.ndarray:
     """Nodes from ``node`` back to the source of a Dijkstra predecessor array."""
     path = [node]
-    while predecessors[path[-1]] >= 0:
-        path.append(int(predecessors[path[-1]]))
+    before = predecessors.item          # Python ints: no NumPy scalar per step
+    previous = before(node)
+    while previous >= 0:
+        path.append(previous)
+        previous = before(previous)
     return np.array(path, dtype=np.int64)
 
 
