@@ -125,7 +125,75 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
     return np.where(has_target[:, None], view.g2.positions[index], uv), weights
 
 
-def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
+#: Passes of chain-closest-point targets after the first deformation with several views (ICP-like).
+CHAIN_REFINEMENT_PASSES = 2
+
+
+def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
+    """Nearest point of a 2D polyline to each point: (nearest (k, 2), arc position (k,), past an end (k,) bool).
+
+    "Past an end" marks a point whose nearest polyline point is an end node and which lies
+    beyond it along the end segment: the 2D vessel stops before this node does.
+    """
+    start, step = polyline[:-1], np.diff(polyline, axis=0)
+    length2 = np.maximum((step * step).sum(axis=1), 1e-12)
+    t = ((points[:, None, :] - start[None]) * step[None]).sum(axis=2) / length2         # (k, L-1)
+    clipped = np.clip(t, 0.0, 1.0)
+    foot = start[None] + clipped[..., None] * step[None]
+    distance = ((points[:, None, :] - foot) ** 2).sum(axis=2)
+    best = np.argmin(distance, axis=1)
+    row = np.arange(len(points))
+    cumulative = np.r_[0.0, np.cumsum(np.sqrt(length2))]
+    arc = cumulative[best] + clipped[row, best] * np.sqrt(length2[best])
+    past = ((best == 0) & (t[row, 0] < 0)) | ((best == len(step) - 1) & (t[row, -1] > 1))
+    return foot[row, best], arc, past
+
+
+def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
+                        fallback):
+    """(targets, weights) of a classified view from the current estimate: each 3D node's nearest
+    point on the 2D chain its branch or trunk is matched to (a second soft assignment, ICP-like).
+
+    The first assignment (eqs. 4-5) spreads the nodes along the 2D chain by the
+    *pre-operative* projected path length; where the anatomy turned out of that view's plane
+    the projected length changed and the targets slide along the vessel. Taking the nearest
+    chain point of the deformed estimate's projection removes that slide. A node whose
+    projection lies past the 2D chain's free end (the 2D vessel is shorter than the 3D one:
+    a tip the frame does not show) gets no target and follows its neighbours (S_L, S_S);
+    the chain's junction end keeps its target. ``fallback`` (targets, weights) of the first
+    assignment is kept for the nodes that no chain holds.
+    """
+    positions = np.array(preop.graph.positions, dtype=float)
+    positions[preop.kept] = estimate
+    targets, has_target = np.array(fallback[0], dtype=float), fallback[1] > 0
+    index = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    index[nodes] = np.arange(len(nodes))
+    chains = list(correspondence.trunk_pairs)
+    chains += [(preop.classification.branches[i3].nodes, nodes2) for i3, nodes2 in
+               (correspondence.branch_chains or {i3: view.c2.branches[i2].nodes
+                                                 for i3, i2 in correspondence.branch_pairs}).items()]
+    done = np.zeros(len(nodes), dtype=bool)
+    for k, (nodes3, nodes2) in enumerate(chains):
+        rows = index[np.asarray(nodes3)]
+        rows = rows[(rows >= 0)]
+        rows = rows[~done[rows] & has_target[rows]]
+        if len(rows) == 0 or len(nodes2) < 2:
+            continue
+        polyline = view.g2.positions[np.asarray(nodes2)]
+        foot, _, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline)
+        if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
+            past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
+            has_target[rows[past]] = False
+        else:
+            past[:] = False
+        targets[rows[~past]] = foot[~past]
+        done[rows] = True
+    count = np.count_nonzero(has_target)
+    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
+    return targets, weights
+
+
+def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None, refine=False):
     """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
 
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
@@ -141,6 +209,9 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     nodes = np.flatnonzero(np.logical_or.reduce(has_target))
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
+    if refine:
+        data = [_chain_closest_data(v, c, nodes, preop, estimate, d) if c is not None else d
+                for v, c, d in zip(views, correspondences, data)]
     extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
     (targets, weights), edges = data[0], _induced_edges(g3, nodes)
     if not np.any(weights) and not extra:
@@ -159,3 +230,23 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     score = matching.candidate_score(result.energy_final, assigned_fraction, preop.centerline.points, filled,
                                      preop.centerline.edges, alpha)
     return filled, float(result.energy_final), score
+
+
+def refine_on_chains(preop: Preoperative, views: list, correspondences, deformed: np.ndarray, alpha, beta,
+                     passes: int | None = None):
+    """Passes of :func:`_deform_with` whose targets are each view's nearest chain points of the
+    last result (:func:`_chain_closest_data`); returns (kept positions, energy).
+
+    With several views, a view's first targets slide along the vessel wherever the
+    anatomy turned out of that view's plane (their arc lengths are pre-operative); the
+    views then disagree about where a node is and the mean of eq. 6 settles between them,
+    off in depth. Re-assigning by nearest chain point of the deformed estimate lets the
+    views agree. Stops early once the nodes move less than CLOSEST_POINT_SETTLED_MM.
+    """
+    energy = None
+    for _ in range(CHAIN_REFINEMENT_PASSES if passes is None else passes):
+        previous = deformed
+        deformed, energy, _ = _deform_with(preop, views, correspondences, alpha, beta, estimate=deformed, refine=True)
+        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
+            break
+    return deformed, energy
