@@ -107,11 +107,59 @@ CLOSEST_POINT_SETTLED_MM = 0.05
 CLOSEST_POINT_OUTLIER = 5.0
 
 
+#: A node and its nearest 2D skeleton point must run within this angle (degrees) of each other
+#: in the image, and the node's vessel must keep at least this fraction of its length in
+#: projection (relative to the view's median): else the match crosses vessels.
+CLOSEST_POINT_MAX_ANGLE_DEG = 45.0
+CLOSEST_POINT_MIN_FORESHORTENING = 0.35
+
+
+def _node_directions(positions: np.ndarray, edges: np.ndarray, n: int):
+    """Per node the main direction of its edges in 2D (unit, sign-free) and its edge count.
+
+    The principal eigenvector of the sum of the outer products of the node's unit edge
+    vectors (closed form in 2D); zero where a node has no edge.
+    """
+    if not len(edges):
+        return np.zeros((n, 2)), np.zeros(n, dtype=np.int64)
+    vec = positions[edges[:, 1]] - positions[edges[:, 0]]
+    vec = vec / np.maximum(np.linalg.norm(vec, axis=1), 1e-12)[:, None]
+    both = np.r_[edges[:, 0], edges[:, 1]]
+    tensor = [np.bincount(both, np.r_[a, a], n) for a in (vec[:, 0] ** 2, vec[:, 0] * vec[:, 1], vec[:, 1] ** 2)]
+    angle = 0.5 * np.arctan2(2.0 * tensor[1], tensor[0] - tensor[2])
+    return np.c_[np.cos(angle), np.sin(angle)], np.bincount(both, minlength=n)
+
+
+def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np.ndarray, uv: np.ndarray,
+                     index: np.ndarray) -> np.ndarray:
+    """Nodes whose nearest 2D skeleton point is on another vessel: the node's vessel runs across
+    it in the image, or nearly along the view's rays (foreshortened, hidden in a wider
+    vessel's silhouette, so that the nearest skeleton point is that vessel's centre line)."""
+    g3 = preop.graph
+    n3 = len(g3.positions)
+    local = np.full(n3, -1, dtype=np.int64)
+    local[nodes] = np.arange(len(nodes))
+    edges3 = g3.edges()
+    edges3 = local[edges3[(local[edges3[:, 0]] >= 0) & (local[edges3[:, 1]] >= 0)]]
+    direction3, degree3 = _node_directions(uv, edges3, len(nodes))
+    projected = np.linalg.norm(uv[edges3[:, 0]] - uv[edges3[:, 1]], axis=1)
+    spatial = np.linalg.norm(positions[nodes][edges3[:, 0]] - positions[nodes][edges3[:, 1]], axis=1)
+    ratio = projected / np.maximum(spatial, 1e-12)
+    ratio = ratio / max(float(np.median(ratio)), 1e-12) if len(ratio) else ratio
+    both = np.r_[edges3[:, 0], edges3[:, 1]]
+    node_ratio = np.bincount(both, np.r_[ratio, ratio], len(nodes)) / np.maximum(degree3, 1)
+    direction2, degree2 = _node_directions(view.g2.positions, view.g2.edges(), len(view.g2.positions))
+    cosine = np.abs((direction3 * direction2[index]).sum(axis=1))
+    crossing = (degree3 == 2) & (degree2[index] == 2) & (cosine < np.cos(np.radians(CLOSEST_POINT_MAX_ANGLE_DEG)))
+    return crossing | ((degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING))
+
+
 def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
     """(targets, weights) of a view without a classification: the nearest 2D skeleton points.
 
     ``estimate`` are the current kept positions; their projections through the view's P
     find the nearest node of its (smoothed) 2D skeleton; weights as in :func:`_view_data`.
+    A node whose match crosses vessels (:func:`_crosses_vessels`) gets no target.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
@@ -119,7 +167,7 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
     distance, index = cKDTree(view.g2.positions).query(uv)
     usable = view.visible[nodes]
     limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
-    has_target = usable & (distance <= limit)
+    has_target = usable & (distance <= limit) & ~_crosses_vessels(view, nodes, preop, positions, uv, index)
     count = np.count_nonzero(has_target)
     weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
     return np.where(has_target[:, None], view.g2.positions[index], uv), weights
