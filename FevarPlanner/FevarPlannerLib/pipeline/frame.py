@@ -20,8 +20,7 @@ from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
 from .fallback import _never_worse_than_sv
-from .multiview import (CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with,
-                        refine_on_chains)
+from .multiview import CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with
 from .results import FrameResult, METHODS, ViewFrame
 from .visibility import Visibility, frame_visibility
 
@@ -337,9 +336,6 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
                 trials = [(result, _full_combination(views, combo)) for result, combo in trials]
                 warnings += [f"view {v.name}: no anatomical classification ({v.unclassified}); registered to "
                              f"its nearest 2D skeleton points" for v in views if v.c2 is None]
-            if len(views) > 1:
-                deformed, energy = refine_on_chains(preop, views if len(best) == len(views) else classified, best,
-                                                    deformed, alpha, beta)
         with _timed(timings, "plausibility"):
             deformed, doubts = _never_worse_than_sv(
                 deformed, lambda: _alternatives(preop, views, trials, best, alpha, beta), preop, views)

@@ -174,7 +174,7 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 
 
 #: Passes of chain-closest-point targets after the first deformation with several views (ICP-like).
-CHAIN_REFINEMENT_PASSES = 2
+CHAIN_REFINEMENT_PASSES = 1
 
 
 def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
@@ -185,16 +185,18 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
     """
     start, step = polyline[:-1], np.diff(polyline, axis=0)
     length2 = np.maximum((step * step).sum(axis=1), 1e-12)
-    t = ((points[:, None, :] - start[None]) * step[None]).sum(axis=2) / length2         # (k, L-1)
+    _, vertex = cKDTree(polyline).query(points)
+    candidates = np.clip(np.c_[vertex - 1, vertex], 0, len(step) - 1)                # the segments at it
+    t = ((points[:, None, :] - start[candidates]) * step[candidates]).sum(axis=2) / length2[candidates]
     clipped = np.clip(t, 0.0, 1.0)
-    foot = start[None] + clipped[..., None] * step[None]
-    distance = ((points[:, None, :] - foot) ** 2).sum(axis=2)
-    best = np.argmin(distance, axis=1)
+    foot = start[candidates] + clipped[..., None] * step[candidates]
     row = np.arange(len(points))
+    pick = np.argmin(((points[:, None, :] - foot) ** 2).sum(axis=2), axis=1)
+    segment, along = candidates[row, pick], t[row, pick]
     cumulative = np.r_[0.0, np.cumsum(np.sqrt(length2))]
-    arc = cumulative[best] + clipped[row, best] * np.sqrt(length2[best])
-    past = ((best == 0) & (t[row, 0] < 0)) | ((best == len(step) - 1) & (t[row, -1] > 1))
-    return foot[row, best], arc, past
+    arc = cumulative[segment] + np.clip(along, 0.0, 1.0) * np.sqrt(length2[segment])
+    past = ((segment == 0) & (along < 0)) | ((segment == len(step) - 1) & (along > 1))
+    return foot[row, pick], arc, past
 
 
 def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
@@ -241,7 +243,18 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
     return targets, weights
 
 
-def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None, refine=False):
+def _deform_on(points, edges, views, data, alpha, beta, initial=None):
+    """eq. 6 over the assigned ``points`` with one (targets, weights) per view in ``data``."""
+    extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
+    targets, weights = data[0]
+    if not np.any(weights) and not extra:
+        raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
+    weights_arg = None if np.all(weights == 1.0) else weights
+    return deformation.deform_assigned(points, targets, edges, views[0].P, alpha=alpha, beta=beta,
+                                       weights=weights_arg, initial=initial, **extra)
+
+
+def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
     """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
 
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
@@ -257,16 +270,14 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     nodes = np.flatnonzero(np.logical_or.reduce(has_target))
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
-    if refine:
-        data = [_chain_closest_data(v, c, nodes, preop, estimate, d) if c is not None else d
+    edges = _induced_edges(g3, nodes)
+    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
+    for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
+        current = np.array(g3.positions, dtype=float)
+        current[nodes] = result.points
+        data = [_chain_closest_data(v, c, nodes, preop, current[preop.kept], d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
-    extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
-    (targets, weights), edges = data[0], _induced_edges(g3, nodes)
-    if not np.any(weights) and not extra:
-        raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
-    weights_arg = None if np.all(weights == 1.0) else weights
-    result = deformation.deform_assigned(g3.positions[nodes], targets, edges, views[0].P, alpha=alpha, beta=beta,
-                                         weights=weights_arg, **extra)
+        result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=result.displacements)
     moved = np.array(g3.positions, dtype=float)
     moved[nodes] = result.points
     in_deformation = np.zeros(len(g3.positions), dtype=bool)
@@ -279,22 +290,3 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
                                      preop.centerline.edges, alpha)
     return filled, float(result.energy_final), score
 
-
-def refine_on_chains(preop: Preoperative, views: list, correspondences, deformed: np.ndarray, alpha, beta,
-                     passes: int | None = None):
-    """Passes of :func:`_deform_with` whose targets are each view's nearest chain points of the
-    last result (:func:`_chain_closest_data`); returns (kept positions, energy).
-
-    With several views, a view's first targets slide along the vessel wherever the
-    anatomy turned out of that view's plane (their arc lengths are pre-operative); the
-    views then disagree about where a node is and the mean of eq. 6 settles between them,
-    off in depth. Re-assigning by nearest chain point of the deformed estimate lets the
-    views agree. Stops early once the nodes move less than CLOSEST_POINT_SETTLED_MM.
-    """
-    energy = None
-    for _ in range(CHAIN_REFINEMENT_PASSES if passes is None else passes):
-        previous = deformed
-        deformed, energy, _ = _deform_with(preop, views, correspondences, alpha, beta, estimate=deformed, refine=True)
-        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
-            break
-    return deformed, energy
