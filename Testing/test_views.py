@@ -189,9 +189,8 @@ def test_nearest_point_on_a_polyline_and_past_its_ends():
     from FevarPlannerLib.pipeline.multiview import _closest_on_polyline
     line = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
     points = np.array([[5.0, 2.0], [12.0, 4.0], [10.0, 13.0], [-3.0, 1.0], [11.0, -1.0]])
-    foot, arc, past = _closest_on_polyline(points, line)
+    foot, past = _closest_on_polyline(points, line)
     np.testing.assert_allclose(foot, [[5, 0], [10, 4], [10, 10], [0, 0], [10, 0]], atol=1e-12)
-    np.testing.assert_allclose(arc, [5, 14, 20, 0, 10], atol=1e-12)
     assert past.tolist() == [False, False, True, True, False]
 
 

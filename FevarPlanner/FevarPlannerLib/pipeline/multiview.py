@@ -178,7 +178,7 @@ CHAIN_REFINEMENT_PASSES = 1
 
 
 def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
-    """Nearest point of a 2D polyline to each point: (nearest (k, 2), arc position (k,), past an end (k,) bool).
+    """Nearest point of a 2D polyline to each point: (nearest (k, 2), past an end (k,) bool).
 
     "Past an end" marks a point whose nearest polyline point is an end node and which lies
     beyond it along the end segment: the 2D vessel stops before this node does.
@@ -193,10 +193,8 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
     row = np.arange(len(points))
     pick = np.argmin(((points[:, None, :] - foot) ** 2).sum(axis=2), axis=1)
     segment, along = candidates[row, pick], t[row, pick]
-    cumulative = np.r_[0.0, np.cumsum(np.sqrt(length2))]
-    arc = cumulative[segment] + np.clip(along, 0.0, 1.0) * np.sqrt(length2[segment])
     past = ((segment == 0) & (along < 0)) | ((segment == len(step) - 1) & (along > 1))
-    return foot[row, pick], arc, past
+    return foot[row, pick], past
 
 
 def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
@@ -230,7 +228,7 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
         if len(rows) == 0 or len(nodes2) < 2:
             continue
         polyline = view.g2.positions[np.asarray(nodes2)]
-        foot, _, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline)
+        foot, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline)
         if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
             past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
             has_target[rows[past]] = False
@@ -260,8 +258,11 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
     term averaged over the views moves them; the TPS fills the rest (row 16). A view whose
     correspondence is None (no classification) takes the nearest 2D skeleton points of the
-    kept positions ``estimate`` as targets instead. The score (matching.candidate_score)
-    picks between candidates: the energy plus the 3D implausibility of the result.
+    kept positions ``estimate`` as targets instead. With several views,
+    CHAIN_REFINEMENT_PASSES passes then re-assign each classified view's nodes to the nearest
+    point of their matched 2D chain (:func:`_chain_closest_data`) and continue the
+    minimisation from the last displacements. The score (matching.candidate_score) picks
+    between candidates: the energy plus the 3D implausibility of the result.
     """
     g3 = preop.graph
     classified = [(v, c) for v, c in zip(views, correspondences) if c is not None]
