@@ -213,6 +213,33 @@ def test_a_match_across_vessels_or_along_the_rays_gives_no_target():
     nodes = np.arange(len(positions))
     uv = project(P, positions)
     _, index = cKDTree(g2.positions).query(uv)
-    crossing = _crosses_vessels(view, nodes, SimpleNamespace(graph=g3), positions, uv, index)
+    preop = SimpleNamespace(graph=g3, classification=SimpleNamespace(branches=[]))
+    crossing = _crosses_vessels(view, nodes, preop, positions, uv, index)
     assert not crossing[1:40].any()
     assert crossing[42:81].all() and crossing[83:122].all()
+    assert not crossing[[0, 40, 41, 81]].any()          # ends: no direction to compare
+    # a branch more than half hidden gives no target at all, its ends included
+    deep_branch = SimpleNamespace(nodes=np.arange(82, 123), label="renal_left")
+    preop.classification.branches = [deep_branch, SimpleNamespace(nodes=np.arange(41), label="aorta")]
+    crossing = _crosses_vessels(view, nodes, preop, positions, uv, index)
+    assert crossing[82:123].all() and not crossing[:41].any()
+
+
+def test_a_branch_the_views_disagree_on_is_dropped_from_the_worse_view():
+    """One view fits a branch within 0.2 mm and the other is 3 mm off: the other gives way on
+    that branch only; a branch both views miss alike (1.5 and 2 mm) stays in both."""
+    from FevarPlannerLib.pipeline.multiview import _disagreeing_views, _without
+    P = np.array([[1000.0, 0, 0, 0], [0, 1000.0, 0, 0], [0, 0, 1, 1000.0]])     # 1 px per mm at z = 0
+    points = np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)]
+    branches = [SimpleNamespace(nodes=np.arange(10), label="renal_left"),
+                SimpleNamespace(nodes=np.arange(10, 20), label="renal_right")]
+    preop = SimpleNamespace(graph=SimpleNamespace(positions=points), centre=np.zeros(3),
+                            classification=SimpleNamespace(branches=branches))
+    uv = project(P, points)
+    offsets = [np.r_[np.full(10, 0.2), np.full(10, 1.5)], np.r_[np.full(10, 3.0), np.full(10, 2.0)]]
+    data = [(uv + np.c_[o, np.zeros(20)], np.ones(20)) for o in offsets]
+    views = [SimpleNamespace(P=P), SimpleNamespace(P=P)]
+    drop = _disagreeing_views(views, data, np.arange(20), points, preop)
+    assert not drop[0].any() and drop[1][:10].all() and not drop[1][10:].any()
+    _, weights = _without(data[1], drop[1])
+    np.testing.assert_allclose(weights, np.r_[np.zeros(10), np.full(10, 2.0)])    # mean over the 10 kept

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from .. import deformation, matching
 from ..preop import Preoperative, _induced_edges
-from ..projection import project
+from ..projection import pixels_per_mm, project
 
 
 #: Most combinations of per-view candidate correspondences deformed (the first in order).
@@ -112,6 +112,8 @@ CLOSEST_POINT_OUTLIER = 5.0
 #: projection (relative to the view's median): else the match crosses vessels.
 CLOSEST_POINT_MAX_ANGLE_DEG = 45.0
 CLOSEST_POINT_MIN_FORESHORTENING = 0.35
+#: A branch with more than this fraction of such nodes gives no nearest-point target at all.
+CLOSEST_POINT_HIDDEN_BRANCH = 0.5
 
 
 def _node_directions(positions: np.ndarray, edges: np.ndarray, n: int):
@@ -151,7 +153,13 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     direction2, degree2 = _node_directions(view.g2.positions, view.g2.edges(), len(view.g2.positions))
     cosine = np.abs((direction3 * direction2[index]).sum(axis=1))
     crossing = (degree3 == 2) & (degree2[index] == 2) & (cosine < np.cos(np.radians(CLOSEST_POINT_MAX_ANGLE_DEG)))
-    return crossing | ((degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING))
+    crossing |= (degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING)
+    for branch in preop.classification.branches:      # a branch mostly hidden in the view: all of it
+        rows = local[branch.nodes]
+        rows = rows[rows >= 0]
+        if len(rows) and crossing[rows].mean() > CLOSEST_POINT_HIDDEN_BRANCH:
+            crossing[rows] = True
+    return crossing
 
 
 def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
@@ -241,6 +249,42 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
     return targets, weights
 
 
+#: A branch whose mean 2D residual (mm at the anatomy's depth) after the first deformation is
+#: above this in one view, and at least VIEW_DISAGREEMENT_RATIO times that of the branch's
+#: best-fitting view, is dropped from that view for the refinement: the views disagree on it
+#: (one of them matched it to another 2D vessel) and the one that fits it worse gives way.
+VIEW_DISAGREEMENT_MM = 1.0
+VIEW_DISAGREEMENT_RATIO = 2.0
+
+
+def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop: Preoperative) -> list:
+    """Per view a bool (n_a,) mask: the nodes of branches on which this view disagrees with the others."""
+    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    local[nodes] = np.arange(len(nodes))
+    drop = [np.zeros(len(nodes), dtype=bool) for _ in views]
+    residual = [np.linalg.norm(project(v.P, points) - t, axis=1) / pixels_per_mm(v.P, preop.centre)
+                for v, (t, _) in zip(views, data)]
+    for branch in preop.classification.branches:
+        rows = local[branch.nodes]
+        rows = rows[rows >= 0]
+        mean = np.array([r[rows][w[rows] > 0].mean() if np.any(w[rows] > 0) else np.nan
+                         for r, (_, w) in zip(residual, data)])
+        if np.count_nonzero(np.isfinite(mean)) < 2:
+            continue
+        worst, best = int(np.nanargmax(mean)), float(np.nanmin(mean))
+        if mean[worst] > VIEW_DISAGREEMENT_MM and mean[worst] >= VIEW_DISAGREEMENT_RATIO * best:
+            drop[worst][rows] = True
+    return drop
+
+
+def _without(data, drop: np.ndarray):
+    """(targets, weights) with the nodes ``drop`` taken out of the view (weights rescaled as in :func:`_view_data`)."""
+    targets, weights = data
+    has_target = (weights > 0) & ~drop
+    count = np.count_nonzero(has_target)
+    return targets, (has_target * (len(weights) / count) if count else np.zeros(len(weights)))
+
+
 def _deform_on(points, edges, views, data, alpha, beta, initial=None):
     """eq. 6 over the assigned ``points`` with one (targets, weights) per view in ``data``."""
     extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
@@ -276,8 +320,10 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
         current = np.array(g3.positions, dtype=float)
         current[nodes] = result.points
+        drop = _disagreeing_views(views, data, nodes, result.points, preop)
         data = [_chain_closest_data(v, c, nodes, preop, current[preop.kept], d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
+        data = [_without(d, x) for d, x in zip(data, drop)]
         result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=result.displacements)
     moved = np.array(g3.positions, dtype=float)
     moved[nodes] = result.points
