@@ -209,7 +209,7 @@ def test_a_match_across_vessels_or_along_the_rays_gives_no_target():
     g3 = SkeletonGraph.from_points(positions, edges)
     u = np.linspace(-30, 30, 61)
     g2 = SkeletonGraph.from_points(np.c_[u, np.zeros_like(u)], np.c_[np.arange(60), np.arange(1, 61)])
-    view = SimpleNamespace(g2=g2)
+    view = SimpleNamespace(g2=g2, P=P)
     nodes = np.arange(len(positions))
     uv = project(P, positions)
     _, index = cKDTree(g2.positions).query(uv)
@@ -223,6 +223,12 @@ def test_a_match_across_vessels_or_along_the_rays_gives_no_target():
     preop.classification.branches = [deep_branch, SimpleNamespace(nodes=np.arange(41), label="aorta")]
     crossing = _crosses_vessels(view, nodes, preop, positions, uv, index)
     assert crossing[82:123].all() and not crossing[:41].any()
+    # with radii: a thin vessel whose nearest 2D centre line is three times wider than the rest
+    g3.radii = np.r_[np.full(41, 3.0), np.full(82, 1.0)]
+    g2.radii = np.where(np.arange(61) > 45, 9.0, 3.0)          # 1 px per mm: 2D radius = 3D radius
+    preop.classification.branches = []
+    crossing = _crosses_vessels(view, np.arange(41), preop, positions, uv[:41], index[:41])
+    assert not crossing[1:35].any() and crossing[37:40].all()        # u > 15 lies on the wide part
 
 
 def test_a_branch_the_views_disagree_on_is_dropped_from_the_worse_view():

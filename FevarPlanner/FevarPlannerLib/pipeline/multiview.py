@@ -114,6 +114,9 @@ CLOSEST_POINT_MAX_ANGLE_DEG = 45.0
 CLOSEST_POINT_MIN_FORESHORTENING = 0.35
 #: A branch with more than this fraction of such nodes gives no nearest-point target at all.
 CLOSEST_POINT_HIDDEN_BRANCH = 0.5
+#: A nearest 2D skeleton point whose vessel is this many times wider (relative to the node's own
+#: radius, over the view's median of that ratio) is the centre line of a wider vessel.
+CLOSEST_POINT_WIDER_VESSEL = 1.8
 
 
 def _node_directions(positions: np.ndarray, edges: np.ndarray, n: int):
@@ -136,7 +139,8 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
                      index: np.ndarray) -> np.ndarray:
     """Nodes whose nearest 2D skeleton point is on another vessel: the node's vessel runs across
     it in the image, or nearly along the view's rays (foreshortened, hidden in a wider
-    vessel's silhouette, so that the nearest skeleton point is that vessel's centre line)."""
+    vessel's silhouette, so that the nearest skeleton point is that vessel's centre line),
+    or (where both graphs know their radii) that point's vessel is much wider than the node's."""
     g3 = preop.graph
     n3 = len(g3.positions)
     local = np.full(n3, -1, dtype=np.int64)
@@ -154,6 +158,9 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     cosine = np.abs((direction3 * direction2[index]).sum(axis=1))
     crossing = (degree3 == 2) & (degree2[index] == 2) & (cosine < np.cos(np.radians(CLOSEST_POINT_MAX_ANGLE_DEG)))
     crossing |= (degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING)
+    if g3.radii is not None and getattr(view.g2, "radii", None) is not None:     # radius of the 2D vessel
+        wider = view.g2.radii[index] / np.maximum(g3.radii[nodes] * pixels_per_mm(view.P, positions[nodes]), 1e-6)
+        crossing |= wider > CLOSEST_POINT_WIDER_VESSEL * np.median(wider)
     for branch in preop.classification.branches:      # a branch mostly hidden in the view: all of it
         rows = local[branch.nodes]
         rows = rows[rows >= 0]
