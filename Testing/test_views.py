@@ -153,7 +153,10 @@ def test_bad_view_folders_are_named(tmp_path, two_view_case_dir):
 def test_a_lateral_view_without_classification_still_gives_depth(case, preop):
     """At 90 degrees the renals and iliacs overlap and Algorithm 1 cannot name the branches;
     the view then gives its nearest 2D skeleton points as targets (measured: 8.4 mm for AP
-    alone, 1.0 mm with the lateral view)."""
+    alone, 0.69 mm with the lateral view). The renals run along the lateral view's rays,
+    inside the aorta's silhouette: they take no target there (before: they were pulled onto
+    the aorta's 2D centre line, 1.04 mm in 3D, 0.85 px in 2D), so the lateral 2D fit of the
+    whole tree is looser (1.53 px) while the 3D result is closer."""
     truth = case.intraop.to_centerline()
     frames = []
     for angle in (0, 90):
@@ -164,10 +167,10 @@ def test_a_lateral_view_without_classification_still_gives_depth(case, preop):
     both = pipeline.register_views(preop, frames, names=["ap", "lateral"])
     assert both.views[1].classification2d is None and both.views[1].correspondence == "nearest points"
     assert any(w.startswith("view lateral: no anatomical classification") for w in both.warnings)
-    assert error_3d(single, case) > 4.0 and error_3d(both, case) < 1.5
+    assert error_3d(single, case) > 4.0 and error_3d(both, case) < 0.9
     lateral = both.views[1]
     assert evaluation.error_2d(both.deformed.points, lateral.P, lateral.skeleton2d.positions,
-                               lateral.skeleton2d.edges())["mean"] < 1.5
+                               lateral.skeleton2d.edges())["mean"] < 2.0
 
 
 def test_chain_refinement_lets_the_views_agree(case, preop, frames, monkeypatch):
