@@ -249,6 +249,31 @@ def test_a_second_view_recovers_the_depth_that_one_view_cannot(precondition):
         assert np.linalg.norm(two.points - truth, axis=1).mean() < 1.0
 
 
+@pytest.mark.parametrize("precondition", [False, True])
+def test_a_warm_start_continues_from_the_given_displacements(precondition):
+    """``initial``: started at a solution, L-BFGS stays there (same points, no higher energy);
+    started at a wrong guess it still reaches the solution of a cold start."""
+    from FevarPlannerLib.deformation.energy import _build_model
+    from FevarPlannerLib.deformation.solve import _BandedPreconditioner
+    preop, truth, _, edges = bent_arc()
+    P1, P2 = carm(0.0), carm(60.0)
+    views = [(P2, project(P2, truth), None)]
+    cold = deform_assigned(preop, project(P1, truth), edges, P1, precondition=precondition, extra_views=views)
+    warm = deform_assigned(preop, project(P1, truth), edges, P1, precondition=precondition, extra_views=views,
+                           initial=cold.displacements)
+    assert warm.energy_initial == cold.energy_initial
+    assert warm.energy_final <= cold.energy_final * (1 + 1e-9)
+    assert np.linalg.norm(warm.points - cold.points, axis=1).max() < 0.05
+    guess = deform_assigned(preop, project(P1, truth), edges, P1, precondition=precondition, extra_views=views,
+                            initial=cold.displacements + np.random.default_rng(3).normal(0, 1.0, preop.shape))
+    assert np.linalg.norm(guess.points - truth, axis=1).mean() < 1.0
+    # the change of variables x = R phi and its inverse
+    model = _build_model(preop, project(P1, truth), edges, P1, 500.0, 10.0, None, None, views)
+    R = _BandedPreconditioner(model, 0.1)
+    phi = np.random.default_rng(4).normal(0, 1.0, (3, len(preop)))
+    np.testing.assert_allclose(R.displacement(R.variables(phi)), phi, atol=1e-9)
+
+
 def test_bad_extra_views_are_refused_with_a_message():
     rng = np.random.default_rng(0)
     points, edges = random_skeleton(rng)

@@ -7,12 +7,14 @@ seen AP and at LAO 45 / LAO 60.
 
 import json
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from FevarPlannerLib import evaluation, io, phantom, pipeline
-from FevarPlannerLib.projection import projection_matrix_from_carm, write_geometry_json
+from FevarPlannerLib.projection import project, projection_matrix_from_carm, write_geometry_json
 from fixtures import drawn_mask, phantom_case_fixtures
 
 
@@ -151,7 +153,10 @@ def test_bad_view_folders_are_named(tmp_path, two_view_case_dir):
 def test_a_lateral_view_without_classification_still_gives_depth(case, preop):
     """At 90 degrees the renals and iliacs overlap and Algorithm 1 cannot name the branches;
     the view then gives its nearest 2D skeleton points as targets (measured: 8.4 mm for AP
-    alone, 1.0 mm with the lateral view)."""
+    alone, 0.69 mm with the lateral view). The renals run along the lateral view's rays,
+    inside the aorta's silhouette: they take no target there (before: they were pulled onto
+    the aorta's 2D centre line, 1.04 mm in 3D, 0.85 px in 2D), so the lateral 2D fit of the
+    whole tree is looser (1.53 px) while the 3D result is closer."""
     truth = case.intraop.to_centerline()
     frames = []
     for angle in (0, 90):
@@ -162,7 +167,88 @@ def test_a_lateral_view_without_classification_still_gives_depth(case, preop):
     both = pipeline.register_views(preop, frames, names=["ap", "lateral"])
     assert both.views[1].classification2d is None and both.views[1].correspondence == "nearest points"
     assert any(w.startswith("view lateral: no anatomical classification") for w in both.warnings)
-    assert error_3d(single, case) > 4.0 and error_3d(both, case) < 1.5
+    assert error_3d(single, case) > 4.0 and error_3d(both, case) < 0.9
     lateral = both.views[1]
     assert evaluation.error_2d(both.deformed.points, lateral.P, lateral.skeleton2d.positions,
-                               lateral.skeleton2d.edges())["mean"] < 1.5
+                               lateral.skeleton2d.edges())["mean"] < 2.0
+
+
+def test_chain_refinement_lets_the_views_agree(case, preop, frames, monkeypatch):
+    """After the first deformation each view re-assigns its nodes to the nearest point of the
+    matched 2D chain (ICP-like): the bent sac's first targets slid along the vessel where it
+    turned out of a view's plane (measured: 0.47 / 0.34 / 0.44 mm without, 0.30 / 0.21 /
+    0.23 mm with, AP + LAO 30 / 45 / 60)."""
+    from FevarPlannerLib.pipeline import multiview
+    for other in (45, 60):
+        pair = [frames[0], frames[other]]
+        refined = error_3d(pipeline.register_views(preop, pair, names=["ap", "lao"]), case)
+        monkeypatch.setattr(multiview, "CHAIN_REFINEMENT_PASSES", 0)
+        first = error_3d(pipeline.register_views(preop, pair, names=["ap", "lao"]), case)
+        monkeypatch.undo()
+        assert refined < 0.3 and refined < 0.75 * first
+
+
+def test_nearest_point_on_a_polyline_and_past_its_ends():
+    from FevarPlannerLib.pipeline.multiview import _closest_on_polyline
+    line = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    points = np.array([[5.0, 2.0], [12.0, 4.0], [10.0, 13.0], [-3.0, 1.0], [11.0, -1.0]])
+    foot, past = _closest_on_polyline(points, line)
+    np.testing.assert_allclose(foot, [[5, 0], [10, 4], [10, 10], [0, 0], [10, 0]], atol=1e-12)
+    assert past.tolist() == [False, False, True, True, False]
+
+
+def test_a_match_across_vessels_or_along_the_rays_gives_no_target():
+    """A 3D vessel crossing the view's only 2D vessel at right angles, and one running
+    nearly along the rays, get no nearest-point target; one running along the 2D vessel does."""
+    from FevarPlannerLib.graph import SkeletonGraph
+    from FevarPlannerLib.pipeline.multiview import _crosses_vessels
+    P = np.array([[1000.0, 0, 0, 0], [0, 1000.0, 0, 0], [0, 0, 1, 1000.0]])       # looks along +z
+    s = np.linspace(-20, 20, 41)
+    along = np.c_[s, np.zeros_like(s), np.zeros_like(s)]                            # along u
+    across = np.c_[np.zeros_like(s), s, np.zeros_like(s)]                           # along v
+    deep = np.c_[0.05 * s, np.zeros_like(s), s]                                     # along the ray
+    positions = np.vstack([along, across + [0, 0, 100], deep + [0, 50, 0]])
+    edges = np.vstack([np.c_[np.arange(40), np.arange(1, 41)] + 41 * k for k in range(3)])
+    g3 = SkeletonGraph.from_points(positions, edges)
+    u = np.linspace(-30, 30, 61)
+    g2 = SkeletonGraph.from_points(np.c_[u, np.zeros_like(u)], np.c_[np.arange(60), np.arange(1, 61)])
+    view = SimpleNamespace(g2=g2, P=P)
+    nodes = np.arange(len(positions))
+    uv = project(P, positions)
+    _, index = cKDTree(g2.positions).query(uv)
+    preop = SimpleNamespace(graph=g3, classification=SimpleNamespace(branches=[]))
+    crossing = _crosses_vessels(view, nodes, preop, positions, uv, index)
+    assert not crossing[1:40].any()
+    assert crossing[42:81].all() and crossing[83:122].all()
+    assert not crossing[[0, 40, 41, 81]].any()          # ends: no direction to compare
+    # a branch more than half hidden gives no target at all, its ends included
+    deep_branch = SimpleNamespace(nodes=np.arange(82, 123), label="renal_left")
+    preop.classification.branches = [deep_branch, SimpleNamespace(nodes=np.arange(41), label="aorta")]
+    crossing = _crosses_vessels(view, nodes, preop, positions, uv, index)
+    assert crossing[82:123].all() and not crossing[:41].any()
+    # with radii: a thin vessel whose nearest 2D centre line is three times wider than the rest
+    g3.radii = np.r_[np.full(41, 3.0), np.full(82, 1.0)]
+    g2.radii = np.where(np.arange(61) > 45, 9.0, 3.0)          # 1 px per mm: 2D radius = 3D radius
+    preop.classification.branches = []
+    crossing = _crosses_vessels(view, np.arange(41), preop, positions, uv[:41], index[:41])
+    assert not crossing[1:35].any() and crossing[37:40].all()        # u > 15 lies on the wide part
+
+
+def test_a_branch_the_views_disagree_on_is_dropped_from_the_worse_view():
+    """One view fits a branch within 0.2 mm and the other is 3 mm off: the other gives way on
+    that branch only; a branch both views miss alike (1.5 and 2 mm) stays in both."""
+    from FevarPlannerLib.pipeline.multiview import _disagreeing_views, _without
+    P = np.array([[1000.0, 0, 0, 0], [0, 1000.0, 0, 0], [0, 0, 1, 1000.0]])     # 1 px per mm at z = 0
+    points = np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)]
+    branches = [SimpleNamespace(nodes=np.arange(10), label="renal_left"),
+                SimpleNamespace(nodes=np.arange(10, 20), label="renal_right")]
+    preop = SimpleNamespace(graph=SimpleNamespace(positions=points), centre=np.zeros(3),
+                            classification=SimpleNamespace(branches=branches))
+    uv = project(P, points)
+    offsets = [np.r_[np.full(10, 0.2), np.full(10, 1.5)], np.r_[np.full(10, 3.0), np.full(10, 2.0)]]
+    data = [(uv + np.c_[o, np.zeros(20)], np.ones(20)) for o in offsets]
+    views = [SimpleNamespace(P=P), SimpleNamespace(P=P)]
+    drop = _disagreeing_views(views, data, np.arange(20), points, preop)
+    assert not drop[0].any() and drop[1][:10].all() and not drop[1][10:].any()
+    _, weights = _without(data[1], drop[1])
+    np.testing.assert_allclose(weights, np.r_[np.zeros(10), np.full(10, 2.0)])    # mean over the 10 kept

@@ -10,7 +10,7 @@ import scipy.sparse
 from scipy.sparse import csgraph
 
 from ..projection import projection_jacobian
-from .energy import DEFAULT_ALPHA, DEFAULT_BETA, DeformationResult, _build_model, _EnergyModel
+from .energy import DEFAULT_ALPHA, DEFAULT_BETA, DeformationResult, _build_model, _displacements_cm, _EnergyModel
 
 __all__ = ["deform_assigned"]
 
@@ -89,6 +89,14 @@ class _BandedPreconditioner:
         z, _ = scipy.linalg.lapack.dtbtrs(self.factor, x[:, None], uplo="U", trans="N")
         return z[self.from_permuted, 0].reshape(3, -1)
 
+    def variables(self, phi: np.ndarray) -> np.ndarray:
+        """``x = R phi`` (flat) for displacements ``phi`` (3, n): the inverse of :meth:`displacement`."""
+        z = phi.ravel()[self.to_permuted]
+        x = self.factor[self.band] * z
+        for offset in range(1, self.band + 1):        # R[i, i + offset] sits at factor[band - offset, i + offset]
+            x[:-offset] += self.factor[self.band - offset, offset:] * z[offset:]
+        return x
+
     def gradient(self, grad_phi: np.ndarray) -> np.ndarray:
         """``R^-T grad_phi`` (flat) for a gradient (3, n) with respect to ``phi``."""
         g, _ = scipy.linalg.lapack.dtbtrs(self.factor, grad_phi.ravel()[self.to_permuted][:, None],
@@ -98,7 +106,7 @@ class _BandedPreconditioner:
 
 def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFAULT_BETA, weights=None,
                     rest_lengths=None, extra_views=(), max_iter=500, tol=1e-2, window=10, gtol=1e-6,
-                    memory=5, precondition=None, ridge=0.1) -> DeformationResult:
+                    memory=5, precondition=None, ridge=0.1, initial=None) -> DeformationResult:
     """Deform the assigned 3D nodes onto their 2D targets (Algorithm 2 rows 13-15).
 
     Minimises eq. 6 with L-BFGS (scipy ``L-BFGS-B``, analytic gradient) from ``phi = 0``,
@@ -142,6 +150,10 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
         iterations, 14 instead of 88 ms CPU, the same 0.08 mm 3D error).
     ridge : float
         Diagonal added to that Hessian, in units of the median in-plane data stiffness.
+    initial : array_like, shape (n_a, 3), optional
+        Displacements to start from instead of ``phi = 0`` (a warm start, e.g. the previous
+        solution when only the targets changed). ``energy_initial`` stays the energy at
+        ``phi = 0``.
 
     Returns
     -------
@@ -182,8 +194,13 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
                 stalled[0] = True
                 raise StopIteration
 
+    start = np.zeros(3 * n)
+    if initial is not None:
+        phi0 = _displacements_cm(initial, n)
+        start = phi0.ravel() if preconditioner is None else preconditioner.variables(phi0)
+        history[0] = objective(start)[0]
     solution = scipy.optimize.minimize(
-        objective, np.zeros(3 * n), jac=True, method="L-BFGS-B", callback=stop_when_stalled,
+        objective, start, jac=True, method="L-BFGS-B", callback=stop_when_stalled,
         options={"maxiter": int(max_iter), "gtol": float(gtol), "ftol": 1e-12, "maxcor": int(memory)})
     phi_cm = displacement(solution.x)
     energy, _, terms = model.evaluate(phi_cm, with_gradient=False)

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from .. import deformation, matching
 from ..preop import Preoperative, _induced_edges
-from ..projection import project
+from ..projection import pixels_per_mm, project
 
 
 #: Most combinations of per-view candidate correspondences deformed (the first in order).
@@ -107,11 +107,74 @@ CLOSEST_POINT_SETTLED_MM = 0.05
 CLOSEST_POINT_OUTLIER = 5.0
 
 
+#: A node and its nearest 2D skeleton point must run within this angle (degrees) of each other
+#: in the image, and the node's vessel must keep at least this fraction of its length in
+#: projection (relative to the view's median): else the match crosses vessels.
+CLOSEST_POINT_MAX_ANGLE_DEG = 45.0
+CLOSEST_POINT_MIN_FORESHORTENING = 0.35
+#: A branch with more than this fraction of such nodes gives no nearest-point target at all.
+CLOSEST_POINT_HIDDEN_BRANCH = 0.5
+#: A nearest 2D skeleton point whose vessel is this many times wider (relative to the node's own
+#: radius, over the view's median of that ratio) is the centre line of a wider vessel.
+CLOSEST_POINT_WIDER_VESSEL = 1.8
+
+
+def _node_directions(positions: np.ndarray, edges: np.ndarray, n: int):
+    """Per node the main direction of its edges in 2D (unit, sign-free) and its edge count.
+
+    The principal eigenvector of the sum of the outer products of the node's unit edge
+    vectors (closed form in 2D); zero where a node has no edge.
+    """
+    if not len(edges):
+        return np.zeros((n, 2)), np.zeros(n, dtype=np.int64)
+    vec = positions[edges[:, 1]] - positions[edges[:, 0]]
+    vec = vec / np.maximum(np.linalg.norm(vec, axis=1), 1e-12)[:, None]
+    both = np.r_[edges[:, 0], edges[:, 1]]
+    tensor = [np.bincount(both, np.r_[a, a], n) for a in (vec[:, 0] ** 2, vec[:, 0] * vec[:, 1], vec[:, 1] ** 2)]
+    angle = 0.5 * np.arctan2(2.0 * tensor[1], tensor[0] - tensor[2])
+    return np.c_[np.cos(angle), np.sin(angle)], np.bincount(both, minlength=n)
+
+
+def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np.ndarray, uv: np.ndarray,
+                     index: np.ndarray) -> np.ndarray:
+    """Nodes whose nearest 2D skeleton point is on another vessel: the node's vessel runs across
+    it in the image, or nearly along the view's rays (foreshortened, hidden in a wider
+    vessel's silhouette, so that the nearest skeleton point is that vessel's centre line),
+    or (where both graphs know their radii) that point's vessel is much wider than the node's."""
+    g3 = preop.graph
+    n3 = len(g3.positions)
+    local = np.full(n3, -1, dtype=np.int64)
+    local[nodes] = np.arange(len(nodes))
+    edges3 = g3.edges()
+    edges3 = local[edges3[(local[edges3[:, 0]] >= 0) & (local[edges3[:, 1]] >= 0)]]
+    direction3, degree3 = _node_directions(uv, edges3, len(nodes))
+    projected = np.linalg.norm(uv[edges3[:, 0]] - uv[edges3[:, 1]], axis=1)
+    spatial = np.linalg.norm(positions[nodes][edges3[:, 0]] - positions[nodes][edges3[:, 1]], axis=1)
+    ratio = projected / np.maximum(spatial, 1e-12)
+    ratio = ratio / max(float(np.median(ratio)), 1e-12) if len(ratio) else ratio
+    both = np.r_[edges3[:, 0], edges3[:, 1]]
+    node_ratio = np.bincount(both, np.r_[ratio, ratio], len(nodes)) / np.maximum(degree3, 1)
+    direction2, degree2 = _node_directions(view.g2.positions, view.g2.edges(), len(view.g2.positions))
+    cosine = np.abs((direction3 * direction2[index]).sum(axis=1))
+    crossing = (degree3 == 2) & (degree2[index] == 2) & (cosine < np.cos(np.radians(CLOSEST_POINT_MAX_ANGLE_DEG)))
+    crossing |= (degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING)
+    if g3.radii is not None and getattr(view.g2, "radii", None) is not None:     # radius of the 2D vessel
+        wider = view.g2.radii[index] / np.maximum(g3.radii[nodes] * pixels_per_mm(view.P, positions[nodes]), 1e-6)
+        crossing |= wider > CLOSEST_POINT_WIDER_VESSEL * np.median(wider)
+    for branch in preop.classification.branches:      # a branch mostly hidden in the view: all of it
+        rows = local[branch.nodes]
+        rows = rows[rows >= 0]
+        if len(rows) and crossing[rows].mean() > CLOSEST_POINT_HIDDEN_BRANCH:
+            crossing[rows] = True
+    return crossing
+
+
 def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
     """(targets, weights) of a view without a classification: the nearest 2D skeleton points.
 
     ``estimate`` are the current kept positions; their projections through the view's P
     find the nearest node of its (smoothed) 2D skeleton; weights as in :func:`_view_data`.
+    A node whose match crosses vessels (:func:`_crosses_vessels`) gets no target.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
@@ -119,10 +182,125 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
     distance, index = cKDTree(view.g2.positions).query(uv)
     usable = view.visible[nodes]
     limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
-    has_target = usable & (distance <= limit)
+    has_target = usable & (distance <= limit) & ~_crosses_vessels(view, nodes, preop, positions, uv, index)
     count = np.count_nonzero(has_target)
     weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
     return np.where(has_target[:, None], view.g2.positions[index], uv), weights
+
+
+#: Passes of chain-closest-point targets after the first deformation with several views (ICP-like).
+CHAIN_REFINEMENT_PASSES = 1
+
+
+def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
+    """Nearest point of a 2D polyline to each point: (nearest (k, 2), past an end (k,) bool).
+
+    "Past an end" marks a point whose nearest polyline point is an end node and which lies
+    beyond it along the end segment: the 2D vessel stops before this node does.
+    """
+    start, step = polyline[:-1], np.diff(polyline, axis=0)
+    length2 = np.maximum((step * step).sum(axis=1), 1e-12)
+    _, vertex = cKDTree(polyline).query(points)
+    candidates = np.clip(np.c_[vertex - 1, vertex], 0, len(step) - 1)                # the segments at it
+    t = ((points[:, None, :] - start[candidates]) * step[candidates]).sum(axis=2) / length2[candidates]
+    clipped = np.clip(t, 0.0, 1.0)
+    foot = start[candidates] + clipped[..., None] * step[candidates]
+    row = np.arange(len(points))
+    pick = np.argmin(((points[:, None, :] - foot) ** 2).sum(axis=2), axis=1)
+    segment, along = candidates[row, pick], t[row, pick]
+    past = ((segment == 0) & (along < 0)) | ((segment == len(step) - 1) & (along > 1))
+    return foot[row, pick], past
+
+
+def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
+                        fallback):
+    """(targets, weights) of a classified view from the current estimate: each 3D node's nearest
+    point on the 2D chain its branch or trunk is matched to (a second soft assignment, ICP-like).
+
+    The first assignment (eqs. 4-5) spreads the nodes along the 2D chain by the
+    *pre-operative* projected path length; where the anatomy turned out of that view's plane
+    the projected length changed and the targets slide along the vessel. Taking the nearest
+    chain point of the deformed estimate's projection removes that slide. A node whose
+    projection lies past the 2D chain's free end (the 2D vessel is shorter than the 3D one:
+    a tip the frame does not show) gets no target and follows its neighbours (S_L, S_S);
+    the chain's junction end keeps its target. ``fallback`` (targets, weights) of the first
+    assignment is kept for the nodes that no chain holds.
+    """
+    positions = np.array(preop.graph.positions, dtype=float)
+    positions[preop.kept] = estimate
+    targets, has_target = np.array(fallback[0], dtype=float), fallback[1] > 0
+    index = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    index[nodes] = np.arange(len(nodes))
+    chains = list(correspondence.trunk_pairs)
+    chains += [(preop.classification.branches[i3].nodes, nodes2) for i3, nodes2 in
+               (correspondence.branch_chains or {i3: view.c2.branches[i2].nodes
+                                                 for i3, i2 in correspondence.branch_pairs}).items()]
+    done = np.zeros(len(nodes), dtype=bool)
+    for k, (nodes3, nodes2) in enumerate(chains):
+        rows = index[np.asarray(nodes3)]
+        rows = rows[(rows >= 0)]
+        rows = rows[~done[rows] & has_target[rows]]
+        if len(rows) == 0 or len(nodes2) < 2:
+            continue
+        polyline = view.g2.positions[np.asarray(nodes2)]
+        foot, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline)
+        if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
+            past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
+            has_target[rows[past]] = False
+        else:
+            past[:] = False
+        targets[rows[~past]] = foot[~past]
+        done[rows] = True
+    count = np.count_nonzero(has_target)
+    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
+    return targets, weights
+
+
+#: A branch whose mean 2D residual (mm at the anatomy's depth) after the first deformation is
+#: above this in one view, and at least VIEW_DISAGREEMENT_RATIO times that of the branch's
+#: best-fitting view, is dropped from that view for the refinement: the views disagree on it
+#: (one of them matched it to another 2D vessel) and the one that fits it worse gives way.
+VIEW_DISAGREEMENT_MM = 1.0
+VIEW_DISAGREEMENT_RATIO = 2.0
+
+
+def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop: Preoperative) -> list:
+    """Per view a bool (n_a,) mask: the nodes of branches on which this view disagrees with the others."""
+    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    local[nodes] = np.arange(len(nodes))
+    drop = [np.zeros(len(nodes), dtype=bool) for _ in views]
+    residual = [np.linalg.norm(project(v.P, points) - t, axis=1) / pixels_per_mm(v.P, preop.centre)
+                for v, (t, _) in zip(views, data)]
+    for branch in preop.classification.branches:
+        rows = local[branch.nodes]
+        rows = rows[rows >= 0]
+        mean = np.array([r[rows][w[rows] > 0].mean() if np.any(w[rows] > 0) else np.nan
+                         for r, (_, w) in zip(residual, data)])
+        if np.count_nonzero(np.isfinite(mean)) < 2:
+            continue
+        worst, best = int(np.nanargmax(mean)), float(np.nanmin(mean))
+        if mean[worst] > VIEW_DISAGREEMENT_MM and mean[worst] >= VIEW_DISAGREEMENT_RATIO * best:
+            drop[worst][rows] = True
+    return drop
+
+
+def _without(data, drop: np.ndarray):
+    """(targets, weights) with the nodes ``drop`` taken out of the view (weights rescaled as in :func:`_view_data`)."""
+    targets, weights = data
+    has_target = (weights > 0) & ~drop
+    count = np.count_nonzero(has_target)
+    return targets, (has_target * (len(weights) / count) if count else np.zeros(len(weights)))
+
+
+def _deform_on(points, edges, views, data, alpha, beta, initial=None):
+    """eq. 6 over the assigned ``points`` with one (targets, weights) per view in ``data``."""
+    extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
+    targets, weights = data[0]
+    if not np.any(weights) and not extra:
+        raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
+    weights_arg = None if np.all(weights == 1.0) else weights
+    return deformation.deform_assigned(points, targets, edges, views[0].P, alpha=alpha, beta=beta,
+                                       weights=weights_arg, initial=initial, **extra)
 
 
 def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
@@ -131,8 +309,11 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
     term averaged over the views moves them; the TPS fills the rest (row 16). A view whose
     correspondence is None (no classification) takes the nearest 2D skeleton points of the
-    kept positions ``estimate`` as targets instead. The score (matching.candidate_score)
-    picks between candidates: the energy plus the 3D implausibility of the result.
+    kept positions ``estimate`` as targets instead. With several views,
+    CHAIN_REFINEMENT_PASSES passes then re-assign each classified view's nodes to the nearest
+    point of their matched 2D chain (:func:`_chain_closest_data`) and continue the
+    minimisation from the last displacements. The score (matching.candidate_score) picks
+    between candidates: the energy plus the 3D implausibility of the result.
     """
     g3 = preop.graph
     classified = [(v, c) for v, c in zip(views, correspondences) if c is not None]
@@ -141,13 +322,16 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     nodes = np.flatnonzero(np.logical_or.reduce(has_target))
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
-    extra = {"extra_views": [(v.P, t, w) for v, (t, w) in zip(views[1:], data[1:])]} if len(views) > 1 else {}
-    (targets, weights), edges = data[0], _induced_edges(g3, nodes)
-    if not np.any(weights) and not extra:
-        raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
-    weights_arg = None if np.all(weights == 1.0) else weights
-    result = deformation.deform_assigned(g3.positions[nodes], targets, edges, views[0].P, alpha=alpha, beta=beta,
-                                         weights=weights_arg, **extra)
+    edges = _induced_edges(g3, nodes)
+    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
+    for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
+        current = np.array(g3.positions, dtype=float)
+        current[nodes] = result.points
+        drop = _disagreeing_views(views, data, nodes, result.points, preop)
+        data = [_chain_closest_data(v, c, nodes, preop, current[preop.kept], d) if c is not None else d
+                for v, c, d in zip(views, correspondences, data)]
+        data = [_without(d, x) for d, x in zip(data, drop)]
+        result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=result.displacements)
     moved = np.array(g3.positions, dtype=float)
     moved[nodes] = result.points
     in_deformation = np.zeros(len(g3.positions), dtype=bool)
@@ -159,3 +343,4 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     score = matching.candidate_score(result.energy_final, assigned_fraction, preop.centerline.points, filled,
                                      preop.centerline.edges, alpha)
     return filled, float(result.energy_final), score
+
