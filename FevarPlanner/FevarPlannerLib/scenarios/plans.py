@@ -23,7 +23,7 @@ __all__ = [
 
 #: The scenario kinds, one benchmark set each.
 KINDS = ("out_of_plane", "straightening", "clipped", "distal_forks", "wide_sac", "extra_branches", "misaligned",
-         "angulated", "two_views", "image_only")
+         "angulated", "two_views", "image_only", "patient_like")
 #: Severities of the out-of-plane set, degrees (bend at the bifurcation and along each iliac).
 OUT_OF_PLANE_SEVERITIES_DEG = (0.0, 5.0, 10.0, 20.0)
 #: Angulated views of the angulated set: (primary, LAO +; secondary, cranial +), degrees.
@@ -99,6 +99,25 @@ def _out_of_plane(rng: np.random.Generator, severity: float) -> Deformation:
                        iliac_dir_deg=(_out_of_plane_direction(rng), _out_of_plane_direction(rng)))
 
 
+def _patient_like_shape(rng: np.random.Generator) -> dict:
+    """Shape overrides of a patient-like tree: every side branch a CT angiogram shows (coeliac
+    trunk, SMA, IMA, four lumbar arteries, internal iliacs, in the CT tree and in the
+    frame), an accessory renal artery running beside the main one on one side or both, a
+    tortuous neck and tortuous iliacs that loop in projection."""
+    accessory_below = float(rng.choice([-1.0, 1.0]) * rng.uniform(5.0, 12.0))
+    return {"sma": True, "coeliac": True, "ima": True, "lumbars": "ct", "internal_iliacs": "ct",
+            "accessory_renal": str(rng.choice(["left", "right", "both"])), "accessory_below": accessory_below,
+            "accessory_descent_deg": float(rng.uniform(-5.0, 12.0)),
+            "accessory_length": float(rng.uniform(40.0, 60.0)), "accessory_radius": float(rng.uniform(2.0, 2.8)),
+            "accessory_turn_deg": float(rng.uniform(5.0, 30.0)),
+            "sma_above": float(rng.uniform(12.0, 22.0)), "coeliac_above": float(rng.uniform(28.0, 40.0)),
+            "tortuosity_mm": tuple(float(v) for v in rng.uniform(6.0, 12.0, size=2)),
+            "tortuosity_waves": tuple(float(v) for v in rng.uniform(1.5, 2.5, size=2)),
+            "tortuosity_plane_deg": tuple(float(rng.choice([90.0, 270.0]) + rng.uniform(-30.0, 30.0)) for _ in SIDES),
+            "iliac_loop_mm": tuple(float(v) for v in rng.uniform(4.0, 10.0, size=2)),
+            "neck_kink_mm": float(rng.uniform(5.0, 12.0)), "neck_kink_dir_deg": float(rng.uniform(0.0, 360.0))}
+
+
 def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, Deformation, list, dict]:
     """Shape overrides, deformation, views and info of case ``index`` of ``kind``."""
     shape, views, info = {}, [View()], {}
@@ -127,6 +146,8 @@ def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, D
         views = [View(primary_deg=primary, secondary_deg=secondary)]
     elif kind == "image_only":
         info = {"images": True}
+    elif kind == "patient_like":
+        shape = _patient_like_shape(rng)
     elif kind == "two_views":
         angle = SECOND_VIEW_DEG[index % len(SECOND_VIEW_DEG)] * (1.0 if index % 2 == 0 else -1.0)
         name = f"{'lao' if angle > 0 else 'rao'}{abs(angle):g}"

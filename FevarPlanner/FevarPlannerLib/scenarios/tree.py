@@ -126,11 +126,32 @@ class TreeShape:
     internal_length: tuple = (38.0, 38.0)
     sma: bool = False
     coeliac: bool = False
-    accessory_renal: str = "none"            # "none", "left" or "right" (in the CT tree)
+    accessory_renal: str = "none"            # "none", "left", "right" or "both" (in the CT tree)
     lumbars: str = "none"                    # "none", "ct" or "frame"
+    # patient-like anatomy (the ``patient_like`` kind); at these defaults the tree is as before
+    ima: bool = False                        # inferior mesenteric artery off the sac (in the CT tree)
+    sma_above: float = 18.0                  # SMA ostium this far above the right renal's
+    coeliac_above: float = 34.0
+    accessory_below: float = 16.0            # accessory renal ostium this far below the right renal's
+    accessory_descent_deg: float = 10.0      # steeper than the main renal by this much
+    accessory_length: float = 40.0
+    accessory_radius: float = 2.0
+    accessory_turn_deg: float = 10.0
+    iliac_loop_mm: tuple = (0.0, 0.0)        # along-axis swing of the tortuous iliacs: loops in projection
+    neck_kink_mm: float = 0.0                # S-shaped offset of the upper aorta and neck (tortuous neck)
+    neck_kink_dir_deg: float = 0.0           # its direction in the axial plane (0: patient left)
 
     def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+        """JSON-ready; the patient-like fields only where they differ from their defaults."""
+        default = asdict(TreeShape())
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()
+                if k not in _PATIENT_LIKE_FIELDS or v != default[k]}
+
+
+#: Fields that only the ``patient_like`` kind sets (left out of ``to_dict`` at their defaults).
+_PATIENT_LIKE_FIELDS = ("ima", "sma_above", "coeliac_above", "accessory_below", "accessory_descent_deg",
+                        "accessory_length", "accessory_radius", "accessory_turn_deg", "iliac_loop_mm", "neck_kink_mm",
+                        "neck_kink_dir_deg")
 
 
 _SHAPE_RANGES = {
@@ -180,11 +201,13 @@ def _perpendicular(direction: np.ndarray) -> np.ndarray:
 
 
 def _curved(start, direction, towards, turn_deg: float, length: float, *, wiggle_mm: float = 0.0,
-            waves: float = 1.0, phase: float = 0.0, plane_deg: float = 0.0) -> np.ndarray:
+            waves: float = 1.0, phase: float = 0.0, plane_deg: float = 0.0, loop_mm: float = 0.0) -> np.ndarray:
     """A tube path: starts along ``direction``, turns uniformly by ``turn_deg`` towards ``towards``.
 
     A sinuous offset of amplitude ``wiggle_mm`` (zero at the start, ``waves`` periods)
     perpendicular to the chord makes it tortuous; the result is resampled at 1 mm.
+    ``loop_mm`` adds a swing along the chord and one across both (a quarter period apart,
+    see :func:`_loops`): the path loops in projection without meeting itself in 3D.
     """
     direction = _unit(direction)
     axis = np.cross(direction, _unit(towards))
@@ -199,7 +222,19 @@ def _curved(start, direction, towards, turn_deg: float, length: float, *, wiggle
         side = Rotation.from_rotvec(np.deg2rad(plane_deg) * chord).apply(_perpendicular(chord))
         envelope = np.sqrt(np.clip(np.sin(np.pi * s / length), 0.0, None))
         points = points + np.outer(wiggle_mm * envelope * np.sin(2 * np.pi * waves * s / length + phase), side)
+        if loop_mm:
+            points = points + _loops(chord, side, envelope, 2 * np.pi * waves * s / length + phase, loop_mm)
     return _resample(points)
+
+
+def _loops(chord: np.ndarray, side: np.ndarray, envelope: np.ndarray, angle: np.ndarray, loop_mm: float) -> np.ndarray:
+    """Offsets that turn a sinuous path into loops: ``loop_mm cos(angle)`` along the chord
+    (a prolate trochoid with the sideways sine: the path doubles back and crosses itself
+    where ``loop_mm * 2 pi waves / length > 1``) and as much across chord and side, so that
+    the two passes of a crossing lie ``2 loop_mm sin(delta)`` apart in depth."""
+    across = np.cross(chord, side)
+    swing = loop_mm * envelope * np.cos(angle)
+    return np.outer(swing, chord) + np.outer(swing, across)
 
 
 def _aorta(shape: TreeShape) -> Tube:
@@ -210,12 +245,25 @@ def _aorta(shape: TreeShape) -> Tube:
     below_neck = np.clip((s - shape.upper_aorta) / (total - shape.upper_aorta), 0.0, 1.0)
     x = shape.sac_drift * (3 * below_neck ** 2 - 2 * below_neck ** 3)
     y = -shape.sac_bulge * np.sin(np.pi * in_sac)
+    if shape.neck_kink_mm:
+        x, y = _kinked_neck(shape, s, x, y)
     points = _resample(np.column_stack([x, y, -s]))
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
     base = np.interp(arc, [0.0, arc[-1]], [shape.aorta_top_radius, shape.aorta_distal_radius])
     bump = np.sin(np.pi * np.clip((arc - sac_start) / shape.sac_length, 0.0, 1.0)) ** 2
     radius = base + bump * max(shape.sac_radius - base.mean(), 0.0)
     return Tube("aorta", points, radius)
+
+
+def _kinked_neck(shape: TreeShape, s: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A tortuous neck: an S-shaped offset (one full sine period under a sine window) of
+    ``neck_kink_mm`` in direction ``neck_kink_dir_deg`` from a third of the upper aorta down
+    to the sac, so the renal ostia sit on a bend."""
+    start, end = shape.upper_aorta / 3.0, shape.upper_aorta + shape.neck
+    t = np.clip((s - start) / (end - start), 0.0, 1.0)
+    offset = shape.neck_kink_mm * np.sin(np.pi * t) * np.sin(2 * np.pi * t)
+    a = np.deg2rad(shape.neck_kink_dir_deg)
+    return x + offset * np.cos(a), y + offset * np.sin(a)
 
 
 def _index_at(tube: Tube, depth_mm: float) -> int:
@@ -245,16 +293,21 @@ def build_tree(shape: TreeShape) -> VesselTree:
         ostium = _index_at(aorta, shape.upper_aorta - (shape.renal_offset if side == "left" else 0.0))
         _branch(tubes, f"renal_{side}", f"renal_{side}", "aorta", ostium, _renal_direction(side, shape,
                 shape.renal_descent_deg), down, shape.renal_turn_deg, shape.renal_length[k], shape.renal_radius)
-    if shape.accessory_renal in SIDES:
-        side = shape.accessory_renal
-        _branch(tubes, "accessory_renal", "other", "aorta", _index_at(aorta, shape.upper_aorta + 16.0),
-                _renal_direction(side, shape, shape.renal_descent_deg + 10.0), down, 10.0, 40.0, 2.0)
+    accessory_sides = SIDES if shape.accessory_renal == "both" else (shape.accessory_renal,)
+    for side in (s for s in accessory_sides if s in SIDES):
+        name = "accessory_renal" if len(accessory_sides) == 1 else f"accessory_renal_{side}"
+        _branch(tubes, name, "other", "aorta", _index_at(aorta, shape.upper_aorta + shape.accessory_below),
+                _renal_direction(side, shape, shape.renal_descent_deg + shape.accessory_descent_deg), down,
+                shape.accessory_turn_deg, shape.accessory_length, shape.accessory_radius)
     if shape.sma:
-        _branch(tubes, "sma", "other", "aorta", _index_at(aorta, shape.upper_aorta - 18.0), [0.0, -0.9, -0.35],
-                down, 45.0, 50.0, 3.5)
+        _branch(tubes, "sma", "other", "aorta", _index_at(aorta, shape.upper_aorta - shape.sma_above),
+                [0.0, -0.9, -0.35], down, 45.0, 50.0, 3.5)
     if shape.coeliac:
-        _branch(tubes, "coeliac", "other", "aorta", _index_at(aorta, shape.upper_aorta - 34.0), [0.0, -1.0, 0.1],
-                [0.0, -1.0, 0.5], 10.0, 26.0, 3.5)
+        _branch(tubes, "coeliac", "other", "aorta", _index_at(aorta, shape.upper_aorta - shape.coeliac_above),
+                [0.0, -1.0, 0.1], [0.0, -1.0, 0.5], 10.0, 26.0, 3.5)
+    if shape.ima:
+        _branch(tubes, "ima", "other", "aorta", _index_at(aorta, shape.upper_aorta + shape.neck + 0.7 *
+                                                          shape.sac_length), [0.35, -0.85, -0.4], down, 30.0, 45.0, 2.0)
     if shape.lumbars != "none":
         for k, depth in enumerate((0.3, 0.65)):
             index = _index_at(aorta, shape.upper_aorta + shape.neck + depth * shape.sac_length)
@@ -268,7 +321,7 @@ def build_tree(shape: TreeShape) -> VesselTree:
         _branch(tubes, f"iliac_{side}", f"iliac_{side}", "aorta", last, direction, down, shape.iliac_turn_deg[k],
                 shape.iliac_length[k], shape.iliac_radius, wiggle_mm=shape.tortuosity_mm[k],
                 waves=shape.tortuosity_waves[k], phase=shape.tortuosity_phase[k],
-                plane_deg=shape.tortuosity_plane_deg[k])
+                plane_deg=shape.tortuosity_plane_deg[k], loop_mm=shape.iliac_loop_mm[k])
         if shape.internal_iliacs != "none":
             iliac = tubes[f"iliac_{side}"]
             _branch(tubes, f"internal_iliac_{side}", "other", f"iliac_{side}",
