@@ -103,7 +103,8 @@ def _patient_like_shape(rng: np.random.Generator) -> dict:
     """Shape overrides of a patient-like tree: every side branch a CT angiogram shows (coeliac
     trunk, SMA, IMA, four lumbar arteries, internal iliacs, in the CT tree and in the
     frame), an accessory renal artery running beside the main one on one side or both, a
-    tortuous neck and tortuous iliacs that loop in projection."""
+    tortuous neck and tortuous iliacs that loop in projection. The internal iliacs run back
+    and down into the pelvis, so that no two lumens merge in the CT."""
     accessory_below = float(rng.choice([-1.0, 1.0]) * rng.uniform(5.0, 12.0))
     return {"sma": True, "coeliac": True, "ima": True, "lumbars": "ct", "internal_iliacs": "ct",
             "accessory_renal": str(rng.choice(["left", "right", "both"])), "accessory_below": accessory_below,
@@ -115,7 +116,8 @@ def _patient_like_shape(rng: np.random.Generator) -> dict:
             "tortuosity_waves": tuple(float(v) for v in rng.uniform(1.5, 2.5, size=2)),
             "tortuosity_plane_deg": tuple(float(rng.choice([90.0, 270.0]) + rng.uniform(-30.0, 30.0)) for _ in SIDES),
             "iliac_loop_mm": tuple(float(v) for v in rng.uniform(4.0, 10.0, size=2)),
-            "neck_kink_mm": float(rng.uniform(5.0, 12.0)), "neck_kink_dir_deg": float(rng.uniform(0.0, 360.0))}
+            "neck_kink_mm": float(rng.uniform(5.0, 12.0)), "neck_kink_dir_deg": float(rng.uniform(0.0, 360.0)),
+            "internal_direction": (0.2, 0.75, -0.65)}
 
 
 def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, Deformation, list, dict]:

@@ -30,6 +30,9 @@ __all__ = [
 MAIN_VESSELS = BRANCH_LABELS
 STEP_MM = 1.0
 SIDES = ("left", "right")
+#: Depth swing of a looping iliac per mm of its along-chord swing (:func:`_loops`): enough
+#: that the passes of a loop stay apart in 3D (their lumens do not merge in the CT).
+LOOP_DEPTH = 2.5
 _LEFT = {"left": 1.0, "right": -1.0}
 
 
@@ -140,6 +143,7 @@ class TreeShape:
     iliac_loop_mm: tuple = (0.0, 0.0)        # along-axis swing of the tortuous iliacs: loops in projection
     neck_kink_mm: float = 0.0                # S-shaped offset of the upper aorta and neck (tortuous neck)
     neck_kink_dir_deg: float = 0.0           # its direction in the axial plane (0: patient left)
+    internal_direction: tuple = (-0.45, 0.55, -0.7)   # internal iliacs leave along this (x: towards their side)
 
     def to_dict(self) -> dict:
         """JSON-ready; the patient-like fields only where they differ from their defaults."""
@@ -151,7 +155,7 @@ class TreeShape:
 #: Fields that only the ``patient_like`` kind sets (left out of ``to_dict`` at their defaults).
 _PATIENT_LIKE_FIELDS = ("ima", "sma_above", "coeliac_above", "accessory_below", "accessory_descent_deg",
                         "accessory_length", "accessory_radius", "accessory_turn_deg", "iliac_loop_mm", "neck_kink_mm",
-                        "neck_kink_dir_deg")
+                        "neck_kink_dir_deg", "internal_direction")
 
 
 _SHAPE_RANGES = {
@@ -231,10 +235,10 @@ def _loops(chord: np.ndarray, side: np.ndarray, envelope: np.ndarray, angle: np.
     """Offsets that turn a sinuous path into loops: ``loop_mm cos(angle)`` along the chord
     (a prolate trochoid with the sideways sine: the path doubles back and crosses itself
     where ``loop_mm * 2 pi waves / length > 1``) and as much across chord and side, so that
-    the two passes of a crossing lie ``2 loop_mm sin(delta)`` apart in depth."""
+    the two passes of a crossing lie ``2 LOOP_DEPTH loop_mm sin(delta)`` apart in depth."""
     across = np.cross(chord, side)
     swing = loop_mm * envelope * np.cos(angle)
-    return np.outer(swing, chord) + np.outer(swing, across)
+    return np.outer(swing, chord) + np.outer(LOOP_DEPTH * swing, across)
 
 
 def _aorta(shape: TreeShape) -> Tube:
@@ -326,6 +330,7 @@ def build_tree(shape: TreeShape) -> VesselTree:
             iliac = tubes[f"iliac_{side}"]
             _branch(tubes, f"internal_iliac_{side}", "other", f"iliac_{side}",
                     _index_at(iliac, shape.internal_at[k] * shape.iliac_length[k]),
-                    [-0.45 * _LEFT[side], 0.55, -0.7], down, 15.0, shape.internal_length[k], 3.0,
+                    np.multiply(shape.internal_direction, [_LEFT[side], 1.0, 1.0]), down, 15.0,
+                    shape.internal_length[k], 3.0,
                     shape.internal_iliacs == "ct")
     return VesselTree(tubes)
