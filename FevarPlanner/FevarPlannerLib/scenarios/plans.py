@@ -105,11 +105,13 @@ def _patient_like_shape(rng: np.random.Generator) -> dict:
     frame; the CT reaches 40-55 mm above the coeliac trunk), an accessory renal artery running beside the main one on one side or both, a
     tortuous neck and tortuous iliacs that loop in projection. The internal iliacs run back
     and down into the pelvis, so that no two lumens merge in the CT."""
-    accessory_below = float(rng.choice([-1.0, 1.0]) * rng.uniform(5.0, 12.0))
+    # above the main renal and flatter, or below and steeper: beside it, diverging from it
+    below = float(rng.choice([-1.0, 1.0]))
+    accessory_below = below * float(rng.uniform(7.0, 14.0))
     coeliac_above = float(rng.uniform(28.0, 40.0))
     return {"upper_aorta": coeliac_above + float(rng.uniform(40.0, 55.0)), "sma": True, "coeliac": True, "ima": True, "lumbars": "ct", "internal_iliacs": "ct",
             "accessory_renal": str(rng.choice(["left", "right", "both"])), "accessory_below": accessory_below,
-            "accessory_descent_deg": float(rng.uniform(-5.0, 12.0)),
+            "accessory_descent_deg": below * float(rng.uniform(8.0, 16.0)),
             "accessory_length": float(rng.uniform(40.0, 60.0)), "accessory_radius": float(rng.uniform(2.0, 2.8)),
             "accessory_turn_deg": float(rng.uniform(5.0, 30.0)),
             "sma_above": float(rng.uniform(12.0, 22.0)), "coeliac_above": coeliac_above,
