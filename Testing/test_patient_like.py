@@ -1,0 +1,90 @@
+"""Tests of the patient-like anatomy set (issue 10, point 4): side branches, accessory renals
+beside the main ones, a tortuous neck and looping iliacs, in the CT tree and in the frame;
+the existing kinds unchanged; Algorithm 1 and the labels on such a tree."""
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import scenarios
+from FevarPlannerLib.preop import preop_from_lumen
+from FevarPlannerLib.projection import project
+from FevarPlannerLib.scenarios.tree import LOOP_DEPTH, _curved
+
+#: (points, sum of coordinates, frame mask pixels, CT lumen voxels) of the first case of
+#: three existing kinds at seed 0, written by the generator before the patient-like kind
+#: existed: adding it must not change them.
+EXISTING_CASES = {"extra_branches": (802, -110160.977219, 47398, 107647),
+                  "straightening": (538, -85024.026831, 56906, 102919),
+                  "distal_forks": (566, -84018.348944, 44030, 79312)}
+SIDE_BRANCHES = ("coeliac", "sma", "ima", "lumbar_left_0", "lumbar_right_0", "lumbar_left_1", "lumbar_right_1",
+                 "internal_iliac_left", "internal_iliac_right")
+
+
+@pytest.mark.parametrize("kind", sorted(EXISTING_CASES))
+def test_existing_kinds_give_the_same_cases_as_before(kind):
+    case = scenarios.generate(scenarios.plan_scenarios(kind, 1, 0)[0])
+    points = np.concatenate([t.points for t in case.intraop.tubes.values()])
+    n, total, mask, lumen = EXISTING_CASES[kind]
+    assert len(points) == n
+    assert float(points.sum()) == pytest.approx(total, abs=1e-5)
+    assert int(case.views[0].mask.sum()) == mask
+    assert int(case.lumen.array.sum()) == lumen
+    assert "iliac_loop_mm" not in case.scenario.shape.to_dict()       # patient-like fields left out at defaults
+
+
+@pytest.fixture(scope="module")
+def patient_like_cases():
+    return [scenarios.generate(s) for s in scenarios.plan_scenarios("patient_like", 4, seed=21)]
+
+
+def test_patient_like_trees_hold_every_side_branch_in_the_ct_and_the_frame(patient_like_cases):
+    for case in patient_like_cases:
+        tubes = case.preop.tubes
+        assert set(SIDE_BRANCHES) <= set(tubes)
+        assert all(t.in_ct for t in tubes.values())                    # real anatomy: the CT has them too
+        accessory = [name for name in tubes if name.startswith("accessory_renal")]
+        assert 1 <= len(accessory) <= 2
+        aorta = tubes["aorta"]
+        for name in accessory:       # 7-14 mm from the right renal's ostium, about 1 mm a point
+            assert 6 <= abs(tubes[name].parent_index - tubes["renal_right"].parent_index) <= 16
+        # every side branch shows in the frame: its tip is painted in the mask
+        view = case.views[0]
+        for name in SIDE_BRANCHES + tuple(accessory):
+            u, v = np.round(project(view.P_true, case.intraop.tubes[name].points[-1:])[0]).astype(int)
+            assert view.mask[v, u], name
+        assert len(aorta.points) > 0
+
+
+def test_loops_cross_in_projection_but_stay_apart_in_depth():
+    # loop_mm * 2 pi waves / length = 8 * 2 pi * 2 / 80 = 1.26 > 1: the path doubles back
+    path = _curved([0, 0, 0], [0, 0, -1], [0, 0, -1], 0.0, 80.0, wiggle_mm=10.0, waves=2.0, plane_deg=90.0,
+                   loop_mm=8.0)
+    chord = (path[-1] - path[0]) / np.linalg.norm(path[-1] - path[0])
+    along = (path - path[0]) @ chord
+    assert np.any(np.diff(along) < 0)                                  # runs backwards along the chord: a loop
+    straight = _curved([0, 0, 0], [0, 0, -1], [0, 0, -1], 0.0, 80.0, wiggle_mm=10.0, waves=2.0, plane_deg=90.0)
+    assert np.all(np.diff((straight - straight[0]) @ chord) > 0)       # without loop_mm it never turns back
+    # the sideways swing lies along x (plane_deg 90 about a vertical chord), the depth swing
+    # along y: in a frontal projection the path crosses itself, in 3D the passes lie apart
+    flat = path[:, [0, 2]]
+    i, j = np.triu_indices(len(path), k=15)
+    close = np.linalg.norm(flat[i] - flat[j], axis=1) < 1.5
+    assert close.any()
+    assert np.min(np.linalg.norm(path[i[close]] - path[j[close]], axis=1)) > 4.0
+    assert LOOP_DEPTH > 1.0
+
+
+def test_patient_like_preop_labels_the_main_vessels_and_leaves_the_side_branches_other(patient_like_cases):
+    """Algorithm 1 on a tree with 15 vessels: the five preserved branches end on their own
+    vessels (not on an accessory renal, a lumbar or a visceral branch) in most cases."""
+    right = 0
+    for case in patient_like_cases[:3]:
+        preop = preop_from_lumen(case.lumen)
+        c3 = preop.classification
+        ends = preop.graph.positions[[b.end for b in c3.branches]]
+        names = list(case.preop.tubes)
+        nearest = [names[int(np.argmin([np.linalg.norm(t.points - e, axis=1).min() for t in case.preop.tubes.values()]))]
+                   for e in ends]
+        right += all(name == b.label for name, b in zip(nearest, c3.branches))
+        assert len(c3.omitted) >= 6                                     # the side branches are kept as "other"
+    assert right >= 2
