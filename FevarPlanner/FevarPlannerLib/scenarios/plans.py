@@ -102,7 +102,7 @@ def _out_of_plane(rng: np.random.Generator, severity: float) -> Deformation:
 def _patient_like_shape(rng: np.random.Generator) -> dict:
     """Shape overrides of a patient-like tree: every side branch a CT angiogram shows (coeliac
     trunk, SMA, IMA, four lumbar arteries, internal iliacs, in the CT tree and in the
-    frame; the CT reaches 40-55 mm above the coeliac trunk), an accessory renal artery running beside the main one on one side or both, a
+    frame; the CT reaches 40-55 mm above the coeliac trunk), an accessory renal artery running beside the main one (and narrower) on one side or both, a
     tortuous neck and tortuous iliacs that loop in projection. The internal iliacs run back
     and down into the pelvis, so that no two lumens merge in the CT."""
     # above the main renal and flatter, or below and steeper: beside it, diverging from it
@@ -112,7 +112,8 @@ def _patient_like_shape(rng: np.random.Generator) -> dict:
     return {"upper_aorta": coeliac_above + float(rng.uniform(40.0, 55.0)), "sma": True, "coeliac": True, "ima": True, "lumbars": "ct", "internal_iliacs": "ct",
             "accessory_renal": str(rng.choice(["left", "right", "both"])), "accessory_below": accessory_below,
             "accessory_descent_deg": below * float(rng.uniform(8.0, 16.0)),
-            "accessory_length": float(rng.uniform(40.0, 60.0)), "accessory_radius": float(rng.uniform(2.0, 2.8)),
+            "accessory_length": float(rng.uniform(40.0, 60.0)), "renal_radius": float(rng.uniform(2.8, 3.4)),
+            "accessory_radius": float(rng.uniform(1.8, 2.4)),
             "accessory_turn_deg": float(rng.uniform(5.0, 30.0)),
             "sma_above": float(rng.uniform(12.0, 22.0)), "coeliac_above": coeliac_above,
             "tortuosity_mm": tuple(float(v) for v in rng.uniform(6.0, 12.0, size=2)),
