@@ -5,7 +5,7 @@ the existing kinds unchanged; Algorithm 1 and the labels on such a tree."""
 import numpy as np
 import pytest
 
-from FevarPlannerLib import scenarios
+from FevarPlannerLib import graph, scenarios, skeleton
 from FevarPlannerLib.preop import preop_from_lumen
 from FevarPlannerLib.projection import project
 from FevarPlannerLib.scenarios.tree import LOOP_DEPTH, _curved
@@ -88,3 +88,50 @@ def test_patient_like_preop_labels_the_main_vessels_and_leaves_the_side_branches
         right += all(name == b.label for name, b in zip(nearest, c3.branches))
         assert len(c3.omitted) >= 6                                     # the side branches are kept as "other"
     assert right >= 2
+
+
+def _ends_with_an_accessory_renal():
+    """End nodes (LPS mm) of a tree whose left accessory renal reaches further out and higher
+    than the main left renal, and a wide coeliac trunk in front of the aorta; their calibres."""
+    ends = {"aorta": (0, 0, 0), "renal_left": (50, 15, -80), "accessory": (56, 15, -70),
+            "renal_right": (-50, 15, -82), "iliac_left": (40, 10, -260), "iliac_right": (-40, 10, -262),
+            "coeliac": (-4, -25, -35), "lumbar": (18, 12, -120)}
+    sizes = {"aorta": 10.0, "renal_left": 3.0, "accessory": 2.0, "renal_right": 3.0, "iliac_left": 5.0,
+             "iliac_right": 5.0, "coeliac": 3.5, "lumbar": 1.5}
+    return list(ends), np.array(list(ends.values()), dtype=float), np.array([sizes[k] for k in ends])
+
+
+def test_accessory_renal_beside_the_main_one_is_not_taken_for_it():
+    names, points, sizes = _ends_with_an_accessory_renal()
+    directions = {"left": (1, 0, 0), "superior": (0, 0, 1), "anterior": (0, -1, 0)}
+    by_position = {label: names[i] for label, i in graph.anatomical_roles(points, **directions).items()}
+    assert by_position["renal_left"] == "accessory"                    # the failure: lateral and high wins
+    by_calibre = {label: names[i] for label, i in graph.anatomical_roles(points, **directions, sizes=sizes).items()}
+    assert by_calibre == {label: label for label in graph.BRANCH_LABELS}  # the wider one is the renal
+    # a wide visceral branch near the midline never ties with a renal
+    sizes[names.index("coeliac")] = 20.0
+    assert names[graph.anatomical_roles(points, **directions, sizes=sizes)["renal_right"]] == "renal_right"
+
+
+def test_algorithm1_on_a_2d_frame_preserves_the_main_renal_not_the_narrower_accessory():
+    """A frame (pixels) where the accessory renal runs 13-25 px below the main left renal and
+    reaches further out: with the mask's radii, Algorithm 1 keeps the main renal."""
+    mask = np.zeros((420, 300), dtype=bool)
+
+    def tube(points, radius):
+        points = np.asarray(points, dtype=float)
+        dense = np.concatenate([np.linspace(a, b, 40) for a, b in zip(points[:-1], points[1:])])
+        scenarios.paint_capsules(mask, dense, np.full(len(dense), float(radius)))
+
+    tube([(30, 150), (300, 150)], 14)                                   # aorta (row, col)
+    tube([(300, 150), (400, 95)], 8)                                     # iliacs
+    tube([(300, 150), (400, 205)], 8)
+    tube([(100, 150), (115, 215)], 5)                                   # main renals: left is +col
+    tube([(100, 150), (115, 85)], 5)
+    tube([(125, 150), (128, 235)], 2.5)                                 # accessory left renal: further out
+    g2 = graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), mask=mask)
+    directions = {"left": (1.0, 0.0), "superior": (0.0, -1.0)}
+    c2 = graph.label_anatomy(g2, graph.classify(g2, iota=10.0, directions=directions), **directions)
+    renal_end = g2.positions[c2.branch("renal_left").end]
+    assert renal_end[0] < 222 and abs(renal_end[1] - 115) < 6          # the main renal's tip (u, v)
+    assert any(g2.positions[b.end][0] > 225 for b in c2.omitted)         # the accessory is kept, as "other"

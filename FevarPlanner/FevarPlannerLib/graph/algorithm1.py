@@ -147,6 +147,22 @@ def _ends_beyond_spurs(graph: SkeletonGraph, ends: np.ndarray, iota: float,
     return ends[reach[ends] >= limit]
 
 
+def _branch_calibres(graph: SkeletonGraph, ends: np.ndarray) -> np.ndarray | None:
+    """Median lumen radius of each end's branch, from where it leaves the nearest
+    quasi-junction's lumen to the end (None where the graph has no radii)."""
+    forks = np.flatnonzero(graph.degrees >= 3)
+    if graph.radii is None or len(forks) == 0:
+        return None
+    reach, pred, source = csgraph.dijkstra(graph.adjacency, directed=False, indices=forks, min_only=True,
+                                           return_predecessors=True)
+    calibres = np.empty(len(ends))
+    for k, end in enumerate(ends.tolist()):
+        nodes = _walk_back(pred, end) if source[end] >= 0 else np.array([end])
+        outside = nodes[reach[nodes] > graph.radii[source[end]]] if source[end] >= 0 else nodes
+        calibres[k] = float(np.median(graph.radii[outside if len(outside) else nodes]))
+    return calibres
+
+
 def _describe(graph: SkeletonGraph, search: _BranchSearch, ends: np.ndarray) -> str:
     lengths = sorted((round(b.length, 1) for b in search.preserved + search.omitted), reverse=True)
     return (f"{len(graph)} nodes, {len(ends)} end nodes, {len(search.junction_of_cluster)} junctions, "
@@ -182,6 +198,9 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
         branches: with directions, the five ends that play the anatomical roles
         (:func:`anatomical_roles`) are preserved whatever their length, so a coeliac
         trunk or an SMA longer than the stub of upper aorta above it cannot take its place.
+        Where the graph knows its radii, the branches' calibres (:func:`_branch_calibres`)
+        make the widest of near-tied renal candidates the renal (an accessory renal artery
+        beside the main one is narrower).
     spur_radius_factor : float
         Spurs are also branches shorter than this many radii of the vessel they leave
         (where ``graph.radii`` is known; :data:`SPUR_RADIUS_FACTOR`).
@@ -219,7 +238,8 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
     if directions is not None and tau == len(BRANCH_LABELS):
         candidates = _ends_beyond_spurs(repaired, ends, iota, spur_radius_factor)
         if len(candidates) >= tau:
-            roles = anatomical_roles(repaired.positions[candidates], **directions)
+            roles = anatomical_roles(repaired.positions[candidates], **directions,
+                                     sizes=_branch_calibres(repaired, candidates))
             protected = candidates[list(roles.values())]
     search.run(ends, protected)
     if len(search.preserved) < tau:

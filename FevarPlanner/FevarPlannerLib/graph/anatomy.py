@@ -19,9 +19,15 @@ def _unit(vector, dim: int, name: str) -> np.ndarray:
 #: top end (coeliac, SMA) or posterior of it (internal iliac) is penalised twice its offset.
 ROLE_LATERAL_WEIGHT = 2.0
 DEPTH_PENALTY = 2.0
+#: With branch calibres (``sizes``), the renal role of a side goes to the widest of the ends
+#: whose renal score is within this share of the aorta's length (top end to the iliacs) of
+#: the best: an accessory renal artery runs beside the main one (its end as lateral and
+#: high, or more so) but is narrower, while a lumbar stub or a visceral branch scores lower
+#: by more than this.
+RENAL_TIE_SHARE = 0.25
 
 
-def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
+def anatomical_roles(end_positions, *, left, superior, anterior=None, sizes=None) -> dict:
     """Which end node plays which of the five roles: label -> row of ``end_positions``.
 
     With ``p`` an end's offset from the most superior end (the upper aorta's):
@@ -33,6 +39,12 @@ def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
     * ``renal_{side}`` is the end on its side of the top end (``s p.left > 0``, ``s = +1``
       for left) with the largest ``2 s p.left + p.superior - 2 max(0, p.anterior)``: lateral
       and high, not an anterior visceral branch.
+
+    ``sizes`` (optional, one per end: the calibre of the end's branch, e.g. its median lumen
+    radius) break near-ties of the renal score: of the ends on a side scoring within
+    :data:`RENAL_TIE_SHARE` of the aorta's length of the best and reaching at least half as
+    far to the side, the widest is the renal (the main renal artery, not an accessory one
+    beside it).
 
     ``anterior`` (3D only) enables the depth terms; in a 2D view depth is not seen. Lateral
     offsets are measured across the cranio-caudal direction (in an angulated view the
@@ -61,12 +73,25 @@ def anatomical_roles(end_positions, *, left, superior, anterior=None) -> dict:
     a, b = np.unravel_index(np.argmax(pair_score), pair_score.shape)
     right_iliac, left_iliac = sorted((int(others[a]), int(others[b])), key=lambda i: lateral[i])
     roles = {"aorta": top, "iliac_left": left_iliac, "iliac_right": right_iliac}
+    aorta_length = float(np.linalg.norm(0.5 * (offset[left_iliac] + offset[right_iliac])))
     for side, s in (("left", 1.0), ("right", -1.0)):
         score = ROLE_LATERAL_WEIGHT * s * lateral + height - DEPTH_PENALTY * np.maximum(0.0, forward)
         order = [int(i) for i in np.argsort(-score, kind="stable") if int(i) not in roles.values()]
-        on_side = [i for i in order if s * lateral[i] > 0]
-        roles[f"renal_{side}"] = (on_side or order)[0]
+        on_side = [i for i in order if s * lateral[i] > 0] or order
+        roles[f"renal_{side}"] = _widest_of_the_best(on_side, score, s * lateral, sizes,
+                                                     RENAL_TIE_SHARE * aorta_length)
     return roles
+
+
+def _widest_of_the_best(order: list, score: np.ndarray, lateral: np.ndarray, sizes, margin: float) -> int:
+    """The first of ``order`` (best score first), or with ``sizes`` the widest of those
+    scoring within ``margin`` of it and reaching at least half as far to the side (an
+    accessory renal beside it, not a visceral branch near the midline)."""
+    if sizes is None:
+        return order[0]
+    best = order[0]
+    tied = [i for i in order if score[i] >= score[best] - margin and lateral[i] >= 0.5 * lateral[best]]
+    return max(tied, key=lambda i: (float(sizes[i]), -tied.index(i)))
 
 
 def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left, superior,
