@@ -116,10 +116,10 @@ def _patient_like_shape(rng: np.random.Generator) -> dict:
             "accessory_radius": float(rng.uniform(1.8, 2.4)),
             "accessory_turn_deg": float(rng.uniform(5.0, 30.0)),
             "sma_above": float(rng.uniform(12.0, 22.0)), "coeliac_above": coeliac_above,
-            "tortuosity_mm": tuple(float(v) for v in rng.uniform(6.0, 12.0, size=2)),
+            "tortuosity_mm": tuple(float(v) for v in rng.uniform(5.0, 9.0, size=2)),
             "tortuosity_waves": tuple(float(v) for v in rng.uniform(1.5, 2.5, size=2)),
             "tortuosity_plane_deg": tuple(float(rng.choice([90.0, 270.0]) + rng.uniform(-30.0, 30.0)) for _ in SIDES),
-            "iliac_loop_mm": tuple(float(v) for v in rng.uniform(4.0, 10.0, size=2)),
+            "iliac_loop_mm": tuple(float(v) for v in rng.uniform(3.0, 6.0, size=2)),
             "neck_kink_mm": float(rng.uniform(5.0, 12.0)), "neck_kink_dir_deg": float(rng.uniform(0.0, 360.0)),
             "internal_direction": (0.2, 0.75, -0.65)}
 
@@ -154,6 +154,9 @@ def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, D
         info = {"images": True}
     elif kind == "patient_like":
         shape = _patient_like_shape(rng)
+        # the family's deformation; a wire straightens a looping iliac less (0.1-0.3): the same
+        # share of a long tortuous vessel would carry its end 50-80 mm, beyond any patient's
+        deformation = replace(deformation, straighten=tuple(float(v) for v in rng.uniform(0.1, 0.3, size=2)))
     elif kind == "two_views":
         angle = SECOND_VIEW_DEG[index % len(SECOND_VIEW_DEG)] * (1.0 if index % 2 == 0 else -1.0)
         name = f"{'lao' if angle > 0 else 'rao'}{abs(angle):g}"

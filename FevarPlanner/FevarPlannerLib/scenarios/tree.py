@@ -32,7 +32,7 @@ STEP_MM = 1.0
 SIDES = ("left", "right")
 #: Depth swing of a looping iliac per mm of its along-chord swing (:func:`_loops`): enough
 #: that the passes of a loop stay apart in 3D (their lumens do not merge in the CT).
-LOOP_DEPTH = 2.5
+LOOP_DEPTH = 2.0
 _LEFT = {"left": 1.0, "right": -1.0}
 
 
