@@ -133,33 +133,52 @@ def spur_length(graph: SkeletonGraph, junction, iota: float, factor: float = SPU
     return np.maximum(float(iota), factor * graph.radii[junction])
 
 
-def _ends_beyond_spurs(graph: SkeletonGraph, ends: np.ndarray, iota: float,
-                       factor: float = SPUR_RADIUS_FACTOR) -> np.ndarray:
-    """The end nodes farther along the skeleton from every quasi-junction node than a spur reaches."""
+def _fork_waves(graph: SkeletonGraph):
+    """Distance, predecessor and source of every node from its nearest quasi-junction node
+    (one multi-source Dijkstra), or None without quasi-junctions."""
     forks = np.flatnonzero(graph.degrees >= 3)
     if len(forks) == 0:
+        return None
+    return csgraph.dijkstra(graph.adjacency, directed=False, indices=forks, min_only=True, return_predecessors=True)
+
+
+def _ends_beyond_spurs(graph: SkeletonGraph, ends: np.ndarray, iota: float,
+                       factor: float = SPUR_RADIUS_FACTOR, waves=None) -> np.ndarray:
+    """The end nodes farther along the skeleton from every quasi-junction node than a spur reaches.
+
+    ``waves``: :func:`_fork_waves` of ``graph``, when already computed.
+    """
+    waves = _fork_waves(graph) if waves is None else waves
+    if waves is None:
         return ends
-    reach, _, source = csgraph.dijkstra(graph.adjacency, directed=False, indices=forks, min_only=True,
-                                        return_predecessors=True)
+    reach, _, source = waves
     reachable = source[ends] >= 0
     limit = np.full(len(ends), float(iota))
     limit[reachable] = spur_length(graph, source[ends][reachable], iota, factor)
     return ends[reach[ends] >= limit]
 
 
-def _branch_calibres(graph: SkeletonGraph, ends: np.ndarray) -> np.ndarray | None:
+def _branch_calibres(graph: SkeletonGraph, ends: np.ndarray, waves=None) -> np.ndarray | None:
     """Median lumen radius of each end's branch, from where it leaves the nearest
-    quasi-junction's lumen to the end (None where the graph has no radii)."""
-    forks = np.flatnonzero(graph.degrees >= 3)
-    if graph.radii is None or len(forks) == 0:
+    quasi-junction's lumen to the end (None where the graph has no radii).
+
+    ``waves``: :func:`_fork_waves` of ``graph``, when already computed.
+    """
+    waves = _fork_waves(graph) if waves is None and graph.radii is not None else waves
+    if graph.radii is None or waves is None:
         return None
-    reach, pred, source = csgraph.dijkstra(graph.adjacency, directed=False, indices=forks, min_only=True,
-                                           return_predecessors=True)
+    reach, pred, source = waves
+    pred = pred.tolist()
     calibres = np.empty(len(ends))
     for k, end in enumerate(ends.tolist()):
-        nodes = _walk_back(pred, end) if source[end] >= 0 else np.array([end])
-        outside = nodes[reach[nodes] > graph.radii[source[end]]] if source[end] >= 0 else nodes
-        calibres[k] = float(np.median(graph.radii[outside if len(outside) else nodes]))
+        path = [end]
+        while pred[path[-1]] >= 0:
+            path.append(pred[path[-1]])
+        nodes = np.array(path)
+        if source[end] >= 0:
+            outside = nodes[reach[nodes] > graph.radii[source[end]]]
+            nodes = outside if len(outside) else nodes
+        calibres[k] = float(np.median(graph.radii[nodes]))
     return calibres
 
 
@@ -236,10 +255,11 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
                          f"(upper aorta, renal and iliac arteries): {_describe(repaired, search, ends)}")
     protected = ()
     if directions is not None and tau == len(BRANCH_LABELS):
-        candidates = _ends_beyond_spurs(repaired, ends, iota, spur_radius_factor)
+        waves = _fork_waves(repaired)
+        candidates = _ends_beyond_spurs(repaired, ends, iota, spur_radius_factor, waves)
         if len(candidates) >= tau:
             roles = anatomical_roles(repaired.positions[candidates], **directions,
-                                     sizes=_branch_calibres(repaired, candidates))
+                                     sizes=_branch_calibres(repaired, candidates, waves))
             protected = candidates[list(roles.values())]
     search.run(ends, protected)
     if len(search.preserved) < tau:
