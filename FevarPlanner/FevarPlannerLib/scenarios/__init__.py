@@ -17,7 +17,11 @@ writers (:mod:`io`) and the projection (:mod:`projection`) are common. A scenari
   drawn from the intra-operative tree by a capsule rasteriser of its own: clipped frames
   (the upper aorta leaves the image at the top border), tubes the frame shows but the CT
   tree lacks (distal iliac forks, lumbar stubs), misaligned given poses, angulated views
-  and two-view cases.
+  and two-view cases;
+* the **patient-like** kind: every side branch a CT angiogram shows (coeliac trunk, SMA,
+  IMA, four lumbar arteries, internal iliacs) in the CT tree and in the frame, an accessory
+  renal artery beside the main one (narrower) on one side or both, a tortuous neck and
+  tortuous iliacs that loop in projection (issue 10, point 4: real patient trees).
 
 Case folders follow docs/DESIGN.md section 4: ``aorta_mask.nrrd`` (the pre-operative lumen on a
 1 mm CT grid), ``fluoro_mask.png`` + ``geometry.json`` (the main view, given ``P``),
