@@ -5,7 +5,8 @@ the existing kinds unchanged; Algorithm 1 and the labels on such a tree."""
 import numpy as np
 import pytest
 
-from FevarPlannerLib import graph, scenarios, skeleton
+from FevarPlannerLib import evaluation, graph, scenarios, skeleton
+from FevarPlannerLib.pipeline.frame import register_views
 from FevarPlannerLib.preop import preop_from_lumen
 from FevarPlannerLib.projection import project
 from FevarPlannerLib.scenarios.tree import LOOP_DEPTH, _curved
@@ -74,12 +75,17 @@ def test_loops_cross_in_projection_but_stay_apart_in_depth():
     assert LOOP_DEPTH > 1.0
 
 
-def test_patient_like_preop_labels_the_main_vessels_and_leaves_the_side_branches_other(patient_like_cases):
+@pytest.fixture(scope="module")
+def patient_like_preops(patient_like_cases):
+    return [preop_from_lumen(case.lumen) for case in patient_like_cases[:3]]
+
+
+def test_patient_like_preop_labels_the_main_vessels_and_leaves_the_side_branches_other(patient_like_cases,
+                                                                                         patient_like_preops):
     """Algorithm 1 on a tree with 15 vessels: the five preserved branches end on their own
     vessels (not on an accessory renal, a lumbar or a visceral branch) in most cases."""
     right = 0
-    for case in patient_like_cases[:3]:
-        preop = preop_from_lumen(case.lumen)
+    for case, preop in zip(patient_like_cases, patient_like_preops):
         c3 = preop.classification
         ends = preop.graph.positions[[b.end for b in c3.branches]]
         names = list(case.preop.tubes)
@@ -135,3 +141,22 @@ def test_algorithm1_on_a_2d_frame_preserves_the_main_renal_not_the_narrower_acce
     renal_end = g2.positions[c2.branch("renal_left").end]
     assert renal_end[0] < 222 and abs(renal_end[1] - 115) < 6          # the main renal's tip (u, v)
     assert any(g2.positions[b.end][0] > 225 for b in c2.omitted)         # the accessory is kept, as "other"
+
+
+def test_registration_on_a_patient_like_case_fits_the_frame_and_keeps_the_renal_off_the_accessory(
+        patient_like_cases, patient_like_preops):
+    """Seed 21, case 1 (accessory renals on both sides): the 2D fit stays under half a pixel,
+    the right renal is registered to itself (10 mm off when its accessory was taken for it)
+    and the 3D error stays within 0.75 mm of the depth floor and below SV's."""
+    case, preop = patient_like_cases[1], patient_like_preops[1]
+    view = case.views[0]
+    result = register_views(preop, [(view.mask, view.P_given)])
+    gt_pre, gt_intra = case.preop.centerline(), case.intraop.centerline()
+    depth = evaluation.depth_analysis(result.deformed, preop.centerline, gt_pre, gt_intra, view.P_true)
+    fit = evaluation.evaluate(result.deformed, gt_intra, result.P, result.skeleton2d.positions,
+                              result.skeleton2d.edges(), labels=depth["labels"])
+    rigid = evaluation.depth_analysis(preop.centerline, preop.centerline, gt_pre, gt_intra, view.P_true)
+    assert fit["2d_px"]["mean"] < 0.5
+    assert depth["per_vessel"]["renal_right"]["3d_mm"] < 2.0
+    assert depth["3d_mm"]["mean"] <= depth["depth_floor_mm"]["mean"] + 0.75
+    assert depth["3d_mm"]["mean"] < rigid["3d_mm"]["mean"]
