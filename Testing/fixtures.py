@@ -187,6 +187,20 @@ AAA_LINES = [(POLY_TOP, POLY_RL), (POLY_RL, POLY_TIPS["renal_left"]), (POLY_RL, 
              (POLY_BIF, POLY_TIPS["iliac_right"])]
 
 
+def random_masks(seed: int, count: int):
+    """Binary 2D masks of random shapes: blobs with holes (smoothed noise cut at a random level)
+    and salt-and-pepper masks, for properties that must hold on any mask."""
+    from scipy import ndimage as ndi
+
+    rng = np.random.default_rng(seed)
+    for k in range(count):
+        shape = tuple(rng.integers(1, 70, size=2))
+        if k % 3 == 0:
+            yield rng.random(shape) < rng.uniform(0.2, 0.95)
+        else:
+            yield ndi.gaussian_filter(rng.random(shape), rng.uniform(0.5, 5.0)) > rng.uniform(0.4, 0.6)
+
+
 def draw_lines(lines, erase=()):
     """A skeleton Volume with digital lines between (x, y, z) points; ``erase`` clears points."""
     array = np.zeros(GRID_SHAPE, dtype=np.uint8)

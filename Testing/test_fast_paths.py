@@ -14,7 +14,7 @@ from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
 from FevarPlannerLib.graph.skeleton_graph import _walk_back
 from FevarPlannerLib.segmentation import fluoro
 from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
-from fixtures import y_mask_2d
+from fixtures import random_masks, y_mask_2d
 
 
 def _laplacian_smoothing_by_sparse_product(graph: SkeletonGraph, iterations: int, weight: float) -> np.ndarray:
@@ -42,19 +42,8 @@ def test_smooth_positions_equals_the_sparse_operator_to_the_bit():
         np.testing.assert_array_equal(smoothed.edges(), graph.edges())
 
 
-def _random_masks(seed: int, count: int):
-    """Blobs with holes (smoothed noise cut at a random level) and salt-and-pepper masks."""
-    rng = np.random.default_rng(seed)
-    for k in range(count):
-        shape = tuple(rng.integers(2, 60, size=2))
-        if k % 3 == 0:
-            yield rng.random(shape) < rng.uniform(0.2, 0.9)
-        else:
-            yield ndi.gaussian_filter(rng.random(shape), rng.uniform(0.7, 3.0)) > rng.uniform(0.4, 0.6)
-
-
 def test_euler_number_counts_components_minus_holes():
-    for mask in _random_masks(seed=2, count=200):
+    for mask in random_masks(seed=2, count=200):
         components = ndi.label(mask, structure=np.ones((3, 3)))[1]
         background, regions = ndi.label(~np.pad(mask, 1))
         holes = regions - 1 if mask.size else 0
@@ -63,7 +52,7 @@ def test_euler_number_counts_components_minus_holes():
 
 def test_clean_mask_equals_dropping_small_pieces_then_filling_holes():
     checked = 0
-    for mask in _random_masks(seed=3, count=200):
+    for mask in random_masks(seed=3, count=200):
         labels, count = ndi.label(mask, structure=np.ones((3, 3)))
         sizes = np.bincount(labels.ravel(), minlength=count + 1)
         sizes[0] = 0

@@ -14,7 +14,7 @@ from skimage.morphology import skeletonize as skimage_skeletonize
 
 from FevarPlannerLib.skeleton import (ACTIVE_SET_ABOVE_PIXELS, _thin_active_set, clean_mask, grid_edges,
                                       local_radius, skeletonize_2d, skeletonize_3d, thin_zhang_suen)
-from fixtures import aaa_grid, aaa_mask_3d, draw_tubes, y_mask_2d
+from fixtures import aaa_grid, aaa_mask_3d, draw_tubes, random_masks, y_mask_2d
 
 def neighbour_count(skeleton):
     """Number of 8/26 neighbours of every skeleton element."""
@@ -120,19 +120,8 @@ def test_skeletonize_2d_downsampled_keeps_topology_and_place():
     assert np.percentile(distance, 95) <= 2.0
 
 
-def _random_masks(seed: int, count: int):
-    """Blobs (smoothed noise cut at a random level) and salt-and-pepper masks of random shapes."""
-    rng = np.random.default_rng(seed)
-    for k in range(count):
-        shape = tuple(rng.integers(1, 70, size=2))
-        if k % 3 == 0:
-            yield rng.random(shape) < rng.uniform(0.3, 0.95)
-        else:
-            yield ndi.gaussian_filter(rng.random(shape), rng.uniform(0.5, 5.0)) > rng.uniform(0.4, 0.6)
-
-
 def test_thin_zhang_suen_equals_scikit_image_pixel_for_pixel():
-    masks = list(_random_masks(seed=11, count=300))
+    masks = list(random_masks(seed=11, count=300))
     masks += [y_mask_2d(), np.ones((9, 9), dtype=bool), np.zeros((4, 6), dtype=bool),
               draw_tubes(np.stack(np.indices((90, 140)), axis=-1).astype(float),
                          [(np.array([10.0, 10.0]), np.array([80.0, 130.0]), 14.0),

@@ -59,6 +59,16 @@ def _plan_result(anatomy) -> PlanResult:
                       {"total": 1.0, "registration": 0.5})
 
 
+
+def _saved_and_reloaded(scene, path):
+    """The scene written to ``path`` (.mrml) and imported into a new scene."""
+    scene.SetURL(str(path))
+    assert scene.Commit() == 1
+    other = slicer.vtkMRMLScene()
+    other.SetURL(str(path))
+    other.Import()
+    return other
+
 def test_import_under_slicer_core_defines_only_the_mrml_side():
     assert fp.SLICER_APPLICATION is False
     for name in ("FevarPlanner", "FevarPlannerWidget", "FevarPlannerTest"):
@@ -211,12 +221,8 @@ def test_parameter_node_keeps_values_and_node_references_and_is_saved_with_the_s
     assert logic.getParameterNode().ctVolume is volume
     with pytest.raises(AttributeError, match="no field"):
         parameters.cttVolume = volume
-    scene.SetURL(str(tmp_path / "scene.mrml"))
-    assert scene.Commit() == 1
-    other = slicer.vtkMRMLScene()
-    other.SetURL(str(tmp_path / "scene.mrml"))
-    other.Import()
-    loaded = fp.FevarPlannerParameters.of_scene(other)
+    reloaded = _saved_and_reloaded(scene, tmp_path / "scene.mrml")  # kept: the nodes live in it
+    loaded = fp.FevarPlannerParameters.of_scene(reloaded)
     assert loaded.target == "renal_right"
     assert loaded.ctVolume is not None and loaded.ctVolume.GetID() == volume.GetID()
 
@@ -418,12 +424,8 @@ def test_further_views_are_kept_as_the_parameter_node_wrappers_lists(scene, tmp_
     assert node.GetParameter("extraFrameVolumes_len") == "2" and not node.GetParameter("extraGeometryFiles_2")
     assert node.GetNodeReference("extraFrameVolumes_1") is frames[2]
     assert node.GetNodeReference("extraFrameVolumes_2") is None  # the dropped entry is gone
-    scene.SetURL(str(tmp_path / "scene.mrml"))
-    assert scene.Commit() == 1
-    other = slicer.vtkMRMLScene()
-    other.SetURL(str(tmp_path / "scene.mrml"))
-    other.Import()
-    loaded = fp.FevarPlannerParameters.of_scene(other)
+    reloaded = _saved_and_reloaded(scene, tmp_path / "scene.mrml")  # kept: the nodes live in it
+    loaded = fp.FevarPlannerParameters.of_scene(reloaded)
     assert [n.GetID() for n in loaded.extraFrameVolumes] == [frames[1].GetID(), frames[2].GetID()]
     assert loaded.extraFluoroFiles == ["/data/lao60.dcm", ""]
     assert [n.GetName() for n, _, _ in fp.extra_views(loaded)] == ["LAO60", "LAO90"]
