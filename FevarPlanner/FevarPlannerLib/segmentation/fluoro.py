@@ -336,17 +336,22 @@ def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, stra
     return devices
 
 
-def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4) -> np.ndarray:
+def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4, spine=None) -> np.ndarray:
     """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
     (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
-    bowel loop touching it can."""
-    from skimage.morphology import skeletonize
-
+    bowel loop touching it can. ``spine``: the centre line's (distance, (rows, cols)) from
+    :func:`_spine_lookup` when already at hand (default: that of ``vessel``)."""
     if not vessel.any():
         return vessel
-    spine = skeletonize(vessel)
-    distance, (ri, ci) = ndi.distance_transform_edt(~spine, return_indices=True)
+    distance, (ri, ci) = _spine_lookup(vessel) if spine is None else spine
     return distance <= slack * radius[ri, ci] + 1.0
+
+
+def _spine_lookup(region: np.ndarray):
+    """Distance to the skeleton of ``region`` and, per pixel, the nearest skeleton pixel."""
+    from skimage.morphology import skeletonize
+
+    return ndi.distance_transform_edt(~skeletonize(region), return_indices=True)
 
 
 def _prior_scales(prior: FluoroPrior, factor: int, n_scales: int) -> np.ndarray:
@@ -397,15 +402,18 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
     response = response / _per_vessel_reference(response, nearest, band, prior, reference)
-    vessel, relative = _vessel_region_relative(oriented, response, radius, float(sigmas[-1]), high, low,
-                                               contrast_fraction)
+    tree = apply_hysteresis_threshold(response, low, high)
+    if not tree.any():
+        return np.zeros(frame.shape, dtype=bool)
+    spine = _spine_lookup(tree)
+    vessel, relative = _vessel_region_relative(oriented, tree, spine, radius, float(sigmas[-1]), contrast_fraction)
     vessel &= band
-    vessel &= _within_expected_width(vessel, _widest_nearby(radius))
+    vessel &= _within_expected_width(vessel, _widest_nearby(radius), spine=spine)
     thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
     vessel = _remove_small_objects(vessel, min_area_fraction * total)
-    soft = _soft_extent(vessel, relative)
+    soft = _soft_extent(vessel, relative, contrast_fraction)
     full = np.zeros(frame.shape, dtype=bool)
     full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \
         _upsample_above(soft, factor, crop.shape, EDGE_LEVEL)
@@ -439,45 +447,54 @@ def _per_vessel_reference(response: np.ndarray, nearest: np.ndarray, band: np.nd
     names, code_of_node = np.unique(np.asarray(prior.labels), return_inverse=True)
     code = code_of_node[nearest]
     scale = np.full(len(names), reference, dtype=np.float32)
+    sampled = response[::2, ::2][band[::2, ::2]]       # every fourth pixel is plenty for a percentile
+    sampled_code = code[::2, ::2][band[::2, ::2]]
     for k in range(len(names)):
-        values = response[band & (code == k)]
+        values = sampled[sampled_code == k]
         if values.size:
             own = float(np.percentile(values, VESSEL_REFERENCE_PERCENTILE))
             scale[k] = min(max(own, REFERENCE_FLOOR * reference), reference)
     return scale[code] + np.float32(1e-12)
 
 
-def _vessel_region_relative(oriented: np.ndarray, response: np.ndarray, radius: np.ndarray, max_sigma: float,
-                            high: float, low: float, contrast_fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """The hysteresis tree (``response`` already normalised) widened by local contrast, each pixel's
-    contrast taken relative to the contrast on the tree's centre line nearest to it.
+def _vessel_region_relative(oriented: np.ndarray, tree: np.ndarray, spine, radius: np.ndarray, max_sigma: float,
+                            contrast_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """The hysteresis ``tree`` widened by local contrast, each pixel's contrast taken relative to
+    the contrast on the tree's centre line nearest to it (``spine``: :func:`_spine_lookup` of
+    the tree), so that a faint thin branch keeps its full width and its tip.
 
     Returns the binary region (pixels above ``contrast_fraction`` of their local centre-line
     contrast, connected to the tree) and the relative contrast (for the sub-pixel edge)."""
-    from skimage.morphology import skeletonize
-
-    tree = apply_hysteresis_threshold(response, low, high)
-    relative = np.zeros(oriented.shape, dtype=np.float32)
-    if not tree.any():
-        return tree, relative
     contrast = _local_contrast(oriented, int(math.ceil(3 * max_sigma)))
-    _, (ri, ci) = ndi.distance_transform_edt(~skeletonize(tree), return_indices=True)
     near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max_sigma)))
-    peak = np.maximum(_centre_line_contrast(contrast, radius)[ri, ci], _contrast_noise_floor(contrast, near_tree))
+    distance, (ri, ci) = spine
+    on_spine = np.zeros(contrast.shape, dtype=np.float32)
+    rows, cols = np.nonzero(distance == 0)
+    on_spine[rows, cols] = np.maximum(_centre_line_contrast(contrast, radius[rows, cols], rows, cols),
+                                      _contrast_noise_floor(contrast, near_tree))
+    peak = on_spine[ri, ci]
+    relative = np.zeros(oriented.shape, dtype=np.float32)
     np.divide(contrast, peak, out=relative, where=peak > 0)
-    vessel = (relative > contrast_fraction) & near_tree
+    tree_contrast = float(np.median(contrast[tree]))
+    wide = radius >= 2.0     # wide vessels keep the tree-wide reference (a catheter alongside stays out)
+    vessel = np.where(wide, contrast > contrast_fraction * tree_contrast, relative > contrast_fraction) & near_tree
+    if tree_contrast > 0:
+        np.putmask(relative, wide, (contrast / tree_contrast).astype(np.float32))
     labels, _ = ndi.label(vessel)
     touching = np.unique(labels[tree & vessel])
     return np.isin(labels, touching[touching > 0]), relative
 
 
-def _centre_line_contrast(contrast: np.ndarray, radius: np.ndarray) -> np.ndarray:
-    """What a vessel's edge is measured against: on thin vessels (projected radius under 3 px of
-    the reduced grid) the 3 x 3 maximum of the contrast; on wide ones its 5 x 5 grey opening,
-    so that a small dark spot inside the lumen (a branch seen end-on, a calcification) does
-    not raise the reference and notch the edge beside it."""
-    thin = ndi.grey_dilation(contrast, size=(3, 3))
-    wide = ndi.grey_opening(contrast, size=(5, 5))
+def _centre_line_contrast(contrast: np.ndarray, radius: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """What a vessel's edge is measured against, at the centre-line pixels ``rows, cols``: on thin
+    vessels (projected ``radius`` under 3 px of the reduced grid) the 3 x 3 maximum of the
+    contrast; on wide ones its 5 x 5 median, so that a small dark spot inside the lumen (a
+    branch seen end-on, a calcification) does not raise the reference and notch the edge."""
+    padded = np.pad(contrast, 2, mode="edge")
+    offsets = np.arange(-2, 3)
+    window = padded[(rows + 2)[:, None, None] + offsets[:, None], (cols + 2)[:, None, None] + offsets]
+    thin = window[:, 1:4, 1:4].reshape(len(rows), -1).max(axis=1)
+    wide = np.median(window.reshape(len(rows), -1), axis=1)
     return np.where(radius >= 3.0, wide, thin)
 
 
@@ -493,13 +510,15 @@ def _contrast_noise_floor(contrast: np.ndarray, near_tree: np.ndarray) -> float:
     """The least centre-line contrast an edge may be measured against: NOISE_FLOOR times the
     median contrast away from the tree (what the noise alone gives), so that next to a faint
     thin branch the noise does not pass for the branch's edge."""
-    away = contrast[~near_tree]
+    away = contrast[::2, ::2][~near_tree[::2, ::2]]    # every fourth pixel is plenty for a median
     return NOISE_FLOOR * float(np.median(away)) if away.size else 0.0
 
 
-def _soft_extent(vessel: np.ndarray, relative: np.ndarray) -> np.ndarray:
+def _soft_extent(vessel: np.ndarray, relative: np.ndarray, contrast_fraction: float) -> np.ndarray:
     """The mask's extent on the reduced grid as a continuous map whose :data:`EDGE_LEVEL` crossing,
     after bilinear upsampling, is the vessel's edge: the relative contrast (at most 1) on the
-    region and one pixel around it (the partly covered pixels at the edge), 0 elsewhere."""
-    around = ndi.binary_dilation(vessel)
-    return np.where(around, np.clip(relative, 0.0, 1.0), 0.0).astype(np.float32)
+    region, and on the pixels just around it the partial contrast of an edge (below
+    ``contrast_fraction``; a pixel above it that is not in the region was dropped on purpose,
+    as a device, a bone or too wide, and stays out)."""
+    rim = ndi.binary_dilation(vessel) & ~vessel & (relative < contrast_fraction)
+    return np.where(vessel | rim, np.clip(relative, 0.0, 1.0), 0.0).astype(np.float32)
