@@ -432,6 +432,8 @@ REFERENCE_FLOOR = 0.2
 #: vessel's centre line nearby, after bilinear upsampling of the reduced grid (calibrated on
 #: rendered straight tubes of 2-20 px radius so that the mask's width matches the lumen's).
 EDGE_LEVEL = 0.3
+#: Projected radius (px of the reduced grid) from which a vessel counts as wide (aorta, iliacs).
+WIDE_RADIUS_PX = 3.0
 #: See :func:`_contrast_noise_floor`.
 NOISE_FLOOR = 6.0
 
@@ -470,32 +472,40 @@ def _vessel_region_relative(oriented: np.ndarray, tree: np.ndarray, spine, radiu
     distance, (ri, ci) = spine
     on_spine = np.zeros(contrast.shape, dtype=np.float32)
     rows, cols = np.nonzero(distance == 0)
-    on_spine[rows, cols] = np.maximum(_centre_line_contrast(contrast, radius[rows, cols], rows, cols),
+    on_spine[rows, cols] = np.maximum(_centre_line_contrast(contrast, tree, radius[rows, cols], rows, cols),
                                       _contrast_noise_floor(contrast, near_tree))
     peak = on_spine[ri, ci]
     relative = np.zeros(oriented.shape, dtype=np.float32)
     np.divide(contrast, peak, out=relative, where=peak > 0)
-    tree_contrast = float(np.median(contrast[tree]))
-    wide = radius >= 2.0     # wide vessels keep the tree-wide reference (a catheter alongside stays out)
-    vessel = np.where(wide, contrast > contrast_fraction * tree_contrast, relative > contrast_fraction) & near_tree
-    if tree_contrast > 0:
-        np.putmask(relative, wide, (contrast / tree_contrast).astype(np.float32))
+    vessel = (relative > contrast_fraction) & near_tree
     labels, _ = ndi.label(vessel)
     touching = np.unique(labels[tree & vessel])
     return np.isin(labels, touching[touching > 0]), relative
 
 
-def _centre_line_contrast(contrast: np.ndarray, radius: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """What a vessel's edge is measured against, at the centre-line pixels ``rows, cols``: on thin
-    vessels (projected ``radius`` under 3 px of the reduced grid) the 3 x 3 maximum of the
-    contrast; on wide ones its 5 x 5 median, so that a small dark spot inside the lumen (a
-    branch seen end-on, a calcification) does not raise the reference and notch the edge."""
+def _centre_line_contrast(contrast: np.ndarray, tree: np.ndarray, radius: np.ndarray, rows: np.ndarray,
+                          cols: np.ndarray) -> np.ndarray:
+    """What a vessel's edge is measured against, at the tree's centre-line pixels ``rows, cols``.
+
+    On thin vessels (projected ``radius`` under :data:`WIDE_RADIUS_PX` px of the reduced grid) the
+    3 x 3 maximum of the contrast. On wide ones the 5 x 5 median, so that a small dark spot
+    inside the lumen (a branch seen end-on, a calcification) does not raise the reference and
+    notch the edge; where the tree is thin although the vessel there must be wide (a catheter
+    or wire along the aorta, a spur), the median reference of the wide centre line instead, so
+    that the device is measured against the vessel and not against itself.
+    """
     padded = np.pad(contrast, 2, mode="edge")
+    padded_tree = np.pad(tree, 2)
     offsets = np.arange(-2, 3)
-    window = padded[(rows + 2)[:, None, None] + offsets[:, None], (cols + 2)[:, None, None] + offsets]
+    index = ((rows + 2)[:, None, None] + offsets[:, None], (cols + 2)[:, None, None] + offsets)
+    window = padded[index]
     thin = window[:, 1:4, 1:4].reshape(len(rows), -1).max(axis=1)
     wide = np.median(window.reshape(len(rows), -1), axis=1)
-    return np.where(radius >= 3.0, wide, thin)
+    is_wide = radius >= WIDE_RADIUS_PX
+    full = padded_tree[index].reshape(len(rows), -1).mean(axis=1) >= 0.6
+    if (is_wide & full).any():
+        wide = np.where(full, wide, np.median(wide[is_wide & full]))
+    return np.where(is_wide, wide, thin)
 
 
 def _widest_nearby(radius: np.ndarray) -> np.ndarray:
