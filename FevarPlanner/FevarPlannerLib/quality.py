@@ -138,6 +138,14 @@ class FluoroPrior:
             self._raster_cache[key] = PriorBand(box, distance[box], nearest[box], radius[box], band[box])
         return self._raster_cache[key]
 
+    def derived(self, key, compute):
+        """``compute()``, once per ``key``: what a segmenter derives from a :meth:`band` of this
+        prior (a frame's per-pixel label codes, a widened radius map) and reuses per frame."""
+        key = ("derived",) + tuple(key)
+        if key not in self._raster_cache:
+            self._raster_cache[key] = compute()
+        return self._raster_cache[key]
+
     def _rasterise(self, shape, factor: int):
         uv = (self.uv + 0.5) / factor - 0.5
         finite = np.all(np.isfinite(uv[self.edges].reshape(len(self.edges), -1)), axis=1) if len(self.edges) else []

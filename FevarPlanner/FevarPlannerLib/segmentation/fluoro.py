@@ -401,14 +401,16 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
-    response = response / _per_vessel_reference(response, nearest, band, prior, reference)
+    codes = prior.derived(("label_codes", small_shape, factor, reach), lambda: _label_codes(prior, nearest))
+    response = response / _per_vessel_reference(response, codes, band, reference)
     tree = apply_hysteresis_threshold(response, low, high)
     if not tree.any():
         return np.zeros(frame.shape, dtype=bool)
     spine = _spine_lookup(tree)
     vessel, relative = _vessel_region_relative(oriented, tree, spine, radius, float(sigmas[-1]), contrast_fraction)
     vessel &= band
-    vessel &= _within_expected_width(vessel, _widest_nearby(radius), spine=spine)
+    widest = prior.derived(("widest", small_shape, factor, reach), lambda: _widest_nearby(radius))
+    vessel &= _within_expected_width(vessel, widest, spine=spine)
     thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
@@ -438,20 +440,24 @@ WIDE_RADIUS_PX = 3.0
 NOISE_FLOOR = 6.0
 
 
-def _per_vessel_reference(response: np.ndarray, nearest: np.ndarray, band: np.ndarray, prior: FluoroPrior,
-                          reference: float) -> np.ndarray:
+def _label_codes(prior: FluoroPrior, nearest: np.ndarray) -> tuple[int, np.ndarray]:
+    """(number of labels, per pixel the code of the label of the ``nearest`` prior node)."""
+    names, code_of_node = np.unique(np.asarray(prior.labels), return_inverse=True)
+    return len(names), code_of_node[nearest]
+
+
+def _per_vessel_reference(response: np.ndarray, codes: tuple, band: np.ndarray, reference: float) -> np.ndarray:
     """Per pixel, what the vesselness is measured against: the strong response of the labelled
     vessel whose projection is nearest (clipped to ``[REFERENCE_FLOOR, 1] x reference``).
 
     A thin renal artery responds far less than the aorta; against the aorta's reference its
     faint parts fall below the hysteresis thresholds and the branch ends early or is lost.
     """
-    names, code_of_node = np.unique(np.asarray(prior.labels), return_inverse=True)
-    code = code_of_node[nearest]
-    scale = np.full(len(names), reference, dtype=np.float32)
+    n_labels, code = codes
+    scale = np.full(n_labels, reference, dtype=np.float32)
     sampled = response[::2, ::2][band[::2, ::2]]       # every fourth pixel is plenty for a percentile
     sampled_code = code[::2, ::2][band[::2, ::2]]
-    for k in range(len(names)):
+    for k in range(n_labels):
         values = sampled[sampled_code == k]
         if values.size:
             own = float(np.percentile(values, VESSEL_REFERENCE_PERCENTILE))
