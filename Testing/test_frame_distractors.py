@@ -39,3 +39,56 @@ def test_noise_frame_is_refused_in_one_line(rendered):
     with pytest.raises(quality.QualityError, match="frame check") as failure:
         quality.check_frame_mask(seg.segment_fluoro(noise, prior), prior, frame=noise)
     assert "\n" not in str(failure.value)
+
+
+# ----------------------------------------------------------------------------------------
+# Unusable frames through the command line: exit code 2, one line, a QC picture
+# ----------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def small_case(tmp_path_factory):
+    """A small phantom case (lumen mask, raw frame as PNG, geometry) and its frame."""
+    import shutil
+
+    from PIL import Image
+
+    root = tmp_path_factory.mktemp("frames")
+    params = ph.PhantomParams(ct_spacing_mm=2.0, detector_pixel_mm=1.2, seed=3)
+    full = ph.write_case(ph.generate_case(params, name="frames"), root / "full")
+    case = root / "case"
+    case.mkdir()
+    for name in ("aorta_mask.nrrd", "geometry.json"):
+        shutil.copy2(full / name, case / name)
+    from FevarPlannerLib import io
+
+    frame = io.load_case(full).fluoro.image.astype(float)
+    frame = (255 * (frame - frame.min()) / (frame.max() - frame.min())).astype(np.uint8)
+    Image.fromarray(frame).save(case / "fluoro.png")
+    return case, frame
+
+
+def _plan_with_frame(case, frame, out, capsys):
+    from PIL import Image
+
+    from FevarPlannerLib import cli
+
+    Image.fromarray(frame).save(case / "fluoro.png")
+    code = cli.main(["-q", "plan", str(case), "--out", str(out)])
+    return code, capsys.readouterr().err.strip()
+
+
+def test_an_angiogram_plans_and_unusable_frames_are_refused_with_a_qc_picture(small_case, tmp_path, capsys):
+    case, frame = small_case
+    code, _ = _plan_with_frame(case, frame, tmp_path / "good", capsys)
+    assert code == 0 and (tmp_path / "good" / "segmentation_qc.png").exists()
+    rng = np.random.default_rng(11)
+    background = np.full(frame.shape, np.median(frame))
+    unusable = {"noise": rng.integers(0, 255, frame.shape).astype(np.uint8),
+                "no_contrast": np.clip(background + rng.normal(0, 4, frame.shape), 0, 255).astype(np.uint8),
+                "wrong_anatomy": np.ascontiguousarray(frame.T)}    # the tree lies across, not down
+    for name, bad in unusable.items():
+        out = tmp_path / name
+        code, err = _plan_with_frame(case, bad, out, capsys)
+        assert code == 2, (name, err)
+        assert len(err.splitlines()) == 1 and "fluoro.png" in err, (name, err)
+        assert (out / "segmentation_qc.png").stat().st_size > 1000, name
