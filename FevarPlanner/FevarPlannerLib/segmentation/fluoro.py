@@ -189,7 +189,12 @@ def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, ves
     search is confined to a band around the projected tree, widened by the expected
     deformation (:data:`DEFORMATION_MARGIN_MM`); the polarity is read off the frame (inside
     the projected tree darker or brighter than around it, so subtracted and plain frames of
-    either polarity work); the Frangi scales follow the projected radii; a white top-hat
+    either polarity work); the Frangi scales follow the projected radii; the hysteresis
+    thresholds are fractions of each labelled vessel's own response, so that a faint thin
+    renal artery is not measured against the aorta; each pixel's contrast is taken relative
+    to the contrast on the vessel's centre line nearby and the edge is placed where it falls
+    to :data:`EDGE_LEVEL` on the upsampled grid (the mask keeps the lumen's width and the
+    branch its tip); a white top-hat
     removes bone, soft tissue, table and collimator edges (broad or step-like structures);
     long, straight components thinner than the vessel expected there (wires, catheters,
     sheaths) are dropped. A (n, rows, cols) run is reduced to its frame with the most
