@@ -29,7 +29,7 @@ def test_thin_renals_keep_their_width(rendered):
     mask = seg.segment_fluoro(frame, prior)
     zone = _renal_zone(prior, truth.shape)
     ratio = (mask & zone).sum() / (truth & zone).sum()
-    assert 0.85 <= ratio <= 1.15, ratio           # was 0.6: renals came out half as wide
+    assert 0.9 <= ratio <= 1.1, ratio           # was 0.6: renals came out about half as wide
     assert seg.dice(mask, truth) >= 0.93
 
 
