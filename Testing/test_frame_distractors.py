@@ -92,3 +92,20 @@ def test_an_angiogram_plans_and_unusable_frames_are_refused_with_a_qc_picture(sm
         assert code == 2, (name, err)
         assert len(err.splitlines()) == 1 and "fluoro.png" in err, (name, err)
         assert (out / "segmentation_qc.png").stat().st_size > 1000, name
+
+
+def test_a_run_with_the_bolus_arriving_is_segmented_on_its_fullest_frame():
+    import dataclasses
+
+    rng = np.random.default_rng(12)
+    case = ph.generate_case(ph.random_params(rng))
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    run, truth = [], None
+    for fill in (0.0, 0.3, 1.0, 0.6):          # contrast arriving, full, washing out
+        params = dataclasses.replace(case.params, fluoro_attenuation_per_mm=fill * case.params.fluoro_attenuation_per_mm)
+        frame, mask = ph.render_fluoro(case.intraop, case.P_true, case.carm, params, np.random.default_rng(5))
+        run.append(frame)
+        truth = mask if fill == 1.0 else truth
+    run = np.stack(run)
+    assert seg.select_frame(run, prior) == 2
+    assert seg.dice(seg.segment_fluoro(run, prior), truth) >= 0.95
