@@ -102,7 +102,8 @@ def test_a_run_with_the_bolus_arriving_is_segmented_on_its_fullest_frame():
     prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
     run, truth = [], None
     for fill in (0.0, 0.3, 1.0, 0.6):          # contrast arriving, full, washing out
-        params = dataclasses.replace(case.params, fluoro_attenuation_per_mm=fill * case.params.fluoro_attenuation_per_mm)
+        attenuation = fill * case.params.fluoro_attenuation_per_mm
+        params = dataclasses.replace(case.params, fluoro_attenuation_per_mm=attenuation)
         frame, mask = ph.render_fluoro(case.intraop, case.P_true, case.carm, params, np.random.default_rng(5))
         run.append(frame)
         truth = mask if fill == 1.0 else truth
