@@ -7,11 +7,13 @@ finds the rotation and translation of the image plane between corresponding poin
 folds it into ``P`` (``A @ P``), so that everything downstream keeps working with one matrix.
 
 ``check_misalignment`` decides whether such a correction is called for. A stiff wire moves
-the iliacs and the sac; it barely moves the aorta above the renal arteries and the renal
-ostia. A misaligned ``P`` moves all of them by one in-plane rigid motion. So the
-correction is applied only when these stable regions (each fitted on its own) agree on
-one rigid offset that is larger than the pixel noise and large against what is left after
-the fit; otherwise the offset is read as deformation and ``P`` is kept.
+the iliacs and the sac; it barely moves the aorta above the renal arteries, and the renal
+ostia only by a few millimetres (as much as a misalignment of a few pixels). A misaligned
+``P`` moves all of them by one in-plane rigid motion. So the rotation and the offset
+across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
+straight vessel cannot show) on the renal ostia, and the correction is applied only when
+the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
+read as deformation and ``P`` is kept.
 """
 
 from __future__ import annotations
@@ -31,14 +33,10 @@ MIN_OFFSET_PX = 2.0
 #: frame's stable vessels must drop to this fraction of what it was under ``P``; a
 #: deformation leaves a distance of its own size.
 MAX_RESIDUAL_FRACTION = 0.5
-#: Every region must support the motion on its own: come at least this much nearer (mean px)
-#: to the frame's stable vessels. A misaligned ``P`` puts all of them off; a deformation
-#: (renals pulled by the wire) leaves the upper aorta where ``P`` put it.
+#: Without the reference region, every region must support the motion on its own: come at
+#: least this much nearer (mean px) to the frame's stable vessels. A misaligned ``P`` puts
+#: all of them off; a deformation (renals pulled by the wire) leaves them apart.
 REGION_GAIN_PX = 0.5
-#: The reference region (the upper aorta, the stiffest) must carry the offset: its mean
-#: distance to the frame under ``P`` must be at least this fraction of the offset. Renals
-#: that moved with the kidneys while the aorta stayed in place are deformation.
-REFERENCE_FRACTION = 0.5
 #: A stable point further than this from the frame's stable vessels counts as this far.
 DISTANCE_CAP_PX = 30.0
 #: A correction turning the frame further than this is a failed fit, not a misalignment.
@@ -151,15 +149,82 @@ def _distances(tree, uv: np.ndarray) -> np.ndarray:
     return np.minimum(tree.query(uv)[0], DISTANCE_CAP_PX)
 
 
-def _best_closest_point_fit(source, curve, P, starts, tree):
-    """The closest-point fit (from each start) that leaves the stable points nearest to the curve,
-    and those points' distances to it.
+def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
+    """The in-plane rigid fit of the stable points, the reference region first.
 
-    The curve's tree and normals are built once and shared by the starts.
+    With the reference region (the upper aorta, which a wire does not move) in the frame,
+    its closest-point fit alone fixes the rotation and the offset across it (from each
+    start, the one leaving it nearest to the curve); the offset along it, which a nearly
+    straight vessel cannot show, is then taken from the other regions
+    (:func:`_along_reference_shift`): their ostia may have moved with the wire, so they
+    decide only what the reference leaves open. Without a usable reference all regions are
+    fitted at once. Returns the fit of ``source`` (all regions, in order).
     """
     normals = _curve_normals(curve, tree)
-    fits = [_closest_point_fit(source, curve, P, start, tree, normals) for start in starts]
-    return min(((fit, _distances(tree, fit.moved)) for fit in fits), key=lambda found: found[1].mean())
+    names = list(regions)
+    bounds = np.cumsum([0] + [len(regions[name]) for name in names])
+    if reference not in regions or len(regions[reference]) < MIN_REFERENCE_POINTS:
+        fits = [_closest_point_fit(source, curve, P, start, tree, normals) for start in starts]
+        return min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
+    k = names.index(reference)
+    own = slice(bounds[k], bounds[k + 1])
+    fits = [_closest_point_fit(source[own], curve, P, None if start is None else _restricted(start, own), tree, normals)
+            for start in starts]
+    best = min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
+    moved = _apply_rigid(source, source[own], best.moved)
+    others = np.ones(len(source), bool)
+    others[own] = False
+    if np.count_nonzero(others) >= 3:
+        direction = _principal_direction(best.moved)
+        moved = moved + _along_reference_shift(moved[others], direction, curve, tree, normals) * direction
+    return fit_in_plane_rigid(source, moved, P)
+
+
+#: The reference region needs this many points in the frame to fix the rotation on its own.
+MIN_REFERENCE_POINTS = 10
+
+
+def _restricted(fit: PoseRefinement, rows: slice) -> PoseRefinement:
+    """A fit's moved points of ``rows`` only (a start for a subset of its points)."""
+    return PoseRefinement(fit.P, fit.translation, fit.rotation_deg, fit.scale, fit.cost_before, fit.cost_after,
+                          None, np.asarray(fit.moved)[rows])
+
+
+def _apply_rigid(points: np.ndarray, fitted_from: np.ndarray, fitted_to: np.ndarray) -> np.ndarray:
+    """``points`` moved by the rigid motion taking ``fitted_from`` exactly onto ``fitted_to``."""
+    theta, centre_s, centre_t, _ = _weighted_kabsch(fitted_from, fitted_to, np.ones(len(fitted_from)))
+    c, s = np.cos(theta), np.sin(theta)
+    return (points - centre_s) @ np.array([[c, -s], [s, c]]).T + centre_t
+
+
+def _principal_direction(points: np.ndarray) -> np.ndarray:
+    """Unit direction of the largest spread of 2D points (the course of a vessel)."""
+    centred = points - points.mean(axis=0)
+    return np.linalg.eigh(centred.T @ centred)[1][:, -1]
+
+
+def _along_reference_shift(moved: np.ndarray, direction: np.ndarray, curve, tree, normals) -> float:
+    """The shift along ``direction`` that brings ``moved`` nearest to the curve (px).
+
+    Point-to-line residuals, one degree of freedom, Huber weights, closest points renewed
+    each pass; points whose curve runs along ``direction`` carry no weight.
+    """
+    shift = 0.0
+    for _ in range(ICP_ITERATIONS):
+        at = moved + shift * direction
+        _, nearest = tree.query(at)
+        n = normals[nearest]
+        residual = np.einsum("ij,ij->i", n, at - curve[nearest])
+        slope = n @ direction
+        w = _huber_weights(residual)
+        denominator = float(w @ slope ** 2)
+        if denominator < 1e-9:
+            return shift
+        step = -float(w @ (slope * residual)) / denominator
+        shift += step
+        if abs(step) < ICP_SETTLED_PX:
+            break
+    return shift
 
 
 def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, targets: dict | None = None,
@@ -180,7 +245,8 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         Corresponded 2D targets of the same points (soft assignment): a coarse start for
         offsets beyond the closest points' reach. The fit starts from ``P`` as well.
     reference : str, optional
-        The region that must carry the offset (see (d)), e.g. "upper_aorta".
+        The stiffest region (e.g. "upper_aorta"): it fixes the rotation and the offset
+        across it (:func:`_stable_regions_fit`) and must carry the offset (see below).
     force : bool
         Apply any fit that is not a failure (too few points, turned too far), without the test.
     min_offset_px : float
@@ -189,16 +255,16 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
     Returns
     -------
     PoseCheck
-        The fit (:func:`closest_point_rigid`), the test's numbers and the decision. The
-        correction is applied when (a) the offset exceeds ``min_offset_px``, (b) it explains
-        the mismatch: the mean distance of the stable points to the frame's stable vessels
-        drops to ``MAX_RESIDUAL_FRACTION`` of what it was, and (c) two or more regions take
-        part and each of them comes ``REGION_GAIN_PX`` nearer (they agree on one motion). A
-        deformation of the stable vessels (the renals pulled apart, the aorta bent) leaves a
-        residual the rigid motion cannot remove, or leaves one region (the upper aorta) where
-        ``P`` put it; (d) the ``reference`` region, if given and present, is off under ``P``
-        by at least ``REFERENCE_FRACTION`` of the offset. (A shift purely along a straight
-        upper aorta is therefore not corrected: one view cannot tell it from renals that moved.)
+        The fit, the test's numbers and the decision. The correction is applied when (a) the
+        offset exceeds ``min_offset_px`` and (b) it explains the mismatch: the mean distance
+        of the stable points to the frame's stable vessels drops to ``MAX_RESIDUAL_FRACTION``
+        of what it was. With a ``reference`` region in the frame, (c) the reference is off
+        under ``P`` by ``min_offset_px`` or more and the fit takes it to
+        ``MAX_RESIDUAL_FRACTION`` of that: a wire moves the renal ostia and leaves the upper
+        aorta, so renals off the frame alone are deformation. (A shift purely along a straight
+        upper aorta is therefore not corrected: one view cannot tell it from renals that
+        moved.) Without it, (d) two or more regions take part and each comes
+        ``REGION_GAIN_PX`` nearer (they agree on one motion).
     """
     from scipy.spatial import cKDTree
 
@@ -214,39 +280,50 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         coarse = robust_fit_in_plane_rigid(source, np.concatenate([targets[name] for name in regions]), P)
         if abs(coarse.rotation_deg) <= MAX_ROTATION_DEG:
             starts.append(coarse)
-    fit, after = _best_closest_point_fit(source, curve_uv, P, starts, tree)
-    before = _distances(tree, source)
+    fit = _stable_regions_fit(source, regions, curve_uv, P, starts, tree, reference)
+    before, after = _distances(tree, source), _distances(tree, fit.moved)
     offset = float(np.linalg.norm(fit.moved - source, axis=1).mean())
     bounds = np.cumsum([0] + [len(uv) for uv in regions.values()])
     per_region = {name: (float(before[i:j].mean()), float(after[i:j].mean()))
                   for name, i, j in zip(regions, bounds[:-1], bounds[1:])}
     check = PoseCheck(np.asarray(P, float), fit.translation, fit.rotation_deg, offset, float(before.mean()),
                       float(after.mean()), per_region)
-    unmoved = [name for name, (b, a) in per_region.items() if a > b - REGION_GAIN_PX]
-    if abs(fit.rotation_deg) > MAX_ROTATION_DEG:
-        check.why = f"fit turned the frame {fit.rotation_deg:.1f} deg: a failed fit, not a misalignment"
-    elif force:
-        check.applied, check.why = True, "pose correction forced"
-    elif offset < min_offset_px:
-        check.why = f"frame and P agree: best rigid offset {offset:.1f} px (< {min_offset_px:g} px)"
-    elif check.after_px > MAX_RESIDUAL_FRACTION * check.before_px:
-        check.why = (f"read as deformation: a rigid {offset:.1f} px offset takes the stable vessels only from "
-                     f"{check.before_px:.1f} to {check.after_px:.1f} px off the frame's")
-    elif len(regions) < 2:
-        check.why = f"only {', '.join(regions)} in the frame: one region cannot tell misalignment from deformation"
-    elif reference in per_region and per_region[reference][0] < REFERENCE_FRACTION * offset:
-        check.why = (f"read as deformation: {reference} is {per_region[reference][0]:.1f} px off the frame, "
-                     f"the rest {offset:.1f} px")
-    elif unmoved:
-        check.why = (f"read as deformation: the {offset:.1f} px offset brings {', '.join(unmoved)} no nearer to "
-                     f"the frame (less than {REGION_GAIN_PX:g} px)")
-    else:
-        check.applied = True
-        check.why = (f"{', '.join(regions)} agree on one rigid offset of {offset:.1f} px (stable vessels "
-                     f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
+    check.applied, check.why = _decide(check, len(regions), reference if reference in per_region and
+                                       len(regions[reference]) >= MIN_REFERENCE_POINTS else None, force, min_offset_px)
     if check.applied:
         check.P = fit.P
     return check
+
+
+def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool, min_offset_px: float):
+    """(apply?, why) of :func:`check_misalignment` from its numbers."""
+    offset, per_region = check.offset_px, check.regions_px
+    if abs(check.rotation_deg) > MAX_ROTATION_DEG:
+        return False, f"fit turned the frame {check.rotation_deg:.1f} deg: a failed fit, not a misalignment"
+    if force:
+        return True, "pose correction forced"
+    if offset < min_offset_px:
+        return False, f"frame and P agree: best rigid offset {offset:.1f} px (< {min_offset_px:g} px)"
+    if check.after_px > MAX_RESIDUAL_FRACTION * check.before_px:
+        return False, (f"read as deformation: a rigid {offset:.1f} px offset takes the stable vessels only from "
+                       f"{check.before_px:.1f} to {check.after_px:.1f} px off the frame's")
+    if n_regions < 2:
+        return False, f"only {', '.join(per_region)} in the frame: one region cannot tell misalignment from deformation"
+    if reference is not None:
+        held, moved_to = per_region[reference]
+        if held < min_offset_px:
+            return False, (f"read as deformation: {reference} is {held:.1f} px off the frame under P "
+                           f"(< {min_offset_px:g} px), the rest moved")
+        if moved_to > MAX_RESIDUAL_FRACTION * held:
+            return False, (f"read as deformation: a rigid motion takes {reference} only from {held:.1f} to "
+                           f"{moved_to:.1f} px off the frame's")
+    else:
+        unmoved = [name for name, (b, a) in per_region.items() if a > b - REGION_GAIN_PX]
+        if unmoved:
+            return False, (f"read as deformation: the {offset:.1f} px offset brings {', '.join(unmoved)} no nearer "
+                           f"to the frame (less than {REGION_GAIN_PX:g} px)")
+    return True, (f"{', '.join(per_region)} agree on one rigid offset of {offset:.1f} px (stable vessels "
+                  f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
 
 
 #: Closest-point passes of :func:`closest_point_rigid` and the change (px) that ends them.
