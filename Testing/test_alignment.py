@@ -223,3 +223,27 @@ def test_renals_off_alone_leave_p_even_when_they_agree():
     regions, frame = _stable_frame(rng, region_shifts=down)
     check = alignment.check_misalignment(regions, frame, P, reference="upper_aorta")
     assert not check.applied and "upper_aorta" in check.why and np.array_equal(check.P, P)
+
+
+def test_the_upper_aorta_does_not_slide_along_itself(deformed_case):
+    """Path-length targets (eq. 5) sit pixels along the frame's aorta from the projection of an
+    upper aorta that did not move; held on the nearest frame points it stays put (it slid
+    4.4 mm before)."""
+    from FevarPlannerLib import matching
+
+    case, preop, mask, truth = deformed_case
+    frame = pipeline.register_frame(preop, mask, case.P_true, refine_pose="off")
+    g2, c2 = frame.skeleton2d, frame.classification2d
+    candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]
+    soft = matching.soft_assign(preop.graph, preop.classification, g2, c2, case.P_true, candidate)
+    held = pipeline.frame._held_upper_aorta(preop, g2, c2, case.P_true, soft)
+    upper = pipeline.frame._stable_regions(preop)["upper_aorta"]
+    upper = upper[soft.assigned[upper]]
+    uv = project(case.P_true, preop.graph.positions[upper])
+    assert np.linalg.norm(soft.targets[upper] - uv, axis=1).mean() > 5.0
+    assert np.linalg.norm(held.targets[upper] - uv, axis=1).mean() < 1.0
+    others = np.setdiff1d(np.flatnonzero(soft.assigned), upper)
+    np.testing.assert_array_equal(held.targets[others], soft.targets[others])
+    kept = np.flatnonzero(np.isin(preop.kept, upper))
+    moved = np.linalg.norm(frame.deformed.points[kept] - preop.centerline.points[kept], axis=1).mean()
+    assert moved < 1.0

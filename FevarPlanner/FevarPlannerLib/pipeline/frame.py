@@ -7,6 +7,7 @@ pre-operative model, which is computed once per patient.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 from dataclasses import dataclass, field
@@ -106,6 +107,32 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
     return check, candidates, assignment
 
 
+def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification, P: np.ndarray,
+                      assignment: matching.SoftAssignment) -> matching.SoftAssignment:
+    """``assignment`` with the upper aorta's targets on the frame's aorta nearest to its projection.
+
+    The upper aorta is the region a wire does not move (the pose check's premise): under the
+    checked ``P`` its projection lies on the frame's aorta, and only its path-length targets
+    (eq. 5) would slide it along itself. They do, by up to 8 mm: the 2D aorta's end and
+    junction lie pixels away from the projected 3D ones, and the length term then carries
+    the slide on; in a cranial or caudal view a slide along the aorta is a depth error, and
+    it moves the renal ostia. So its targets are the nearest points of the frame's aorta
+    branch (which still follow an aorta that a wire did bend).
+    """
+    from scipy.spatial import cKDTree
+
+    nodes = _stable_regions(preop).get("upper_aorta")
+    curve = g2.positions[_branch_nodes(c2, ("aorta",))]
+    if nodes is None or len(curve) < 2:
+        return assignment
+    nodes = nodes[assignment.assigned[nodes]]
+    if not len(nodes):
+        return assignment
+    targets = assignment.targets.copy()
+    targets[nodes] = curve[cKDTree(curve).query(project(P, preop.graph.positions[nodes]))[1]]
+    return dataclasses.replace(assignment, targets=targets)
+
+
 def _frame_projection(preop: Preoperative, view: "_ViewState", P: np.ndarray) -> None:
     """Project the pre-operative kept nodes through ``P``: which of them the frame shows."""
     view.P = P
@@ -136,7 +163,7 @@ class _ViewState:
         key = id(correspondence)
         if key not in self.assignments:     # the correspondence is kept with it: its id stays unique
             found = matching.soft_assign(preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence)
-            self.assignments[key] = (correspondence, found)
+            self.assignments[key] = (correspondence, _held_upper_aorta(preop, self.g2, self.c2, self.P, found))
         return self.assignments[key][1]
 
     @functools.cached_property
@@ -247,7 +274,7 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -
         with _timed(timings, "pose_refinement"):
             pose, candidates, assignment = _pose_check(preop, g2, c2, P, visibility, mode)
         if np.array_equal(pose.P, P):       # P kept: the check's matching under it stands
-            kept = candidates, {id(candidates[0]): (candidates[0], assignment)}
+            kept = candidates, {id(candidates[0]): (candidates[0], _held_upper_aorta(preop, g2, c2, P, assignment))}
         P = pose.P
     view = _ViewState(name, P, g2, c2, visibility, unclassified=unclassified, pose=pose)
     if kept is not None and method == "proposed":
