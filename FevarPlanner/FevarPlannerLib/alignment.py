@@ -256,15 +256,16 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
     -------
     PoseCheck
         The fit, the test's numbers and the decision. The correction is applied when (a) the
-        offset exceeds ``min_offset_px`` and (b) it explains the mismatch: the mean distance
-        of the stable points to the frame's stable vessels drops to ``MAX_RESIDUAL_FRACTION``
-        of what it was. With a ``reference`` region in the frame, (c) the reference is off
-        under ``P`` by ``min_offset_px`` or more and the fit takes it to
-        ``MAX_RESIDUAL_FRACTION`` of that: a wire moves the renal ostia and leaves the upper
-        aorta, so renals off the frame alone are deformation. (A shift purely along a straight
-        upper aorta is therefore not corrected: one view cannot tell it from renals that
-        moved.) Without it, (d) two or more regions take part and each comes
-        ``REGION_GAIN_PX`` nearer (they agree on one motion).
+        offset exceeds ``min_offset_px``, two or more regions take part and, with a
+        ``reference`` region in the frame, (b) the reference is off under ``P`` by
+        ``min_offset_px`` or more and the fit takes it to ``MAX_RESIDUAL_FRACTION`` of that:
+        a wire moves the renal ostia and leaves the upper aorta, so renals off the frame
+        alone are deformation, and renals that moved as well may stay off after the fit. (A
+        shift purely along a straight upper aorta is therefore not corrected: one view cannot
+        tell it from renals that moved.) Without a reference, (c) the fit explains the
+        mismatch: the mean distance of the stable points to the frame's stable vessels drops
+        to ``MAX_RESIDUAL_FRACTION`` of what it was, and each region comes ``REGION_GAIN_PX``
+        nearer (they agree on one motion).
     """
     from scipy.spatial import cKDTree
 
@@ -304,12 +305,10 @@ def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool
         return True, "pose correction forced"
     if offset < min_offset_px:
         return False, f"frame and P agree: best rigid offset {offset:.1f} px (< {min_offset_px:g} px)"
-    if check.after_px > MAX_RESIDUAL_FRACTION * check.before_px:
-        return False, (f"read as deformation: a rigid {offset:.1f} px offset takes the stable vessels only from "
-                       f"{check.before_px:.1f} to {check.after_px:.1f} px off the frame's")
     if n_regions < 2:
         return False, f"only {', '.join(per_region)} in the frame: one region cannot tell misalignment from deformation"
     if reference is not None:
+        # renals the wire moved may stay off or come no nearer: the reference alone decides
         held, moved_to = per_region[reference]
         if held < min_offset_px:
             return False, (f"read as deformation: {reference} is {held:.1f} px off the frame under P "
@@ -317,11 +316,17 @@ def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool
         if moved_to > MAX_RESIDUAL_FRACTION * held:
             return False, (f"read as deformation: a rigid motion takes {reference} only from {held:.1f} to "
                            f"{moved_to:.1f} px off the frame's")
+    elif check.after_px > MAX_RESIDUAL_FRACTION * check.before_px:
+        return False, (f"read as deformation: a rigid {offset:.1f} px offset takes the stable vessels only from "
+                       f"{check.before_px:.1f} to {check.after_px:.1f} px off the frame's")
     else:
         unmoved = [name for name, (b, a) in per_region.items() if a > b - REGION_GAIN_PX]
         if unmoved:
             return False, (f"read as deformation: the {offset:.1f} px offset brings {', '.join(unmoved)} no nearer "
                            f"to the frame (less than {REGION_GAIN_PX:g} px)")
+    if reference is not None:
+        return True, (f"{reference} is {held:.1f} px off the frame under P, {moved_to:.1f} px after one rigid "
+                      f"offset of {offset:.1f} px (its turn and cross offset; along it from {', '.join(n for n in per_region if n != reference)})")
     return True, (f"{', '.join(per_region)} agree on one rigid offset of {offset:.1f} px (stable vessels "
                   f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
 
