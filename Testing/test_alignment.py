@@ -247,3 +247,18 @@ def test_the_upper_aorta_does_not_slide_along_itself(deformed_case):
     kept = np.flatnonzero(np.isin(preop.kept, upper))
     moved = np.linalg.norm(frame.deformed.points[kept] - preop.centerline.points[kept], axis=1).mean()
     assert moved < 1.0
+
+
+def test_renals_the_wire_moved_against_the_misalignment_do_not_veto_it():
+    """The wire moved the right renal ostium back by as much as the frame is off: the correction
+    takes it further from the frame. The upper aorta alone decides, and is corrected."""
+    rng = np.random.default_rng(12)
+    motion = _rigid((0.0, 6.0), 2.5, centre=(320.0, 320.0))
+    back = {"renal_right": np.array([0.0, -6.0])}
+    regions, frame = _stable_frame(rng, motion, region_shifts=back)
+    check = alignment.check_misalignment(regions, frame, P, reference="upper_aorta")
+    assert check.regions_px["renal_right"][1] > check.regions_px["renal_right"][0]     # further after the fit
+    assert check.applied and "upper_aorta is" in check.why
+    assert check.rotation_deg == pytest.approx(2.5, abs=0.25)
+    joint = alignment.check_misalignment(regions, frame, P)            # without the reference: vetoed
+    assert not joint.applied
