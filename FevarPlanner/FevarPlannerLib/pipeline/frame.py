@@ -16,7 +16,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from .. import baselines, evaluation, graph, matching, skeleton
-from ..alignment import PoseCheck, check_misalignment
+from ..alignment import MIN_OFFSET_PX, PoseCheck, check_misalignment
 from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
@@ -117,7 +117,10 @@ def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Cl
     junction lie pixels away from the projected 3D ones, and the length term then carries
     the slide on; in a cranial or caudal view a slide along the aorta is a depth error, and
     it moves the renal ostia. So its targets are the nearest points of the frame's aorta
-    branch (which still follow an aorta that a wire did bend).
+    branch (which still follow an aorta that a wire did bend), when its projection lies on
+    that branch (mean distance up to ``alignment.MIN_OFFSET_PX``, where the pose check calls
+    frame and ``P`` agreeing); an upper aorta that moved with the patient keeps its
+    path-length targets.
     """
     from scipy.spatial import cKDTree
 
@@ -128,8 +131,11 @@ def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Cl
     nodes = nodes[assignment.assigned[nodes]]
     if not len(nodes):
         return assignment
+    distance, nearest = cKDTree(curve).query(project(P, preop.graph.positions[nodes]))
+    if distance.mean() > MIN_OFFSET_PX:
+        return assignment
     targets = assignment.targets.copy()
-    targets[nodes] = curve[cKDTree(curve).query(project(P, preop.graph.positions[nodes]))[1]]
+    targets[nodes] = curve[nearest]
     return dataclasses.replace(assignment, targets=targets)
 
 
