@@ -236,7 +236,7 @@ def test_the_upper_aorta_does_not_slide_along_itself(deformed_case):
     g2, c2 = frame.skeleton2d, frame.classification2d
     candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]
     soft = matching.soft_assign(preop.graph, preop.classification, g2, c2, case.P_true, candidate)
-    held = pipeline.frame._held_upper_aorta(preop, g2, c2, case.P_true, soft)
+    held = pipeline.frame._held_upper_aorta(preop, g2, c2, case.P_true, frame.views[0].visibility, soft)
     upper = pipeline.frame._stable_regions(preop)["upper_aorta"]
     upper = upper[soft.assigned[upper]]
     uv = project(case.P_true, preop.graph.positions[upper])

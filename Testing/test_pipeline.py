@@ -104,7 +104,8 @@ def test_energy_decreases(case, preop, intra):
     candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]
     assignment = matching.soft_assign(preop.graph, preop.classification, g2, c2, case.P_true, candidate)
     # the pipeline holds the upper aorta on the frame's aorta (no slide along itself)
-    assignment = pipeline.frame._held_upper_aorta(preop, g2, c2, case.P_true, assignment)
+    assignment = pipeline.frame._held_upper_aorta(preop, g2, c2, case.P_true, frame.views[0].visibility,
+                                                   assignment)
     assigned = np.flatnonzero(assignment.assigned)
     from FevarPlannerLib import deformation
     result = deformation.deform_assigned(preop.graph.positions[assigned], assignment.targets[assigned],

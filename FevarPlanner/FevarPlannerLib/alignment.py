@@ -325,8 +325,9 @@ def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool
             return False, (f"read as deformation: the {offset:.1f} px offset brings {', '.join(unmoved)} no nearer "
                            f"to the frame (less than {REGION_GAIN_PX:g} px)")
     if reference is not None:
+        others = ", ".join(name for name in per_region if name != reference)
         return True, (f"{reference} is {held:.1f} px off the frame under P, {moved_to:.1f} px after one rigid "
-                      f"offset of {offset:.1f} px (its turn and cross offset; along it from {', '.join(n for n in per_region if n != reference)})")
+                      f"offset of {offset:.1f} px (its turn and cross offset; along it from {others})")
     return True, (f"{', '.join(per_region)} agree on one rigid offset of {offset:.1f} px (stable vessels "
                   f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
 

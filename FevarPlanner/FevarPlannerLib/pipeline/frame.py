@@ -108,7 +108,7 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
 
 
 def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification, P: np.ndarray,
-                      assignment: matching.SoftAssignment) -> matching.SoftAssignment:
+                      visibility: Visibility, assignment: matching.SoftAssignment) -> matching.SoftAssignment:
     """``assignment`` with the upper aorta's targets on the frame's aorta nearest to its projection.
 
     The upper aorta is the region a wire does not move (the pose check's premise): under the
@@ -117,10 +117,10 @@ def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Cl
     junction lie pixels away from the projected 3D ones, and the length term then carries
     the slide on; in a cranial or caudal view a slide along the aorta is a depth error, and
     it moves the renal ostia. So its targets are the nearest points of the frame's aorta
-    branch (which still follow an aorta that a wire did bend), when its projection lies on
-    that branch (mean distance up to ``alignment.MIN_OFFSET_PX``, where the pose check calls
-    frame and ``P`` agreeing); an upper aorta that moved with the patient keeps its
-    path-length targets.
+    branch (which still follow an aorta that a wire did bend), when the projection of its
+    part the frame shows lies on that branch (mean distance up to ``alignment.MIN_OFFSET_PX``,
+    where the pose check calls frame and ``P`` agreeing); an upper aorta that moved with the
+    patient keeps its path-length targets.
     """
     from scipy.spatial import cKDTree
 
@@ -128,10 +128,12 @@ def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Cl
     curve = g2.positions[_branch_nodes(c2, ("aorta",))]
     if nodes is None or len(curve) < 2:
         return assignment
-    nodes = nodes[assignment.assigned[nodes]]
-    if not len(nodes):
+    uv = project(P, preop.graph.positions[nodes])
+    shown = assignment.assigned[nodes] & visibility.shows(uv)
+    if not np.any(shown):
         return assignment
-    distance, nearest = cKDTree(curve).query(project(P, preop.graph.positions[nodes]))
+    nodes = nodes[shown]
+    distance, nearest = cKDTree(curve).query(uv[shown])
     if distance.mean() > MIN_OFFSET_PX:
         return assignment
     targets = assignment.targets.copy()
@@ -169,7 +171,8 @@ class _ViewState:
         key = id(correspondence)
         if key not in self.assignments:     # the correspondence is kept with it: its id stays unique
             found = matching.soft_assign(preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence)
-            self.assignments[key] = (correspondence, _held_upper_aorta(preop, self.g2, self.c2, self.P, found))
+            held = _held_upper_aorta(preop, self.g2, self.c2, self.P, self.visibility, found)
+            self.assignments[key] = (correspondence, held)
         return self.assignments[key][1]
 
     @functools.cached_property
@@ -280,7 +283,8 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -
         with _timed(timings, "pose_refinement"):
             pose, candidates, assignment = _pose_check(preop, g2, c2, P, visibility, mode)
         if np.array_equal(pose.P, P):       # P kept: the check's matching under it stands
-            kept = candidates, {id(candidates[0]): (candidates[0], _held_upper_aorta(preop, g2, c2, P, assignment))}
+            held = _held_upper_aorta(preop, g2, c2, P, visibility, assignment)
+            kept = candidates, {id(candidates[0]): (candidates[0], held)}
         P = pose.P
     view = _ViewState(name, P, g2, c2, visibility, unclassified=unclassified, pose=pose)
     if kept is not None and method == "proposed":
