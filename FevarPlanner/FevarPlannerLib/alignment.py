@@ -168,8 +168,9 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
         return min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
     k = names.index(reference)
     own = slice(bounds[k], bounds[k + 1])
-    fits = [_closest_point_fit(source[own], curve, P, None if start is None else _restricted(start, own), tree, normals)
-            for start in starts]
+    along = _principal_direction(source[own])
+    fits = [_closest_point_fit(source[own], curve, P, None if start is None else _restricted(start, own), tree, normals,
+                               free=along) for start in starts]
     best = min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
     moved = _apply_rigid(source, source[own], best.moved)
     others = np.ones(len(source), bool)
@@ -380,8 +381,13 @@ def closest_point_rigid(source_uv: np.ndarray, curve_uv: np.ndarray, P: np.ndarr
     return _closest_point_fit(source_uv, curve_uv, P, start, tree, _curve_normals(curve_uv, tree))
 
 
-def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals) -> PoseRefinement:
-    """:func:`closest_point_rigid` on float arrays, with the curve's KD-tree and normals given."""
+def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals, free=None) -> PoseRefinement:
+    """:func:`closest_point_rigid` on float arrays, with the curve's KD-tree and normals given.
+
+    ``free``: a unit direction whose motion does not count towards settling (the course of a
+    straight reference vessel, along which the points may slide for many passes while the fit
+    itself has settled; the offset along it is found elsewhere).
+    """
     moved = source_uv.copy() if start is None else np.asarray(start.moved, float).copy()
     for _ in range(ICP_ITERATIONS):
         _, nearest = tree.query(moved)
@@ -394,7 +400,10 @@ def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals) -> PoseRefi
         step = np.linalg.lstsq(jacobian * np.sqrt(w)[:, None], -residual * np.sqrt(w), rcond=None)[0]
         c, s = np.cos(step[0]), np.sin(step[0])
         new = arm @ np.array([[c, -s], [s, c]]).T + centre + step[1:]
-        change = np.linalg.norm(new - moved, axis=1).max()
+        delta = new - moved
+        if free is not None:
+            delta = delta - np.outer(delta @ free, free)
+        change = np.linalg.norm(delta, axis=1).max()
         moved = new
         if change < ICP_SETTLED_PX:
             break
