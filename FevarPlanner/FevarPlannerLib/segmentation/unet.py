@@ -285,8 +285,10 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
 
     Parameters
     ----------
-    data : iterable
-        Case folders (with ``ct.*`` and ``aorta_mask.*``) or ``(ct, mask)`` Volume pairs.
+    data : iterable or slice source
+        Case folders (with ``ct.*`` and ``aorta_mask.*``) or ``(ct, mask)`` Volume pairs; or an
+        object with ``sample(rng, crop, hu_window) -> (image, label)`` tensors, such as
+        :class:`.synthetic.SyntheticSlices` (slices drawn afresh at every step).
     out_path : path
         Checkpoint file; rewritten atomically every ``checkpoint_every`` iterations and at the end.
     iterations : int
@@ -324,7 +326,7 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
         rng.bit_generator.state = state["rng_state"]
         torch.set_rng_state(state["torch_rng_state"])
     report = progress
-    bank = _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
+    bank = data if hasattr(data, "sample") else _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
     window = tuple(settings["hu_window"])
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True, warn_only=True)
