@@ -118,8 +118,11 @@ def skeleton_distance(ct: io.Volume, result: np.ndarray, truth: np.ndarray, ks: 
     """Distances between the result's and the label's 3D skeletons (within slices ``ks``)."""
     keep = np.zeros(ct.shape[0], dtype=bool)
     keep[ks] = True
-    a = skeleton_points(ct, result & keep[:, None, None])
-    b = skeleton_points(ct, truth & keep[:, None, None])
+    result, truth = result & keep[:, None, None], truth & keep[:, None, None]
+    if not result.any() or not truth.any():
+        return {"result_to_label_mean_mm": None, "label_to_result_mean_mm": None}
+    a = skeleton_points(ct, result)
+    b = skeleton_points(ct, truth)
     if len(a) == 0 or len(b) == 0:
         return {"result_to_label_mean_mm": None, "label_to_result_mean_mm": None}
     to_label, _ = cKDTree(b).query(a)
