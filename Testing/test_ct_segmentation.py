@@ -93,3 +93,50 @@ def test_classical_route_follows_an_oblique_renal_as_far_as_a_straight_one():
     along = (ct.index_to_lps(branch) - start) @ direction
     # BRANCH_REACH_MM along the branch from the aortic wall, give or take the 1.5 mm grid
     assert seg.BRANCH_REACH_MM - 8.0 <= along.max() <= seg.BRANCH_REACH_MM + 8.0, along.max()
+
+
+# ----------------------------------------------------------------------------------------
+# SynthSeg-style training slices
+# ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("level", ["chest", "upper_abdomen", "renal", "infrarenal", "iliac"])
+def test_synthetic_slice_has_a_lumen_label_that_is_bright_and_a_bright_neighbour_that_is_not(level):
+    from FevarPlannerLib.segmentation.synthetic import SyntheticSlices
+
+    image, label = SyntheticSlices(canvas_mm=192).draw(np.random.default_rng(7), level)
+    assert image.shape == label.shape == (192, 192) and image.dtype == np.float32
+    assert 30 <= label.sum() <= 0.2 * label.size
+    lumen_hu = np.median(image[label])
+    assert np.median(image[~label]) < lumen_hu - 100          # the lumen stands out from the slice ...
+    assert (image[~label] > lumen_hu - 50).sum() >= 20         # ... but is not the only bright thing in it
+
+
+def test_synthetic_slices_repeat_with_the_seed_and_differ_without():
+    from FevarPlannerLib.segmentation.synthetic import SyntheticSlices
+
+    source = SyntheticSlices(canvas_mm=160)
+    a = source.sample(np.random.default_rng(3), 96, seg.DEFAULT_NET_HU_WINDOW)
+    b = source.sample(np.random.default_rng(3), 96, seg.DEFAULT_NET_HU_WINDOW)
+    c = source.sample(np.random.default_rng(4), 96, seg.DEFAULT_NET_HU_WINDOW)
+    assert a[0].shape == (1, 1, 96, 96) and a[1].shape == (1, 96, 96)
+    assert torch_equal(a, b) and not torch_equal(a, c)
+    assert 0.0 <= float(a[0].min()) and float(a[0].max()) <= 1.0
+
+
+def torch_equal(first, second) -> bool:
+    return all(bool((x == y).all()) for x, y in zip(first, second))
+
+
+def test_train_unet_takes_a_slice_source_and_starts_from_given_weights(tmp_path):
+    from FevarPlannerLib.segmentation.synthetic import MixedSlices, SyntheticSlices
+
+    source = MixedSlices([SyntheticSlices(canvas_mm=128)], [1.0])
+    first = seg.train_unet(source, tmp_path / "a.pt", iterations=2, crop=64, base=4, depth=3, seed=1)
+    second = seg.train_unet(source, tmp_path / "b.pt", iterations=1, crop=64, seed=2, init=first, lr=0.0)
+    a, b = seg.load_unet(first), seg.load_unet(second)
+    assert b.config == a.config                               # the init's architecture, not the defaults
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        if "running" not in name and "num_batches" not in name:    # lr 0: weights unchanged, BN stats move
+            assert bool((x == y).all()), name
+    with pytest.raises(ValueError, match="sources"):
+        MixedSlices([], [])

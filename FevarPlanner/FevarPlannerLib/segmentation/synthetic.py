@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from scipy import ndimage as ndi
 
-from .unet import DEFAULT_NET_HU_WINDOW, _window, train_unet
+from .unet import DEFAULT_NET_HU_WINDOW, DEFAULT_PIXEL_MM, _as_training_pairs, _SliceBank, _window, train_unet
 
 #: Side (pixels = mm) of the square canvas a slice is drawn on before the crop.
 CANVAS_MM = 224
@@ -126,6 +126,28 @@ class SyntheticSlices:
         label = label[top:top + crop, left:left + crop]
         x = _window(torch.from_numpy(np.ascontiguousarray(image)), hu_window)
         return x[None, None].float(), torch.from_numpy(np.ascontiguousarray(label))[None].long()
+
+
+class MixedSlices:
+    """Draws each training pair from one of several slice sources (``sample`` as the bank's).
+
+    Parameters
+    ----------
+    sources : list
+        Objects with ``sample(rng, crop, hu_window)``: :class:`SyntheticSlices`, a case bank.
+    weights : list of float
+        Relative frequency of each source.
+    """
+
+    def __init__(self, sources, weights):
+        if len(sources) != len(weights) or not sources:
+            raise ValueError(f"{len(sources)} sources for {len(weights)} weights")
+        self.sources = list(sources)
+        self.weights = np.asarray(weights, dtype=float) / float(np.sum(weights))
+
+    def sample(self, rng: np.random.Generator, crop: int, hu_window):
+        source = self.sources[int(rng.choice(len(self.sources), p=self.weights))]
+        return source.sample(rng, crop, hu_window)
 
 
 def _crop_origin(rng, label: np.ndarray, crop: int) -> tuple[int, int]:
@@ -437,17 +459,25 @@ def main(argv=None) -> None:
     parser.add_argument("--iterations", type=int, default=20000)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--crop", type=int, default=128)
-    parser.add_argument("--lr", type=float, default=1e-2)
+    parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--resume")
+    parser.add_argument("--init", help="checkpoint whose weights start the run (fine-tuning)")
+    parser.add_argument("--cases", nargs="*", default=[],
+                        help="case folders (ct + aorta_mask) whose slices are mixed in")
+    parser.add_argument("--case-fraction", type=float, default=0.5, help="share of steps drawn from --cases")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    source = SyntheticSlices()
+    if args.cases:
+        bank = _SliceBank(_as_training_pairs(args.cases), DEFAULT_PIXEL_MM)
+        source = MixedSlices([source, bank], [1.0 - args.case_fraction, args.case_fraction])
 
     def report(done, total, message):
         if done % 500 == 0 or done == total:
             print(f"{done}/{total} {message}", flush=True)
 
-    train_unet(SyntheticSlices(), args.out, iterations=args.iterations, seed=args.seed, crop=args.crop, lr=args.lr,
-               resume=args.resume, progress=report, hu_window=DEFAULT_NET_HU_WINDOW)
+    train_unet(source, args.out, iterations=args.iterations, seed=args.seed, crop=args.crop, lr=args.lr,
+               resume=args.resume, init=args.init, progress=report, hu_window=DEFAULT_NET_HU_WINDOW)
 
 
 if __name__ == "__main__":
