@@ -167,19 +167,20 @@ def resampled_to(ct: io.Volume, n_slices: int) -> io.Volume:
     return io.Volume(array.astype(np.int16), spacing, ct.origin, ct.direction)
 
 
-def run_segmenter(name: str, ct: io.Volume):
+def run_segmenter(name: str, ct: io.Volume, model=None):
     start = time.perf_counter()
     if name == "classical":
         mask, parts = seg.segment_ct_classical(ct, return_labels=True)
         aorta = np.asarray(parts.array) == 1
     else:
-        mask = seg.segment_ct_unet(ct)
+        mask = seg.segment_ct_unet(ct, model)
         aorta = np.asarray(mask.array) > 0
     return np.asarray(mask.array) > 0, aorta, time.perf_counter() - start
 
 
-def evaluate(name: str, ct: io.Volume, labels: np.ndarray, ks: np.ndarray, hilum_mm: float) -> tuple[dict, dict]:
-    mask, aorta, seconds = run_segmenter(name, ct)
+def evaluate(name: str, ct: io.Volume, labels: np.ndarray, ks: np.ndarray, hilum_mm: float,
+             model=None) -> tuple[dict, dict]:
+    mask, aorta, seconds = run_segmenter(name, ct, model)
     truth = labels == LABELS["aorta"]
     abdominal = np.zeros(ct.shape[0], dtype=bool)
     abdominal[ks] = True
@@ -240,6 +241,7 @@ def main() -> None:
     parser.add_argument("--hilum-mm", type=float, default=10.0, help="how close to the kidney a renal branch must reach")
     parser.add_argument("--timing-slices", type=int, default=300, help="0 skips the 512 x 512 x N timing")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--model", help="UNet checkpoint (default: the shipped weights)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     loader, ct_name = DATASETS[args.dataset]
@@ -251,8 +253,11 @@ def main() -> None:
                         "abdominal_definition": "at and below the top of vertebra T12 (aortic hiatus)"},
                "threads": args.threads}
     outputs = {}
+    model = seg.load_unet(args.model) if "unet" in args.segmenters else None
+    if model is not None:
+        results["unet_model"] = str(args.model or seg.default_model_path())
     for name in args.segmenters:
-        results[name], outputs[name] = evaluate(name, ct, labels, ks, args.hilum_mm)
+        results[name], outputs[name] = evaluate(name, ct, labels, ks, args.hilum_mm, model)
         print(name, json.dumps(results[name]["aorta_abdominal_slices"]), f"{results[name]['time_s']:.1f} s", flush=True)
     if args.timing_slices and "classical" in args.segmenters:
         big = resampled_to(ct, args.timing_slices)
