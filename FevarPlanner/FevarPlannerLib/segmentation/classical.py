@@ -610,7 +610,8 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
     2. :func:`trace_aorta`: follow it up and down slice by slice (overlap with the predicted
        core, radius continuity), then the two common iliacs below the bifurcation; the
        lumen range comes from the seed's own statistics.
-    3. :func:`grow_branches`: tubular bright voxels connected to the trunk (renals, visceral
+    3. :func:`grow_branches`: tubular bright voxels connected to the trunk within
+       :data:`BRANCH_REACH_MM` along the branch, in mm whatever its course (renals, visceral
        arteries, iliac continuations); heart, kidneys, bowel and bone are not tubes.
 
     Parameters
