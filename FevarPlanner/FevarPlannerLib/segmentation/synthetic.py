@@ -42,6 +42,7 @@ TISSUE_HU = {
     "liver": (40.0, 190.0), "spleen": (40.0, 220.0), "kidney_medulla": (30.0, 220.0),
     "cancellous": (100.0, 350.0), "cortical": (450.0, 1500.0), "thrombus": (15.0, 90.0),
     "calcium": (450.0, 1600.0), "strut": (1200.0, 3000.0), "bowel_wall": (20.0, 160.0), "flap": (30.0, 160.0),
+    "disc": (50.0, 130.0),
 }
 
 
@@ -186,11 +187,15 @@ def _draw_body(canvas: _Canvas, rng, level: str) -> dict:
 
 
 def _vertebra(canvas: _Canvas, rng, centre, radius: float, level: str) -> None:
-    """Vertebral body (cortex around cancellous bone) and posterior elements; sacrum-like at the iliac level."""
+    """Vertebral body (cortex around cancellous bone) or, in about a quarter of the slices, an
+    intervertebral disc (soft tissue, no cortex); posterior elements."""
     cortex = rng.uniform(1.0, 3.5)
     squash = rng.uniform(0.8, 1.0)
-    canvas.paint(canvas.ellipse(*centre, radius * 1.1, radius * squash), "cortical")
-    canvas.paint(canvas.ellipse(*centre, radius * 1.1 - cortex, radius * squash - cortex), "cancellous")
+    if rng.random() < 0.25:
+        canvas.paint(canvas.ellipse(*centre, radius * 1.1, radius * squash), "disc")
+    else:
+        canvas.paint(canvas.ellipse(*centre, radius * 1.1, radius * squash), "cortical")
+        canvas.paint(canvas.ellipse(*centre, radius * 1.1 - cortex, radius * squash - cortex), "cancellous")
     back = centre + np.array([0.0, radius + rng.uniform(8, 14)])
     canvas.paint(canvas.ellipse(*back, 7, 6) & ~canvas.ellipse(*back, 4.5, 3.5), "cortical")    # canal ring
     canvas.paint(canvas.ellipse(*back, 4.5, 3.5), "muscle")
@@ -208,6 +213,9 @@ def _vertebra(canvas: _Canvas, rng, centre, radius: float, level: str) -> None:
 def _aorta(canvas: _Canvas, rng, body: dict) -> None:
     """The aortic lumen (label), with thrombus, calcified plaque, a stent or a dissection flap."""
     centre, r, outer = body["aorta"], body["aorta_r"], body["outer_r"]
+    if rng.random() < 0.5:                                                       # periaortic fat
+        fat = outer + rng.uniform(2, 9)
+        canvas.paint(canvas.ellipse(*centre, fat, fat * rng.uniform(0.85, 1.0)), "fat", lumen=False)
     if body["aneurysm"]:
         canvas.paint(canvas.ellipse(*centre, outer, outer * rng.uniform(0.85, 1.0)), "thrombus", lumen=False)
         centre = centre + rng.uniform(-1, 1, size=2) * max(outer - r - 2, 0)      # eccentric lumen
