@@ -374,17 +374,20 @@ def _level_infrarenal(canvas: _Canvas, rng, body: dict) -> None:
 
 
 def _level_iliac(canvas: _Canvas, rng, body: dict) -> None:
-    """Two common iliac arteries (label) and veins, the iliac wings, bowel."""
+    """Two common iliac arteries (label) and veins, the iliac wings, bowel; just below the
+    aortic bifurcation (a third of these slices) the two lumens still touch."""
     spine, vr = body["spine"], body["vr"]
     cx, cy = body["centre"]
     ax = body["axes"][0] - body["fat"]
+    near_split = rng.random() < 0.35
     for side in (-1, 1):
         wing = np.array([cx + side * ax * rng.uniform(0.55, 0.75), spine[1] + rng.uniform(-10, 10)])
         wa, wb, angle = rng.uniform(25, 45), rng.uniform(8, 14), side * rng.uniform(0.3, 0.9)
         canvas.paint(canvas.ellipse(*wing, wa, wb, angle), "cortical")
         canvas.paint(canvas.ellipse(*wing, wa - 3, wb - 3, angle), "cancellous")
         r = rng.uniform(4.0, 8.0) if rng.random() > 0.1 else rng.uniform(10, 16)      # iliac aneurysm, rarely
-        artery = np.array([spine[0] + side * rng.uniform(12, 35), spine[1] - vr - rng.uniform(2, 15)])
+        spread = r * rng.uniform(0.6, 1.0) if near_split else rng.uniform(12, 35)
+        artery = np.array([spine[0] + rng.uniform(0, 10) + side * spread, spine[1] - vr - rng.uniform(2, 15)])
         vein = artery + np.array([-side * rng.uniform(0, 10), rng.uniform(6, 14)])
         canvas.paint(canvas.ellipse(*vein, rng.uniform(6, 11), rng.uniform(5, 9)), "vein", lumen=False)
         canvas.paint(canvas.ellipse(*artery, r, r * rng.uniform(0.8, 1.0)), "lumen", lumen=True)
