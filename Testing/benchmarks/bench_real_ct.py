@@ -24,6 +24,12 @@ Measures, for each segmenter ("classical", "unet"):
 
 Writes ``bench_real_ct.json`` and ``bench_real_ct.png`` (axial slices with the label and the
 result outlined, a coronal MIP with both) into ``--out``.
+
+``--dataset totalseg-aorta-report`` runs the same measures on a second real CT, a clean
+hold-out (run once, never tuned on): the contrast CT of the totalsegmentator 2.18.0 sdist's
+aorta-report test (``tests/reference_files/aorta_report``; a dissected, stented aorta) with
+TotalSegmentator's own result as the label (``bench_real_ct_totalseg-aorta-report.*``).
+``--model`` validates another UNet checkpoint.
 """
 
 from __future__ import annotations

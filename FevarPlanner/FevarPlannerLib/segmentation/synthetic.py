@@ -16,9 +16,10 @@ the lumen inside a stent, not the thrombus), the common iliac arteries and the r
 Slices are in LPS orientation (rows to posterior, columns to the patient's left) at
 :data:`~.unet.DEFAULT_PIXEL_MM`, in HU, as :class:`~.unet._SliceBank` hands them to training.
 
-Reproduce the shipped weights (see ``Resources/Models/README.md``)::
+Train (the runs measured so far, none shipped, are in ``Resources/Models/README.md``)::
 
-    python -m FevarPlannerLib.segmentation.synthetic --out aorta_unet.pt --iterations N --seed 0
+    python -m FevarPlannerLib.segmentation.synthetic --out synth_unet.pt --iterations 6000 --seed 0 \
+        --crop 96 --init Resources/Models/aorta_unet.pt --cases CASE... --case-fraction 0.7
 """
 
 from __future__ import annotations
