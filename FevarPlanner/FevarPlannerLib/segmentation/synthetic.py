@@ -67,8 +67,12 @@ class _Canvas:
     def _box(self, lo_x, hi_x, lo_y, hi_y) -> tuple[slice, slice]:
         """Index box (rows, cols) of the canvas holding the mm box, clipped."""
         half = self.size / 2.0
-        clip = lambda v: int(min(max(v + half, 0), self.size))
-        return slice(clip(math.floor(lo_y)), clip(math.ceil(hi_y) + 1)), slice(clip(math.floor(lo_x)), clip(math.ceil(hi_x) + 1))
+
+        def span(lo, hi) -> slice:
+            return slice(int(min(max(math.floor(lo) + half, 0), self.size)),
+                         int(min(max(math.ceil(hi) + 1 + half, 0), self.size)))
+
+        return span(lo_y, hi_y), span(lo_x, hi_x)
 
     def ellipse(self, cx, cy, ax, ay, angle=0.0) -> np.ndarray:
         """Pixels inside the ellipse of centre (cx, cy), semi-axes (ax, ay), turned by ``angle``."""
