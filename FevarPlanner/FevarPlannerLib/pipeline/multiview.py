@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from .. import deformation, matching
 from ..preop import Preoperative, _induced_edges
-from ..projection import pixels_per_mm, project, source_position
+from ..projection import pixels_per_mm, project
 
 
 #: Most combinations of per-view candidate correspondences deformed (the first in order).
@@ -212,6 +212,28 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
     return foot[row, pick], past
 
 
+#: Share of the parent vessel's 2D radius (at the chain's junction) within which a branch
+#: chain's start is the thinning's bridge from the parent's centre line, not the branch.
+PARENT_BRIDGE = 1.0
+
+
+def _inside_parent(g2, chain, foot: np.ndarray) -> np.ndarray:
+    """Feet on a branch chain within the parent vessel's 2D radius of its junction (the first node).
+
+    Thinning joins a branch to the parent's centre line across the parent's lumen. Where the
+    branch leaves the parent obliquely in a view (a renal turning towards the rays in a 50-70
+    degree view), that bridge runs inside the parent's silhouette, 5-11 mm off the branch,
+    and the nearest-chain-point targets of the branch's first nodes lie on it, pulling the
+    branch's origin along the parent. Those nodes get no target from this chain and follow
+    their neighbours (S_L, S_S). False everywhere when the 2D graph has no radii.
+    """
+    radii = getattr(g2, "radii", None)
+    if radii is None:
+        return np.zeros(len(foot), dtype=bool)
+    start = g2.positions[int(chain[0])]
+    return np.linalg.norm(foot - start, axis=1) < PARENT_BRIDGE * float(radii[int(chain[0])])
+
+
 def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
                         fallback):
     """(targets, weights) of a classified view from the current estimate: each 3D node's nearest
@@ -223,8 +245,9 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
     chain point of the deformed estimate's projection removes that slide. A node whose
     projection lies past the 2D chain's free end (the 2D vessel is shorter than the 3D one:
     a tip the frame does not show) gets no target and follows its neighbours (S_L, S_S);
-    the chain's junction end keeps its target. ``fallback`` (targets, weights) of the first
-    assignment is kept for the nodes that no chain holds.
+    so does a node whose nearest point lies on the bridge thinning draws across the parent
+    vessel's lumen at the chain's junction (:func:`_inside_parent`). ``fallback`` (targets,
+    weights) of the first assignment is kept for the nodes that no chain holds.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
@@ -247,6 +270,7 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
         if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
             past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
             has_target[rows[past]] = False
+            has_target[rows[_inside_parent(view.g2, nodes2, foot)]] = False
         else:
             past[:] = False
         targets[rows[~past]] = foot[~past]
@@ -281,92 +305,6 @@ def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop
         worst, best = int(np.nanargmax(mean)), float(np.nanmin(mean))
         if mean[worst] > VIEW_DISAGREEMENT_MM and mean[worst] >= VIEW_DISAGREEMENT_RATIO * best:
             drop[worst][rows] = True
-    return drop
-
-
-#: A second view's target further than this (mm at the anatomy's depth) from the epipolar line
-#: of the main view's target for the same node contradicts the main view: no 3D point projects
-#: onto both, so one of the two matches is on another vessel or another stretch of it.
-EPIPOLAR_MM = 3.0
-#: A second view's target is explained by another vessel when it lies more than
-#: OTHER_VESSEL_OFF_MM from the node's own projection and the projection of a part of the
-#: tree at least OTHER_VESSEL_MM (3D) from the node lies closer to it (where two vessels
-#: overlap in the view, a node on its own vessel's projection keeps its target).
-OTHER_VESSEL_MM = 15.0
-OTHER_VESSEL_OFF_MM = 3.0
-
-
-def _fundamental(P1: np.ndarray, P2: np.ndarray) -> np.ndarray:
-    """F with F @ [u1, v1, 1] the epipolar line in view 2 of a pixel of view 1 (F = [e2]x P2 P1^+)."""
-    e2 = P2 @ np.append(source_position(P1), 1.0)
-    cross = np.array([[0.0, -e2[2], e2[1]], [e2[2], 0.0, -e2[0]], [-e2[1], e2[0], 0.0]])
-    return cross @ P2 @ np.linalg.pinv(P1)
-
-
-def _epipolar_mm(main, view, main_targets: np.ndarray, targets: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Distance (mm at ``centre``) of each target of ``view`` from the nearest epipolar line of the
-    main view's targets ``main_targets`` (the same vessel's: a target may slide along its vessel)."""
-    lines = np.c_[main_targets, np.ones(len(main_targets))] @ _fundamental(main.P, view.P).T
-    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1), 1e-12)[:, None]
-    distance = np.abs(targets @ lines[:, :2].T + lines[:, 2]).min(axis=1)
-    return distance / _magnification(view.P, centre)
-
-
-def _vessel_groups(nodes: np.ndarray, preop: Preoperative) -> list:
-    """Rows of ``nodes`` per classified 3D branch, and the rest (the trunks) as one group."""
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
-    groups = [local[b.nodes][local[b.nodes] >= 0] for b in preop.classification.branches]
-    rest = np.ones(len(nodes), dtype=bool)
-    for rows in groups:
-        rest[rows] = False
-    return groups + [np.flatnonzero(rest)]
-
-
-def _magnification(P: np.ndarray, at: np.ndarray) -> float:
-    """Image pixels per mm at ``at`` across the rays: the longest image of one mm along an LPS
-    axis (at a steep C-arm angle one axis runs nearly along the rays)."""
-    uv = project(P, np.vstack([at, at + np.eye(3)]))
-    return float(np.linalg.norm(uv[1:] - uv[0], axis=1).max())
-
-
-def _on_other_vessel(view, targets: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Nodes whose target lies off their own projection (:data:`OTHER_VESSEL_OFF_MM`) and nearer
-    the projection of a far part of the tree (another vessel): of ``points`` (n, 3) projected
-    by the view, one at least :data:`OTHER_VESSEL_MM` from the node in 3D lies closer to it."""
-    uv = project(view.P, points)
-    own = np.linalg.norm(targets - uv, axis=1)
-    distance, near = cKDTree(uv).query(targets, k=min(8, len(points)))
-    distance, near = distance.reshape(len(points), -1), near.reshape(len(points), -1)
-    far = np.linalg.norm(points[near] - points[:, None, :], axis=2) >= OTHER_VESSEL_MM
-    off = own > OTHER_VESSEL_OFF_MM * _magnification(view.P, points.mean(axis=0))
-    return off & np.any(far & (distance < own[:, None]), axis=1)
-
-
-def _contradicting_main(views, data, nodes: np.ndarray, points: np.ndarray, preop: Preoperative,
-                        epipolar: bool = True) -> list:
-    """Per view a bool (n_a,) mask of the targets that contradict the main (first) view.
-
-    The main view keeps every target (its registration is the single-view one). A second
-    view's target is dropped where it lies off every epipolar line of the main view's targets
-    of the same branch (:data:`EPIPOLAR_MM`; unless ``epipolar`` is False), or where it lies nearer the projection of another
-    vessel of the current estimate ``points`` (if given) than the node's own (:func:`_on_other_vessel`):
-    that view's match took the node to another vessel, and a view that disagrees loses its
-    data term there rather than pull the vessel across (never worse than the main view alone).
-    """
-    main_targets, main_weights = data[0]
-    drop = [np.zeros(len(nodes), dtype=bool)]
-    for view, (targets, weights) in zip(views[1:], data[1:]):
-        off = np.zeros(len(nodes), dtype=bool)
-        both = (weights > 0) & (main_weights > 0) & epipolar
-        for rows in _vessel_groups(nodes, preop):
-            rows = rows[both[rows]]
-            if len(rows):
-                off[rows] = _epipolar_mm(views[0], view, main_targets[rows], targets[rows], preop.centre) > EPIPOLAR_MM
-        if points is not None:
-            has = weights > 0
-            off[has] |= _on_other_vessel(view, targets[has], points[has])
-        drop.append(off)
     return drop
 
 
@@ -409,28 +347,15 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
     edges = _induced_edges(g3, nodes)
-    if estimate is not None:
-        current = np.array(g3.positions, dtype=float)
-        current[preop.kept] = estimate
-    contradicting = _contradicting_main(views, data, nodes, None if estimate is None else current[nodes], preop,
-                                        epipolar=False)     # eq. 4 targets slide along the vessels
-    used = [_without(d, x) for d, x in zip(data, contradicting)]
-    first = data
-    result = _deform_on(g3.positions[nodes], edges, views, used, alpha, beta)
+    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
         current = np.array(g3.positions, dtype=float)
         current[nodes] = result.points
-        drop = _disagreeing_views(views, used, nodes, result.points, preop)
+        drop = _disagreeing_views(views, data, nodes, result.points, preop)
         data = [_chain_closest_data(v, c, nodes, preop, current[preop.kept], d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
-        contradicting = _contradicting_main(views, data, nodes, result.points, preop)
-        contradicted = np.logical_or.reduce(contradicting)
-        drop[0] &= ~contradicted                # the main view keeps what the others contradict, with the
-        data[0][0][contradicted] = first[0][0][contradicted]  # targets of its own assignment (eqs. 4-5)
-        used = [_without(d, x | y) for d, x, y in zip(data, drop, contradicting)]
-        # a contradicted node's depth came from the view that lost it: start again from the CT
-        restart = None if contradicted.any() else result.displacements
-        result = _deform_on(g3.positions[nodes], edges, views, used, alpha, beta, initial=restart)
+        data = [_without(d, x) for d, x in zip(data, drop)]
+        result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=result.displacements)
     moved = np.array(g3.positions, dtype=float)
     moved[nodes] = result.points
     in_deformation = np.zeros(len(g3.positions), dtype=bool)
