@@ -254,56 +254,29 @@ def test_a_branch_the_views_disagree_on_is_dropped_from_the_worse_view():
     np.testing.assert_allclose(weights, np.r_[np.zeros(10), np.full(10, 2.0)])    # mean over the 10 kept
 
 
-def _ap_and_lateral():
-    """An AP view looking along +z and a lateral one looking along +x, 1 px per mm at the origin."""
-    ap = np.array([[1000.0, 0, 0, 0], [0, 1000.0, 0, 0], [0, 0, 1, 1000.0]])
-    lateral = np.array([[0, 0, 1000.0, 0], [0, 1000.0, 0, 0], [1.0, 0, 0, 1000.0]])
-    return ap, lateral
 
-
-def test_epipolar_distance_is_zero_for_one_point_and_grows_off_its_line():
-    """Targets of one 3D point in two views lie on each other's epipolar lines; a second-view
-    target moved 5 px along v (across the lateral view's epipolar lines) is 5 mm off."""
-    from FevarPlannerLib.pipeline.multiview import _epipolar_mm
-    ap, lateral = _ap_and_lateral()
-    points = np.array([[3.0, -4.0, 7.0], [-10.0, 12.0, -5.0], [0.0, 0.0, 0.0]])
-    first, second = project(ap, points), project(lateral, points)
-    views = SimpleNamespace(P=ap), SimpleNamespace(P=lateral)
-    for k in range(3):
-        on = _epipolar_mm(*views, first[k:k + 1], second[k:k + 1], np.zeros(3))
-        off = _epipolar_mm(*views, first[k:k + 1], second[k:k + 1] + [0.0, 5.0], np.zeros(3))
-        np.testing.assert_allclose(on, 0.0, atol=1e-9)
-        np.testing.assert_allclose(off, 5.0, rtol=0.03)          # 1 px per mm at the origin, to perspective
-    # several main-view targets of one vessel: the nearest of their lines counts (a target may slide)
-    assert _epipolar_mm(*views, first, second[[1]] + [0.0, 5.0], np.zeros(3))[0] < 5.0
-
-
-def test_a_second_view_target_on_another_vessel_is_dropped_and_the_main_view_keeps_it():
-    """Two vessels 30 mm apart (left-right) overlap in the lateral view. The lateral view took
-    the first vessel's nodes 10..19 to the second vessel (20 mm lower) and nodes 0..4 to a
-    point 25 mm along the rays' normal: both groups lose their lateral target; nodes 5..9 slid
-    2 mm along their epipolar lines and the second vessel keep theirs; the main view keeps all."""
-    from FevarPlannerLib.pipeline.multiview import _contradicting_main
-    ap, lateral = _ap_and_lateral()
-    s = np.linspace(-20, 20, 20)
-    first = np.c_[np.full(20, -15.0), s, np.zeros(20)]          # apart in AP, overlapping laterally
-    second = np.c_[np.full(20, 15.0), s + 20.0, np.zeros(20)]
-    points = np.vstack([first, second])
-    targets_ap, wrong = project(ap, points), project(lateral, points)
-    wrong[10:20] = project(lateral, second[10:20])               # on the second vessel's projection
-    wrong[:5] += [0.0, 25.0]                                     # off the epipolar lines
-    wrong[5:10] += [2.0, 0.0]                                    # slid along them: still consistent
-    branches = [SimpleNamespace(nodes=np.arange(5)), SimpleNamespace(nodes=np.arange(5, 20)),
-                SimpleNamespace(nodes=np.arange(20, 40))]
-    preop = SimpleNamespace(centre=np.zeros(3), graph=SimpleNamespace(positions=points),
-                            classification=SimpleNamespace(branches=branches))
-    views = [SimpleNamespace(P=ap), SimpleNamespace(P=lateral)]
-    data = [(targets_ap, np.ones(40)), (wrong, np.ones(40))]
-    drop = _contradicting_main(views, data, np.arange(40), points, preop)
-    assert not drop[0].any()
-    assert drop[1][:5].all() and not drop[1][5:10].any() and drop[1][10:20].all() and not drop[1][20:].any()
-    # without an estimate only the epipolar test applies (it alone cannot tell nodes 10..19, whose
-    # target lies along their vessel in this view); with neither, nothing is dropped
-    epipolar_only = _contradicting_main(views, data, np.arange(40), None, preop)[1]
-    assert epipolar_only[:5].all() and not epipolar_only[5:10].any() and not epipolar_only[20:].any()
-    assert not _contradicting_main(views, data, np.arange(40), None, preop, epipolar=False)[1].any()
+def test_a_branch_chain_bridge_across_the_parent_lumen_gives_no_target():
+    """Thinning joins a 2D branch to its parent's centre line across the parent's lumen (radius
+    10 px at the junction). 3D branch nodes whose nearest chain point lies on that bridge get
+    no target from the chain; the rest keep theirs (nearest chain point); without 2D radii all do."""
+    from FevarPlannerLib.graph import SkeletonGraph
+    from FevarPlannerLib.pipeline.multiview import _chain_closest_data
+    P = np.array([[1000.0, 0, 0, 0], [0, 1000.0, 0, 0], [0, 0, 1, 1000.0]])     # 1 px per mm at z = 0
+    u2 = np.arange(-10.0, 41.0)
+    g2 = SkeletonGraph.from_points(np.c_[u2, np.zeros_like(u2)], np.c_[np.arange(50), np.arange(1, 51)])
+    g2.radii = np.r_[10.0, np.full(50, 3.0)]                     # the junction node lies in the parent
+    u3 = np.arange(-8.0, 32.0, 2.0)
+    positions = np.c_[u3, np.full_like(u3, 0.5), np.zeros_like(u3)]
+    branch = SimpleNamespace(nodes=np.arange(len(u3)), label="renal_left")
+    preop = SimpleNamespace(graph=SimpleNamespace(positions=positions), kept=np.arange(len(u3)),
+                            classification=SimpleNamespace(branches=[branch]))
+    correspondence = SimpleNamespace(trunk_pairs=[], branch_chains={0: np.arange(51)}, branch_pairs=[])
+    view = SimpleNamespace(P=P, g2=g2)
+    nodes = np.arange(len(u3))
+    fallback = (project(P, positions), np.ones(len(u3)))
+    targets, weights = _chain_closest_data(view, correspondence, nodes, preop, positions, fallback)
+    on_bridge = u3 < 0.0                                         # within 10 px of the junction at u = -10
+    assert on_bridge.sum() == 4 and not weights[on_bridge].any() and weights[~on_bridge].all()
+    np.testing.assert_allclose(targets[~on_bridge], np.c_[u3[~on_bridge], np.zeros((~on_bridge).sum())], atol=1e-9)
+    g2.radii = None
+    assert _chain_closest_data(view, correspondence, nodes, preop, positions, fallback)[1].all()
