@@ -167,6 +167,18 @@ def test_small_loop_is_broken_keeping_the_shorter_arc():
     assert any("loop" in note for note in result.notes)
 
 
+def test_many_small_loops_are_all_broken_in_one_pass_each_keeping_the_straight_arc():
+    # five 4 x 6 mm detours beside the aorta (a flap or a plaque splits the lumen again and again)
+    detours = [segment for z0 in (40, 52, 64, 100, 112)
+               for segment in [((50, 5, z0), (54, 5, z0)), ((54, 5, z0), (54, 5, z0 + 6)),
+                               ((54, 5, z0 + 6), (50, 5, z0 + 6))]]
+    graph, result = classified(AAA_LINES + detours)
+    assert all(graph.positions[n][0] > 50 for n in result.loop_nodes)
+    assert len(result.loop_nodes) >= 5 * 5
+    assert_branches_match(graph, result, POLY_TIPS, POLY_LENGTHS, tolerance=0.01)
+    assert any("broke 5 loop(s)" in note for note in result.notes)
+
+
 def test_lasso_at_an_end_keeps_half_the_loop_as_the_end_of_the_branch():
     ring = [((50, 5, 130), (54, 5, 134)), ((54, 5, 134), (50, 5, 138)), ((50, 5, 138), (46, 5, 134)),
             ((46, 5, 134), (50, 5, 130))]

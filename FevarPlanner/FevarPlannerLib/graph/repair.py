@@ -97,19 +97,30 @@ def _chords(adjacency: sp.csr_matrix) -> np.ndarray:
     return np.stack([upper.row[chord], upper.col[chord]], axis=1).astype(np.int64)
 
 
+def _without_edge(adjacency: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:
+    """The adjacency with the edge a-b made impassable (infinite weight); the structure is kept."""
+    blocked = adjacency.copy()
+    for row, col in ((a, b), (b, a)):
+        span = slice(blocked.indptr[row], blocked.indptr[row + 1])
+        blocked.data[span][blocked.indices[span] == col] = np.inf
+    return blocked
+
+
 def _shortest_cycle_through(adjacency: sp.csr_matrix, a: int, b: int, limit: float):
     """(length, ordered cycle nodes) of the shortest cycle using edge a-b, or None above ``limit``."""
     weight = adjacency[a, b]
-    without = adjacency.tolil(copy=True)
-    without[a, b] = 0
-    without[b, a] = 0
-    without = without.tocsr()
-    without.eliminate_zeros()
-    dist, pred = csgraph.dijkstra(without, directed=True, indices=a, limit=limit,
+    dist, pred = csgraph.dijkstra(_without_edge(adjacency, a, b), directed=True, indices=a, limit=limit,
                                   return_predecessors=True)
     if not np.isfinite(dist[b]) or dist[b] + weight > limit:
         return None
     return float(dist[b] + weight), _walk_back(pred, b)
+
+
+def _cycle_intact(repair: "_Repair", cycle: np.ndarray) -> bool:
+    """Whether every node of ``cycle`` is alive and joined to the next one."""
+    if not repair.alive[cycle].all():
+        return False
+    return bool(np.all(np.asarray(repair.adjacency[cycle, np.roll(cycle, -1)]).ravel() != 0))
 
 
 def _break_cycle(repair: _Repair, cycle: np.ndarray) -> None:
@@ -146,12 +157,15 @@ def _break_short_loops(repair: _Repair, max_loop: float) -> None:
         if len(chords) == 0:
             break
         found = [_shortest_cycle_through(repair.adjacency, a, b, max_loop) for a, b in chords]
-        found = [f for f in found if f is not None]
+        found = sorted((f for f in found if f is not None), key=lambda f: f[0])
         if not found:
             repair.notes.append(f"kept {len(chords)} cycle(s) longer than max_loop={max_loop:.3g}")
             break
-        length, cycle = min(found, key=lambda f: f[0])
-        _break_cycle(repair, cycle)
-        broken += 1
+        # shortest first; breaking a cycle only lengthens or removes the others, so every
+        # cycle still intact afterwards is still the shortest through its chord
+        for _, cycle in found:
+            if _cycle_intact(repair, cycle):
+                _break_cycle(repair, cycle)
+                broken += 1
     if broken:
         repair.notes.append(f"broke {broken} loop(s) shorter than {max_loop:.3g}")
