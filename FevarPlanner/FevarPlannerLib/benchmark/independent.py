@@ -31,7 +31,7 @@ INDEPENDENT_SETS = {
     "two_views": "Independent: two views",
     "image_only": "Independent: image-only (CT + DSA frame)",
     "image_only_masks": "Independent: image-only cases given as masks",
-    "patient_like": "Independent: patient-like anatomy (side branches, accessory renals, looping iliacs)",
+    "patient_like": "Independent: patient-like anatomy",
 }
 #: The kinds run by default: all but the image-only pair, whose CT segmentation (UNet) takes
 #: about 30-60 s a case per method; run them with ``kinds=("image_only",)``.
