@@ -363,6 +363,23 @@ def phantom_case(name: str = "phantom", seed: int = 11, **changes):
     return phantom.generate_case(params, name=name)
 
 
+def coarse_phantom_folders(root, name: str, files) -> tuple:
+    """A coarse phantom case (CT 2 mm, detector 1.2 mm, seed 3) written whole to ``root/full``
+    and a case folder ``root/<name>`` holding only ``files`` of it; returns (full, case)."""
+    import shutil
+
+    from pathlib import Path
+
+    root = Path(root)
+    params = phantom.PhantomParams(ct_spacing_mm=2.0, detector_pixel_mm=1.2, seed=3)
+    full = phantom.write_case(phantom.generate_case(params, name=name), root / "full")
+    case = root / name
+    case.mkdir()
+    for file in files:
+        shutil.copy2(full / file, case / file)
+    return full, case
+
+
 def preop_model(case):
     """The pre-operative model of a phantom case, from its rasterised pre-operative lumen."""
     return pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))

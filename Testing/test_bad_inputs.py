@@ -31,8 +31,9 @@ import pytest
 import torch
 from PIL import Image
 
-from FevarPlannerLib import cli, export, io, phantom
+from FevarPlannerLib import cli, export, io
 from FevarPlannerLib.projection import source_position
+from fixtures import coarse_phantom_folders
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -43,12 +44,8 @@ REPO = Path(__file__).resolve().parents[1]
 def good(tmp_path_factory):
     """The good cases (mask case and CT case) and a previous output set, built once."""
     root = tmp_path_factory.mktemp("corpus")
-    params = phantom.PhantomParams(ct_spacing_mm=2.0, detector_pixel_mm=1.2, seed=3)
-    full = phantom.write_case(phantom.generate_case(params, name="corpus"), root / "full")
-    mask_case = root / "mask_case"
-    mask_case.mkdir()
-    for name in ("aorta_mask.nrrd", "fluoro.dcm", "fluoro_mask.png", "geometry.json", "gt.json"):
-        shutil.copy2(full / name, mask_case / name)
+    full, mask_case = coarse_phantom_folders(root, "mask_case", ("aorta_mask.nrrd", "fluoro.dcm", "fluoro_mask.png",
+                                                                 "geometry.json", "gt.json"))
     ct_case = root / "ct_case"
     ct_case.mkdir()
     ct = io.read_ct(full / "ct")

@@ -7,6 +7,7 @@ import pytest
 from FevarPlannerLib import phantom as ph
 from FevarPlannerLib import quality
 from FevarPlannerLib import segmentation as seg
+from fixtures import coarse_phantom_folders
 
 
 @pytest.fixture(scope="module")
@@ -48,17 +49,9 @@ def test_noise_frame_is_refused_in_one_line(rendered):
 @pytest.fixture(scope="module")
 def small_case(tmp_path_factory):
     """A small phantom case (lumen mask, raw frame as PNG, geometry) and its frame."""
-    import shutil
-
     from PIL import Image
 
-    root = tmp_path_factory.mktemp("frames")
-    params = ph.PhantomParams(ct_spacing_mm=2.0, detector_pixel_mm=1.2, seed=3)
-    full = ph.write_case(ph.generate_case(params, name="frames"), root / "full")
-    case = root / "case"
-    case.mkdir()
-    for name in ("aorta_mask.nrrd", "geometry.json"):
-        shutil.copy2(full / name, case / name)
+    full, case = coarse_phantom_folders(tmp_path_factory.mktemp("frames"), "case", ("aorta_mask.nrrd", "geometry.json"))
     from FevarPlannerLib import io
 
     frame = io.load_case(full).fluoro.image.astype(float)
