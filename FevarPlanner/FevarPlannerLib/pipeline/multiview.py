@@ -84,6 +84,13 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + sin * K + (1 - cos) * K @ K
 
 
+def _data_weights(has_target: np.ndarray) -> np.ndarray:
+    """Eq. 6 weights of one view: 0 where a node has no target, otherwise scaled so that S_D
+    stays the mean squared distance over the view's nodes with a target."""
+    count = np.count_nonzero(has_target)
+    return has_target * (len(has_target) / count) if count else np.zeros(len(has_target))
+
+
 def _view_data(nodes: np.ndarray, assignment, visible: np.ndarray, P: np.ndarray, positions: np.ndarray):
     """(targets, weights) of one view for the deformation ``nodes``.
 
@@ -93,9 +100,7 @@ def _view_data(nodes: np.ndarray, assignment, visible: np.ndarray, P: np.ndarray
     """
     has_target = assignment.assigned[nodes] & visible[nodes]
     targets = np.where(has_target[:, None], assignment.targets[nodes], project(P, positions[nodes]))
-    count = np.count_nonzero(has_target)
-    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
-    return targets, weights
+    return targets, _data_weights(has_target)
 
 
 #: Most passes of nearest-point targets for a view without its own classification (ICP-like);
@@ -183,9 +188,7 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
     usable = view.visible[nodes]
     limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
     has_target = usable & (distance <= limit) & ~_crosses_vessels(view, nodes, preop, positions, uv, index)
-    count = np.count_nonzero(has_target)
-    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
-    return np.where(has_target[:, None], view.g2.positions[index], uv), weights
+    return np.where(has_target[:, None], view.g2.positions[index], uv), _data_weights(has_target)
 
 
 #: Passes of chain-closest-point targets after the first deformation with several views (ICP-like).
@@ -275,9 +278,7 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
             past[:] = False
         targets[rows[~past]] = foot[~past]
         done[rows] = True
-    count = np.count_nonzero(has_target)
-    weights = has_target * (len(nodes) / count) if count else np.zeros(len(nodes))
-    return targets, weights
+    return targets, _data_weights(has_target)
 
 
 #: A branch whose mean 2D residual (mm at the anatomy's depth) after the first deformation is
@@ -309,11 +310,10 @@ def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop
 
 
 def _without(data, drop: np.ndarray):
-    """(targets, weights) with the nodes ``drop`` taken out of the view (weights rescaled as in :func:`_view_data`)."""
+    """(targets, weights) with the nodes ``drop`` taken out of the view (weights rescaled)."""
     targets, weights = data
     has_target = (weights > 0) & ~drop
-    count = np.count_nonzero(has_target)
-    return targets, (has_target * (len(weights) / count) if count else np.zeros(len(weights)))
+    return targets, _data_weights(has_target)
 
 
 def _deform_on(points, edges, views, data, alpha, beta, initial=None):
