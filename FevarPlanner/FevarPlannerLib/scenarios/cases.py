@@ -14,6 +14,7 @@ from ..projection import write_geometry_json
 
 from .plans import KINDS, Scenario, plan_scenarios
 from .frames import ScenarioCase, generate, render_ct, render_dsa
+from .bench import roughened, thinned_skeleton
 
 __all__ = [
     "write_scenario",
@@ -39,6 +40,9 @@ def write_scenario(case: ScenarioCase | Scenario, folder, *, images: bool | None
     with files.atomic_folder(folder) as tmp:
         if images:
             io.write_volume(tmp / "ct.nrrd", render_ct(case.preop, case.lumen, rng))
+        elif "voxel_mm" in case.scenario.info:      # a bench phantom: the raw thinned skeleton only
+            rough = roughened(case.lumen, np.random.default_rng([case.scenario.seed, 11]))
+            io.write_volume(tmp / "skeleton3d.nrrd", thinned_skeleton(rough))
         else:
             io.write_volume(tmp / "aorta_mask.nrrd", case.lumen)
         for k, view in enumerate(case.views):

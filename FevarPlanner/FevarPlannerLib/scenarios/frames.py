@@ -17,6 +17,7 @@ from ..projection import CArmGeometry, in_plane_transform, project, projection_m
 from .tree import VesselTree, build_tree, _index_at, _perpendicular, _unit
 from .deformations import deform_tree
 from .plans import Scenario, View
+from .bench import GRID_MARGIN_MM, fixed_carm, jpeg_damaged
 
 __all__ = [
     "paint_capsules",
@@ -109,14 +110,22 @@ def _draw_lumen(tree: VesselTree, volume: io.Volume) -> np.ndarray:
     return lumen
 
 
-def _ct_volume(tree: VesselTree, margin_mm: float = CT_MARGIN_MM) -> io.Volume:
-    """An axis-aligned 1 mm grid around the CT's tubes."""
+def _ct_volume(tree: VesselTree, margin_mm: float = CT_MARGIN_MM, spacing_mm: float = CT_SPACING_MM) -> io.Volume:
+    """An axis-aligned grid (1 mm unless ``spacing_mm``) around the CT's tubes."""
     points = np.concatenate([t.points for t in tree.tubes.values() if t.in_ct])
     reach = max(float(t.radius.max()) for t in tree.tubes.values() if t.in_ct) + margin_mm
     low, high = points.min(axis=0) - reach, points.max(axis=0) + reach
-    counts = np.ceil((high - low) / CT_SPACING_MM).astype(int) + 1
-    return io.Volume(np.zeros(tuple(counts[::-1]), dtype=np.uint8), (CT_SPACING_MM,) * 3, np.round(low, 3),
+    counts = np.ceil((high - low) / spacing_mm).astype(int) + 1
+    return io.Volume(np.zeros(tuple(counts[::-1]), dtype=np.uint8), (spacing_mm,) * 3, np.round(low, 3),
                      np.eye(3))
+
+
+def _grid_of(tree: VesselTree, scenario: Scenario) -> io.Volume:
+    """The pre-operative grid: a bench skeleton's fine voxels (``info["voxel_mm"]``), the
+    image-only kind's wide CT, else the 1 mm lumen grid."""
+    if "voxel_mm" in scenario.info:
+        return _ct_volume(tree, GRID_MARGIN_MM, scenario.info["voxel_mm"])
+    return _ct_volume(tree, IMAGE_CT_MARGIN_MM if scenario.info.get("images") else CT_MARGIN_MM)
 
 
 def _fitted_carm(tree: VesselTree, scenario: Scenario, view: View, isocenter: np.ndarray) -> tuple[CArmGeometry,
@@ -186,12 +195,15 @@ class ScenarioCase:
 
 
 def _render_view(tree: VesselTree, scenario: Scenario, view: View, isocenter: np.ndarray) -> RenderedView:
-    carm, P = _fitted_carm(tree, scenario, view, isocenter)
+    fixed = "frame_px" in scenario.info       # a bench frame of fixed size (scenarios.bench)
+    carm, P = fixed_carm(scenario, view, isocenter) if fixed else _fitted_carm(tree, scenario, view, isocenter)
     rows, clipped_rows = carm.rows, 0
     if view.clip_top_mm is not None:
         P, rows, clipped_rows = _clipped(P, rows, tree, view.clip_top_mm)
         carm = replace(carm, rows=rows)
     mask = _draw_frame(tree, P, (rows, carm.cols))
+    if "jpeg_quality" in scenario.info:
+        mask = jpeg_damaged(mask, scenario.info["jpeg_quality"])
     centre = ((carm.cols - 1) / 2.0, (rows - 1) / 2.0)
     P_given = in_plane_transform(P, view.misalign_shift_px, view.misalign_rotation_deg, 1.0, centre)
     return RenderedView(view.name, mask, P, P_given, carm, clipped_rows)
@@ -201,7 +213,7 @@ def generate(scenario: Scenario) -> ScenarioCase:
     """Build both trees, the CT lumen and every view's mask of ``scenario``."""
     preop = build_tree(scenario.shape)
     intraop = deform_tree(preop, scenario.deformation)
-    volume = _ct_volume(preop, IMAGE_CT_MARGIN_MM if scenario.info.get("images") else CT_MARGIN_MM)
+    volume = _grid_of(preop, scenario)
     lumen = volume.with_array(_draw_lumen(preop, volume).astype(np.uint8))
     isocenter = volume.center_lps()
     views = [_render_view(intraop, scenario, view, isocenter) for view in scenario.views]

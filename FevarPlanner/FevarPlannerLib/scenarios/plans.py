@@ -10,6 +10,7 @@ import numpy as np
 
 from .tree import SIDES, TreeShape, random_shape
 from .deformations import Deformation
+from .bench import bench_plan
 
 __all__ = [
     "View",
@@ -23,7 +24,7 @@ __all__ = [
 
 #: The scenario kinds, one benchmark set each.
 KINDS = ("out_of_plane", "straightening", "clipped", "distal_forks", "wide_sac", "extra_branches", "misaligned",
-         "angulated", "two_views", "image_only", "patient_like")
+         "angulated", "two_views", "image_only", "patient_like", "bench_pinhole")   # new kinds at the end: seeds kept
 #: Severities of the out-of-plane set, degrees (bend at the bifurcation and along each iliac).
 OUT_OF_PLANE_SEVERITIES_DEG = (0.0, 5.0, 10.0, 20.0)
 #: Angulated views of the angulated set: (primary, LAO +; secondary, cranial +), degrees.
@@ -157,6 +158,9 @@ def _kind_plan(kind: str, index: int, rng: np.random.Generator) -> tuple[dict, D
         # the family's deformation; a wire straightens a looping iliac less (0.1-0.3): the same
         # share of a long tortuous vessel would carry its end 50-80 mm, beyond any patient's
         deformation = replace(deformation, straighten=tuple(float(v) for v in rng.uniform(0.1, 0.3, size=2)))
+    elif kind == "bench_pinhole":
+        shape, deformation, (primary, secondary), info = bench_plan(rng)
+        views = [View(primary_deg=primary, secondary_deg=secondary)]
     elif kind == "two_views":
         angle = SECOND_VIEW_DEG[index % len(SECOND_VIEW_DEG)] * (1.0 if index % 2 == 0 else -1.0)
         name = f"{'lao' if angle > 0 else 'rao'}{abs(angle):g}"
@@ -178,7 +182,8 @@ def plan_scenarios(kind: str, n: int, seed: int = 0) -> list[Scenario]:
         case_seed = int(rng.integers(0, 2**31 - 1))
         overrides, deformation, views, info = _kind_plan(kind, index, rng)
         shape = random_shape(rng, **overrides)
-        scenarios.append(Scenario(f"{kind}_{index:02d}", kind, case_seed, shape, deformation, views,
-                                  sid_mm=float(rng.uniform(1050.0, 1200.0)), sod_mm=float(rng.uniform(720.0, 800.0)),
+        geometry = {"sid_mm": float(rng.uniform(1050.0, 1200.0)), "sod_mm": float(rng.uniform(720.0, 800.0))}
+        geometry.update(info.pop("geometry", {}))    # a kind's own C-arm (bench_pinhole) wins
+        scenarios.append(Scenario(f"{kind}_{index:02d}", kind, case_seed, shape, deformation, views, **geometry,
                                   info=info))
     return scenarios
