@@ -203,15 +203,26 @@ def _raster_to_grey(image: Image.Image) -> np.ndarray:
     return _luminance(np.asarray(image.convert("RGB")))
 
 
+#: A mask with more distinct values than this is grey content, not labels (:func:`read_mask_2d`).
+MAX_LABEL_LEVELS = 8
+
+
+def _is_grey(image: np.ndarray) -> bool:
+    """More than :data:`MAX_LABEL_LEVELS` distinct values: lossy or smoothed content, not labels."""
+    return len(np.unique(image)) > MAX_LABEL_LEVELS
+
+
 def read_mask_2d(path, shape: tuple[int, int] | None = None) -> np.ndarray:
     """Read a 2D vessel mask (non-zero = vessel) as a bool array of the frame's shape.
 
     Lossy JPEG masks are thresholded at half their maximum instead, since compression
-    turns the background's zeros into small values.
+    turns the background's zeros into small values; so is a mask in any format that holds
+    more than :data:`MAX_LABEL_LEVELS` grey levels (lossy content saved losslessly, e.g. a
+    JPEG label re-saved as PNG: its halo and specks are not vessel).
     """
     path = Path(path)
     grey = read_fluoro(path).image
-    if path.suffix.lower() in (".jpg", ".jpeg"):
+    if path.suffix.lower() in (".jpg", ".jpeg") or _is_grey(grey):
         mask = grey > 0.5 * grey.max()
     else:
         mask = grey != 0

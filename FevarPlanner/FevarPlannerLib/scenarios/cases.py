@@ -14,7 +14,7 @@ from ..projection import write_geometry_json
 
 from .plans import KINDS, Scenario, plan_scenarios
 from .frames import ScenarioCase, generate, render_ct, render_dsa
-from .bench import roughened, thinned_skeleton
+from .bench import jpeg_damaged, roughened, thinned_skeleton
 
 __all__ = [
     "write_scenario",
@@ -25,7 +25,9 @@ __all__ = [
 def write_scenario(case: ScenarioCase | Scenario, folder, *, images: bool | None = None) -> Path:
     """Write a scenario as a case folder (docs/DESIGN.md section 4), atomically; returns the folder.
 
-    Mask level: ``aorta_mask.nrrd`` and ``fluoro_mask.png``; with ``images`` (default: the
+    Mask level: ``aorta_mask.nrrd`` and ``fluoro_mask.png``; a bench phantom
+    (``bench_pinhole``, :mod:`scenarios.bench`) gives ``skeleton3d.nrrd`` (its rough lumen
+    thinned) and a JPEG-damaged grey ``fluoro_mask.png`` instead; with ``images`` (default: the
     scenario's ``info["images"]``, the image-only kind) ``ct.nrrd`` (HU, :func:`render_ct`)
     and ``fluoro.png`` (16-bit DSA-like, :func:`render_dsa`) instead, so that the pipeline
     segments both. Beside them ``geometry.json`` (the first view's given ``P``;
@@ -50,6 +52,8 @@ def write_scenario(case: ScenarioCase | Scenario, folder, *, images: bool | None
             where.mkdir(parents=True, exist_ok=True)
             if images:
                 io.write_png(where / "fluoro.png", render_dsa(case.intraop, view.P_true, view.mask.shape, rng))
+            elif "jpeg_quality" in case.scenario.info:      # a bench label as a JPEG returned it
+                io.write_png(where / "fluoro_mask.png", jpeg_damaged(view.mask, case.scenario.info["jpeg_quality"]))
             else:
                 io.write_mask_png(where / "fluoro_mask.png", view.mask)
             write_geometry_json(where / "geometry.json", view.P_given, true_projection_matrix=view.P_true.tolist(),

@@ -17,7 +17,7 @@ from ..projection import CArmGeometry, in_plane_transform, project, projection_m
 from .tree import VesselTree, build_tree, _index_at, _perpendicular, _unit
 from .deformations import deform_tree
 from .plans import Scenario, View
-from .bench import GRID_MARGIN_MM, fixed_carm, jpeg_damaged
+from .bench import GRID_MARGIN_MM, fixed_carm
 
 __all__ = [
     "paint_capsules",
@@ -202,8 +202,6 @@ def _render_view(tree: VesselTree, scenario: Scenario, view: View, isocenter: np
         P, rows, clipped_rows = _clipped(P, rows, tree, view.clip_top_mm)
         carm = replace(carm, rows=rows)
     mask = _draw_frame(tree, P, (rows, carm.cols))
-    if "jpeg_quality" in scenario.info:
-        mask = jpeg_damaged(mask, scenario.info["jpeg_quality"])
     centre = ((carm.cols - 1) / 2.0, (rows - 1) / 2.0)
     P_given = in_plane_transform(P, view.misalign_shift_px, view.misalign_rotation_deg, 1.0, centre)
     return RenderedView(view.name, mask, P, P_given, carm, clipped_rows)
