@@ -1,0 +1,100 @@
+"""The bench-phantom kind (scenarios.bench, issue 10): a short pinhole that geometry.json
+expresses exactly, the raw thinned voxel skeleton, the JPEG-damaged label and the reader
+that no longer takes its halo for vessel, and the other kinds' seed streams kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import io, plausibility, scenarios
+from FevarPlannerLib.io.fluoro import read_mask_2d
+from FevarPlannerLib.projection import project, read_geometry_json, source_position, write_geometry_json
+from FevarPlannerLib.scenarios import bench
+from FevarPlannerLib.scenarios.frames import paint_capsules
+
+
+def test_new_kind_is_last_and_the_other_kinds_draw_as_before():
+    assert scenarios.KINDS[-1] == "bench_pinhole"
+    # seeds drawn before the kind was added (main at e0f5294): appending it changed no stream
+    assert [s.seed for s in scenarios.plan_scenarios("out_of_plane", 2, 0)] == [1722792822, 1421746521]
+    assert [s.seed for s in scenarios.plan_scenarios("patient_like", 2, 0)] == [1200917762, 565090682]
+    assert scenarios.plan_scenarios("clipped", 1, 0)[0].sod_mm == pytest.approx(790.879, abs=1e-3)
+
+
+def test_bench_plan_is_a_short_pinhole_with_strong_perspective():
+    for scenario in scenarios.plan_scenarios("bench_pinhole", 4, 5):
+        assert 180.0 <= scenario.sod_mm <= 280.0
+        assert 1.08 <= scenario.sid_mm / scenario.sod_mm <= 1.2
+        assert scenario.info["frame_px"] == 512 and 70 <= scenario.info["jpeg_quality"] <= 85
+        assert "geometry" not in scenario.info       # moved onto the scenario's C-arm fields
+        carm, P = bench.fixed_carm(scenario, scenario.views[0], np.zeros(3))
+        assert (carm.rows, carm.cols) == (512, 512)
+        assert np.linalg.norm(source_position(P)) == pytest.approx(scenario.sod_mm, rel=1e-9)
+        # magnification changes 0.36-0.56 % per mm of depth (clinical SOD 760 mm: 0.13 %)
+        assert 0.0035 < bench.depth_magnification_per_mm(P, np.zeros(3)) < 0.0056
+
+
+def _authors_pinhole(n: int, depth: float) -> np.ndarray:
+    """The authors' projection as a 3x4 on voxel indices (x, y, z) of an n-cube: normalised
+    x / n - 0.5, rotated by R0, shifted by (0, 0, depth), u = X / Z, pixel = (u + 0.5) n."""
+    R0 = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    K = np.array([[n, 0.0, n / 2.0], [0.0, n, n / 2.0], [0.0, 0.0, 1.0]])
+    Rt = np.hstack([R0 / n, (np.array([0.0, 0.0, depth]) - R0 @ np.full(3, 0.5))[:, None]])
+    return K @ Rt
+
+
+def test_geometry_json_expresses_the_short_pinhole_exactly(tmp_path):
+    n, spacing, depth = 64, 0.4526, 0.9
+    volume = io.Volume(np.zeros((n, n, n), dtype=np.uint8), (spacing,) * 3, np.array([-10.0, 5.0, -200.0]), np.eye(3))
+    P_index = _authors_pinhole(n, depth)
+    index_to_lps = volume.index_to_lps_matrix                         # (i, j, k, 1) -> LPS
+    P = P_index @ np.linalg.inv(index_to_lps)
+    write_geometry_json(tmp_path / "geometry.json", P)
+    P_read = read_geometry_json(tmp_path / "geometry.json")
+    ijk = np.random.default_rng(0).uniform(0, n - 1, size=(200, 3))
+    lps = volume.index_to_lps(ijk[:, ::-1])
+    normalised = (np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]) @ (ijk / n - 0.5).T).T + [0, 0, depth]
+    expected = (normalised[:, :2] / normalised[:, 2:] + 0.5) * n
+    assert np.abs(project(P_read, lps) - expected).max() < 1e-9
+    # the source sits 0.9 n voxels from the volume's centre, as in the authors' set-up
+    centre = volume.index_to_lps(np.full((1, 3), n / 2.0))[0]
+    assert np.linalg.norm(source_position(P_read) - centre) == pytest.approx(depth * n * spacing, rel=1e-9)
+
+
+def _tube_mask(shape=(48, 48)) -> np.ndarray:
+    mask = np.zeros(shape, dtype=bool)
+    paint_capsules(mask, np.array([[4.0, 10.0], [43.0, 30.0]]), np.array([5.0, 3.0]))
+    return mask
+
+
+def test_jpeg_label_keeps_a_halo_that_the_reader_thresholds_away(tmp_path):
+    clean = _tube_mask((96, 96))
+    grey = bench.jpeg_damaged(clean, 75)
+    assert grey.dtype == np.uint8 and len(np.unique(grey)) > 8
+    halo = np.count_nonzero((grey != 0) & ~clean)
+    assert halo > 0.05 * clean.sum()                 # "non-zero = vessel" would widen every vessel
+    assert np.array_equal(grey > 127, clean)         # ringing of a 0/255 label never crosses mid-grey
+    io.write_png(tmp_path / "fluoro_mask.png", grey)
+    assert np.array_equal(read_mask_2d(tmp_path / "fluoro_mask.png"), clean)
+
+
+def test_a_label_mask_with_few_values_stays_non_zero_is_vessel(tmp_path):
+    labels = np.zeros((32, 32), dtype=np.uint8)
+    labels[4:10, 4:20], labels[20:24, 2:30] = 1, 2      # two label values: both are vessel
+    io.write_png(tmp_path / "fluoro_mask.png", labels)
+    assert np.array_equal(read_mask_2d(tmp_path / "fluoro_mask.png"), labels != 0)
+
+
+def test_rough_lumen_thins_to_a_raw_one_voxel_skeleton(tmp_path):
+    volume = io.Volume(np.zeros((60, 40, 40), dtype=np.uint8), (0.45,) * 3, np.zeros(3), np.eye(3))
+    lumen = np.zeros(volume.shape, dtype=bool)
+    paint_capsules(lumen, np.array([[5.0, 20.0, 20.0], [54.0, 20.0, 20.0]]), np.array([11.0, 11.0]))
+    rough = bench.roughened(volume.with_array(lumen.astype(np.uint8)), np.random.default_rng(3))
+    changed = np.count_nonzero(rough.array.astype(bool) != lumen) / lumen.sum()
+    assert 0.02 < changed < 0.5                       # the wall moved, the tube stayed
+    skeleton = bench.thinned_skeleton(rough)
+    assert 30 <= int(skeleton.array.sum()) <= 200
+    plausibility.check_skeleton_is_thin(skeleton, tmp_path / "skeleton3d.nrrd")      # no error: thin
+    io.write_volume(tmp_path / "skeleton3d.nrrd", skeleton)
+    assert np.array_equal(io.read_volume(tmp_path / "skeleton3d.nrrd").array.astype(bool), skeleton.array.astype(bool))
