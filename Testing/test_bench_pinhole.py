@@ -98,3 +98,22 @@ def test_rough_lumen_thins_to_a_raw_one_voxel_skeleton(tmp_path):
     plausibility.check_skeleton_is_thin(skeleton, tmp_path / "skeleton3d.nrrd")      # no error: thin
     io.write_volume(tmp_path / "skeleton3d.nrrd", skeleton)
     assert np.array_equal(io.read_volume(tmp_path / "skeleton3d.nrrd").array.astype(bool), skeleton.array.astype(bool))
+
+
+def test_axial_depth_floor_is_zero_for_a_move_parallel_to_a_short_pinholes_detector():
+    from FevarPlannerLib import evaluation
+    from FevarPlannerLib.centerline import Centerline
+    from FevarPlannerLib.projection import CArmGeometry, projection_matrix_from_carm
+
+    P = projection_matrix_from_carm(CArmGeometry(230.0, 208.5, (0.45, 0.45), 0.0, 0.0, 512, 512))
+    z = np.linspace(-60.0, 60.0, 121)
+    edges = np.column_stack([np.arange(120), np.arange(1, 121)])
+    pre = Centerline(np.column_stack([np.full_like(z, 60.0), np.zeros_like(z), z]), edges, ["iliac_left"] * 121)
+    moved = pre.with_points(pre.points + [10.0, 0.0, 0.0])   # AP view: x is parallel to the detector
+    axial = evaluation.depth_floor(pre, moved, P, depth="axial")
+    ranged = evaluation.depth_floor(pre, moved, P)
+    assert axial["max"] < 1e-9
+    # keeping the distance from the source instead puts the oracle off by about d x / D
+    assert 2.0 < ranged["mean"] < 4.5
+    with pytest.raises(ValueError, match="depth measure"):
+        evaluation.depth_floor(pre, moved, P, depth="radial")

@@ -98,7 +98,8 @@ def _independent_case(kind: str, folder: Path) -> dict:
     _judge_against_sv_and_floor(results, floor["mean"])
     scenario = json.loads((folder / "scenario.json").read_text())
     return {"name": folder.name, "kind": kind, "folder": str(folder), "views": sorted(views),
-            "depth_floor_mm": floor["mean"], "depth_floor_note": "main view" if len(views) > 1 else "the view",
+            "depth_floor_mm": floor["mean"],
+            "depth_floor_axial_mm": evaluation.depth_floor(gt_pre, gt_intra, P_true, depth="axial")["mean"], "depth_floor_note": "main view" if len(views) > 1 else "the view",
             "depth_floor_per_vessel_mm": {k: v["mean"] for k, v in floor["per_vessel"].items()},
             "scenario": {k: scenario[k] for k in ("kind", "seed", "deformation", "views") if k in scenario}
             | {k: scenario[k] for k in ("severity_deg", "second_view_deg") if k in scenario},
@@ -125,6 +126,7 @@ def _independent_summary(cases: list[dict]) -> dict:
     out of that method's means and counts; ``depth_floor_mm`` is the mean over all cases.
     """
     summary = {"cases": len(cases), "depth_floor_mm": float(np.mean([c["depth_floor_mm"] for c in cases])),
+               "depth_floor_axial_mm": _mean_or_none([c.get("depth_floor_axial_mm") for c in cases]),
                "views_per_case": max(len(c["views"]) for c in cases), "methods": {}}
     for label in METHODS:
         rows = [c["results"][label] for c in cases if "failed" not in c["results"][label]]
