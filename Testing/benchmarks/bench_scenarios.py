@@ -4,7 +4,8 @@ Writes the case folders of every independent set (FevarPlannerLib.scenarios: out
 bends at 0/5/10/20 degrees, wire straightening, clipped frames, distal forks the CT lacks,
 wide sacs, extra branches, misaligned and angulated views, two views, patient-like anatomy:
 coeliac, SMA, IMA, lumbars, internal iliacs and accessory renals in the CT and the frame, a
-tortuous neck and looping iliacs), runs SV (rigid),
+tortuous neck and looping iliacs; a bench phantom: a short pinhole (SOD 180-280 mm), a raw
+thinned voxel skeleton as skeleton3d.nrrd and a JPEG-damaged 512 x 512 label), runs SV (rigid),
 ICP-TPS and the proposed method on each with ``pipeline.plan_case`` and scores them with
 the depth floor and the in-plane / along-ray split per vessel
 (FevarPlannerLib.benchmark.run_independent_benchmark). Outputs in ``--out``:

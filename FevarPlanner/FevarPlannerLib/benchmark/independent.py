@@ -32,7 +32,7 @@ INDEPENDENT_SETS = {
     "image_only": "Independent: image-only (CT + DSA frame)",
     "image_only_masks": "Independent: image-only cases given as masks",
     "patient_like": "Independent: patient-like anatomy",
-    "bench_pinhole": "Independent: bench phantom (short pinhole, raw 3D skeleton, JPEG label)",
+    "bench_pinhole": "Independent: bench phantom (short pinhole)",
 }
 #: The kinds run by default: all but the image-only pair, whose CT segmentation (UNet) takes
 #: about 30-60 s a case per method; run them with ``kinds=("image_only",)``.
