@@ -117,3 +117,21 @@ def test_axial_depth_floor_is_zero_for_a_move_parallel_to_a_short_pinholes_detec
     assert 2.0 < ranged["mean"] < 4.5
     with pytest.raises(ValueError, match="depth measure"):
         evaluation.depth_floor(pre, moved, P, depth="radial")
+
+
+def test_a_face_connected_staircase_skeleton_is_thin_and_a_solid_is_not(tmp_path):
+    grid = {"spacing": (0.45,) * 3, "origin": np.zeros(3), "direction": np.eye(3)}
+    stairs = np.zeros((8, 40, 40), dtype=np.uint8)
+    for step in range(38):          # x+1, then y+1: every inner voxel has 3-4 26-neighbours
+        stairs[4, step // 2 + step % 2, step // 2] = 1
+    kernel = np.ones((3, 3, 3))
+    kernel[1, 1, 1] = 0
+    from scipy import ndimage
+
+    crowded = ndimage.convolve(stairs, kernel.astype(np.uint8), mode="constant")[stairs > 0] > 2
+    assert crowded.mean() > 0.8                     # refused by a count of 26-neighbours
+    plausibility.check_skeleton_is_thin(io.Volume(stairs, **grid), tmp_path / "skeleton3d.nrrd")
+    solid = np.zeros((12, 12, 12), dtype=np.uint8)
+    solid[3:9, 3:9, 3:9] = 1
+    with pytest.raises(io.InputError, match=r"100% of its 216 voxels lie in solid 2x2x2 blocks"):
+        plausibility.check_skeleton_is_thin(io.Volume(solid, **grid), tmp_path / "skeleton3d.nrrd")
