@@ -21,7 +21,12 @@ writers (:mod:`io`) and the projection (:mod:`projection`) are common. A scenari
 * the **patient-like** kind: every side branch a CT angiogram shows (coeliac trunk, SMA,
   IMA, four lumbar arteries, internal iliacs) in the CT tree and in the frame, an accessory
   renal artery beside the main one (narrower) on one side or both, a tortuous neck and
-  tortuous iliacs that loop in projection (issue 10, point 4: real patient trees).
+  tortuous iliacs that loop in projection (issue 10, point 4: real patient trees);
+* the **bench-phantom** kind ``bench_pinhole`` (:mod:`scenarios.bench`): a short pinhole
+  (SOD 180-280 mm, a fixed 512 x 512 frame that clips what it does not hold), the
+  pre-operative tree voxelised at about 0.45 mm with a rough wall and thinned raw into
+  ``skeleton3d.nrrd``, and the frame's label as a JPEG returns it (``fluoro_mask.png``
+  with the compression's grey halo), phantom-size anatomy bent by hand.
 
 Case folders follow docs/DESIGN.md section 4: ``aorta_mask.nrrd`` (the pre-operative lumen on a
 1 mm CT grid), ``fluoro_mask.png`` + ``geometry.json`` (the main view, given ``P``),
