@@ -13,7 +13,6 @@ from scipy.spatial import cKDTree
 from .. import deformation, matching
 from ..preop import Preoperative, _induced_edges
 from ..projection import pixels_per_mm, project
-from .visibility import overlapping_nodes
 
 
 #: Most combinations of per-view candidate correspondences deformed (the first in order).
@@ -328,27 +327,16 @@ def _deform_on(points, edges, views, data, alpha, beta, initial=None):
                                        weights=weights_arg, initial=initial, **extra)
 
 
-def _overlaps(views, preop: Preoperative, nodes: np.ndarray, positions: np.ndarray) -> list:
-    """Per view a bool (n_a,) mask: the nodes whose vessel overlaps another one (or itself) in
-    that view at ``positions`` (:func:`visibility.overlapping_nodes`); they get no data term there."""
-    labels = preop.classification.node_labels
-    return [overlapping_nodes(preop.graph, labels, v.P, positions, nodes)[nodes] for v in views]
-
-
 def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
     """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
 
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
     term averaged over the views moves them; the TPS fills the rest (row 16). A view whose
     correspondence is None (no classification) takes the nearest 2D skeleton points of the
-    kept positions ``estimate`` as targets instead. Nodes whose vessel overlaps another
-    vessel in a view (at the pre-operative positions, or at ``estimate``) get no data term
-    from that view (:func:`_overlaps`): they follow their neighbours (S_L, S_S) and the
-    other views. With several views,
+    kept positions ``estimate`` as targets instead. With several views,
     CHAIN_REFINEMENT_PASSES passes then re-assign each classified view's nodes to the nearest
-    point of their matched 2D chain (:func:`_chain_closest_data`), find the overlaps again at
-    the deformed positions and continue the minimisation from the last displacements. The
-    score (matching.candidate_score) picks
+    point of their matched 2D chain (:func:`_chain_closest_data`) and continue the
+    minimisation from the last displacements. The score (matching.candidate_score) picks
     between candidates: the energy plus the 3D implausibility of the result.
     """
     g3 = preop.graph
@@ -356,21 +344,18 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     assignments = {v.name: v.assignment(preop, c) for v, c in classified}
     has_target = [assignments[v.name].assigned & v.visible for v, _ in classified]
     nodes = np.flatnonzero(np.logical_or.reduce(has_target))
-    current = np.array(g3.positions, dtype=float)
-    if estimate is not None:
-        current[preop.kept] = estimate
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
-    used = [_without(d, hidden) for d, hidden in zip(data, _overlaps(views, preop, nodes, current))]
     edges = _induced_edges(g3, nodes)
-    result = _deform_on(g3.positions[nodes], edges, views, used, alpha, beta)
+    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
+        current = np.array(g3.positions, dtype=float)
         current[nodes] = result.points
-        drop = _disagreeing_views(views, used, nodes, result.points, preop)
+        drop = _disagreeing_views(views, data, nodes, result.points, preop)
         data = [_chain_closest_data(v, c, nodes, preop, current[preop.kept], d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
-        used = [_without(d, x | hidden) for d, x, hidden in zip(data, drop, _overlaps(views, preop, nodes, current))]
-        result = _deform_on(g3.positions[nodes], edges, views, used, alpha, beta, initial=result.displacements)
+        data = [_without(d, x) for d, x in zip(data, drop)]
+        result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=result.displacements)
     moved = np.array(g3.positions, dtype=float)
     moved[nodes] = result.points
     in_deformation = np.zeros(len(g3.positions), dtype=bool)

@@ -1,7 +1,5 @@
 """Partial visibility: which part of the image plane a frame shows (collimator bands, vessels
-running into a border), so that projections outside it get no data term; and where in a view
-one vessel hides behind another (:func:`overlapping_nodes`), so that the nodes there get no
-data term from that view either.
+running into a border), so that projections outside it get no data term.
 """
 
 from __future__ import annotations
@@ -10,10 +8,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
-
-from ..projection import pixels_per_mm, project
 
 
 @dataclass
@@ -162,79 +156,3 @@ def _half_width_at_border(shown: np.ndarray, side: str, index, on_border: np.nda
              "right": shown[:, shown.shape[1] - depth:]}[side]
     half_width = ndimage.distance_transform_edt(np.pad(strip, 1, mode="edge"))[1:-1, 1:-1]
     return float(half_width[index][on_border].max())
-
-
-#: Two nodes overlap in a view when their projections lie within this share of their summed
-#: projected radii (their silhouettes overlap) while in 3D they lie further apart than their
-#: summed radii (the lumens do not touch): the view's 2D skeleton there is one centre line
-#: for both, thinning forks where they part, not where the vessels do.
-OVERLAP_SHARE = 1.0
-#: Two nodes of one vessel overlap only when the vessel runs at least this many times their
-#: 3D distance between them (a loop crossing itself in the view), not when it merely runs
-#: along the rays (foreshortened: one vessel, its 2D skeleton short but its own).
-SELF_CROSSING_DETOUR = 2.0
-
-
-def overlapping_nodes(graph, labels, P: np.ndarray, positions: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-    """Nodes whose vessel overlaps another vessel (or itself, looping) in one view.
-
-    Where two vessels overlap in projection (tortuous iliacs one in front of the other, an
-    iliac crossing the aorta, a renal turned towards the rays inside the aorta's silhouette)
-    the frame shows one merged lumen: its 2D skeleton is one centre line between the two, it
-    forks where the silhouettes part (too low or too high) and a stretch of it belongs to
-    both vessels. A 2D target there is not the node's own vessel, so the node gets no data
-    term from this view (eq. 6): it follows its vessel's unambiguous parts through the
-    length and smoothness terms, and another view where it stands alone.
-
-    Parameters
-    ----------
-    graph : SkeletonGraph
-        The 3D graph, with ``radii`` (mm); without radii no node overlaps.
-    labels : sequence of str
-        The anatomical label of every graph node (which vessel it belongs to).
-    P : (3, 4)
-        The view's projection matrix (eq. 1).
-    positions : (n, 3)
-        Positions of all graph nodes (the pre-operative ones, or the current estimate).
-    nodes : (k,) int
-        The nodes to test (against each other).
-
-    Returns
-    -------
-    (n,) bool
-        True for the nodes of ``nodes`` that overlap a node of another vessel (or a distant
-        node of their own) in the view by :data:`OVERLAP_SHARE` of their summed radii while
-        lying apart in 3D.
-    """
-    overlap = np.zeros(len(positions), dtype=bool)
-    nodes = np.asarray(nodes, dtype=np.int64)
-    if graph.radii is None or len(nodes) < 2:
-        return overlap
-    points, radius_mm = positions[nodes], graph.radii[nodes]
-    uv = project(P, points)
-    radius_px = radius_mm * pixels_per_mm(P, points)
-    pairs = cKDTree(uv).query_pairs(OVERLAP_SHARE * 2.0 * float(radius_px.max()), output_type="ndarray")
-    if not len(pairs):
-        return overlap
-    i, j = pairs[:, 0], pairs[:, 1]
-    in_view = np.linalg.norm(uv[i] - uv[j], axis=1) < OVERLAP_SHARE * (radius_px[i] + radius_px[j])
-    apart = np.linalg.norm(points[i] - points[j], axis=1) > radius_mm[i] + radius_mm[j]
-    i, j = i[in_view & apart], j[in_view & apart]
-    vessel = np.asarray(labels, dtype=object)[nodes]
-    same = vessel[i] == vessel[j]
-    if same.any():
-        same_vessel = _detour_exceeds(graph, nodes[i[same]], nodes[j[same]],
-                                      SELF_CROSSING_DETOUR * np.linalg.norm(points[i[same]] - points[j[same]], axis=1))
-        keep = ~same
-        keep[np.flatnonzero(same)[same_vessel]] = True
-        i, j = i[keep], j[keep]
-    overlap[nodes[i]] = True
-    overlap[nodes[j]] = True
-    return overlap
-
-
-def _detour_exceeds(graph, a: np.ndarray, b: np.ndarray, bound: np.ndarray) -> np.ndarray:
-    """Per pair (a[k], b[k]): whether the path along the graph between them is longer than bound[k]."""
-    sources, row = np.unique(a, return_inverse=True)
-    along = csgraph.dijkstra(graph.adjacency, directed=False, indices=sources, limit=float(bound.max()))
-    return ~(along[row, b] <= bound)
