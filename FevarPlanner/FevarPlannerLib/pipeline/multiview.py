@@ -117,7 +117,8 @@ CLOSEST_POINT_OUTLIER = 5.0
 #: projection (relative to the view's median): else the match crosses vessels.
 CLOSEST_POINT_MAX_ANGLE_DEG = 45.0
 CLOSEST_POINT_MIN_FORESHORTENING = 0.35
-#: A branch with more than this fraction of such nodes gives no nearest-point target at all.
+#: A branch with more than this fraction of such nodes (or of nodes claimed by two vessels:
+#: :func:`_claimed_by_two_vessels`) gives no nearest-point target at all.
 CLOSEST_POINT_HIDDEN_BRANCH = 0.5
 #: A nearest 2D skeleton point whose vessel is this many times wider (relative to the node's own
 #: radius, over the view's median of that ratio) is the centre line of a wider vessel.
@@ -166,12 +167,60 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     if g3.radii is not None and getattr(view.g2, "radii", None) is not None:     # radius of the 2D vessel
         wider = view.g2.radii[index] / np.maximum(g3.radii[nodes] * pixels_per_mm(view.P, positions[nodes]), 1e-6)
         crossing |= wider > CLOSEST_POINT_WIDER_VESSEL * np.median(wider)
-    for branch in preop.classification.branches:      # a branch mostly hidden in the view: all of it
+    return _whole_branches(preop, local, crossing)
+
+
+def _whole_branches(preop: Preoperative, local: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+    """``flagged`` (per deformation node; ``local`` maps graph nodes to its rows, -1 outside)
+    with every branch more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` flagged flagged whole."""
+    flagged = flagged.copy()
+    for branch in preop.classification.branches:
         rows = local[branch.nodes]
         rows = rows[rows >= 0]
-        if len(rows) and crossing[rows].mean() > CLOSEST_POINT_HIDDEN_BRANCH:
-            crossing[rows] = True
-    return crossing
+        if len(rows) and flagged[rows].mean() > CLOSEST_POINT_HIDDEN_BRANCH:
+            flagged[rows] = True
+    return flagged
+
+
+#: Two nearest 2D skeleton points closer than this share of the 2D vessel's radius are one
+#: point of the 2D skeleton (:func:`_claimed_by_two_vessels`).
+SAME_POINT_RADII = 0.5
+#: Two nodes whose projections lie further apart than this share of their summed projected
+#: radii do not overlap in the view (their silhouettes are apart).
+APART_SHARE = 1.0
+
+
+def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np.ndarray, uv: np.ndarray,
+                            index: np.ndarray) -> np.ndarray:
+    """Nodes whose nearest 2D skeleton point is also that of a node of another vessel that the
+    estimate puts apart from it in the view.
+
+    Two vessels whose projections lie more than :data:`APART_SHARE` of their summed radii
+    apart, yet whose nearest 2D skeleton points are one (within :data:`SAME_POINT_RADII` of
+    its 2D radius), are both pulled onto one 2D vessel: where the view merged two vessels
+    (tortuous iliacs crossing at 50-70 degrees) the frame's vessel near both is one of them,
+    and the other's own 2D vessel lies further off, unclaimed. Which one belongs there is
+    unknown, so neither takes a nearest-point target from this view (the other views and
+    S_L, S_S move them); a branch mostly claimed so gives none at all. Two vessels that overlap in the estimate's projection (within the
+    share: the iliacs side by side in a lateral view) share their 2D centre line rightly
+    and keep it.
+    """
+    radii2 = getattr(view.g2, "radii", None)
+    radii3 = preop.graph.radii
+    claimed = np.zeros(len(nodes), dtype=bool)
+    if radii2 is None or radii3 is None or len(nodes) < 2:
+        return claimed
+    vessel = np.asarray(preop.classification.node_labels, dtype=object)[nodes]
+    radius_px = radii3[nodes] * pixels_per_mm(view.P, positions[nodes])
+    points2 = view.g2.positions[index]
+    neighbours = cKDTree(points2).query_ball_point(points2, SAME_POINT_RADII * radii2[index])
+    a = np.repeat(np.arange(len(nodes)), [len(n) for n in neighbours])
+    b = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
+    apart = np.linalg.norm(uv[a] - uv[b], axis=1) > APART_SHARE * (radius_px[a] + radius_px[b])
+    claimed[a[(vessel[a] != vessel[b]) & apart]] = True
+    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    local[nodes] = np.arange(len(nodes))
+    return _whole_branches(preop, local, claimed)
 
 
 def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
@@ -179,7 +228,8 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 
     ``estimate`` are the current kept positions; their projections through the view's P
     find the nearest node of its (smoothed) 2D skeleton; weights as in :func:`_view_data`.
-    A node whose match crosses vessels (:func:`_crosses_vessels`) gets no target.
+    A node whose match crosses vessels (:func:`_crosses_vessels`) or whose nearest point another
+    vessel, apart from it in the view, claims too (:func:`_claimed_by_two_vessels`) gets no target.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
@@ -188,6 +238,7 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
     usable = view.visible[nodes]
     limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
     has_target = usable & (distance <= limit) & ~_crosses_vessels(view, nodes, preop, positions, uv, index)
+    has_target &= ~_claimed_by_two_vessels(view, nodes, preop, positions, uv, index)
     return np.where(has_target[:, None], view.g2.positions[index], uv), _data_weights(has_target)
 
 
