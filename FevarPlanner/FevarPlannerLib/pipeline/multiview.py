@@ -188,6 +188,11 @@ SAME_POINT_RADII = 0.5
 #: Two nodes whose projections lie further apart than this share of their summed projected
 #: radii do not overlap in the view (their silhouettes are apart).
 APART_SHARE = 1.0
+#: Two vessels part at an acute angle (the iliacs at the bifurcation) when the path along the
+#: tree between two of their nodes is more than this many times their 3D distance; vessels
+#: that run on from one another (the left and right renals through the aorta, along the rays
+#: in a lateral view) have a path about as long as the distance.
+PARTED_DETOUR = 1.5
 
 
 def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np.ndarray, uv: np.ndarray,
@@ -203,7 +208,8 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     unknown, so neither takes a nearest-point target from this view (the other views and
     S_L, S_S move them); a branch mostly claimed so gives none at all. Two vessels that overlap in the estimate's projection (within the
     share: the iliacs side by side in a lateral view) share their 2D centre line rightly
-    and keep it.
+    and keep it, and so do vessels that run on from one another rather than part at an
+    acute angle (:data:`PARTED_DETOUR`).
     """
     radii2 = getattr(view.g2, "radii", None)
     radii3 = preop.graph.radii
@@ -217,7 +223,13 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     a = np.repeat(np.arange(len(nodes)), [len(n) for n in neighbours])
     b = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
     apart = np.linalg.norm(uv[a] - uv[b], axis=1) > APART_SHARE * (radius_px[a] + radius_px[b])
-    claimed[a[(vessel[a] != vessel[b]) & apart]] = True
+    pairs = (vessel[a] != vessel[b]) & apart
+    a, b = a[pairs], b[pairs]
+    if len(a):
+        bound = PARTED_DETOUR * np.linalg.norm(positions[nodes[a]] - positions[nodes[b]], axis=1)
+        sources, row = np.unique(nodes[a], return_inverse=True)
+        along = csgraph.dijkstra(preop.graph.adjacency, directed=False, indices=sources, limit=float(bound.max()))
+        claimed[a[~(along[row, nodes[b]] <= bound)]] = True
     local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
     local[nodes] = np.arange(len(nodes))
     return _whole_branches(preop, local, claimed)
