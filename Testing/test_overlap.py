@@ -1,10 +1,10 @@
 """Vessels merged in a view (issue 10): tortuous iliacs crossing in a 70 degree view, where the
 frame's skeleton cannot be classified and each node takes its nearest 2D skeleton point.
 
-Two vessels that the estimate puts apart in the view but whose nearest 2D points are one are
-both pulled onto one 2D vessel; neither may take its target there
-(``multiview._claimed_by_two_vessels``). Iliacs that overlap in the view (side by side in a
-lateral view) keep their shared centre line.
+Two vessels that part at an acute angle and that the estimate puts apart in the view, but
+whose nearest 2D points are one, are both pulled onto one 2D vessel; neither may take its
+target there (``multiview._claimed_by_two_vessels``). Iliacs that overlap in the view (side
+by side in a lateral view) keep their shared centre line.
 """
 
 import numpy as np
@@ -50,3 +50,90 @@ def test_vessels_apart_in_the_view_claiming_one_2d_point_get_no_target(crossing_
     monkeypatch.setattr(multiview, "_claimed_by_two_vessels", lambda view, nodes, *args: np.zeros(len(nodes), bool))
     per_vessel, _, _ = _registered("two_views", 36, 2)
     assert per_vessel["iliac_right"] > 8.0
+
+
+# ---------------------------------------------------------------------------------------
+# The rule on a hand-made tree: a 1 px = 1 mm orthographic view, u = x, v = -z
+# ---------------------------------------------------------------------------------------
+
+P_FRONT = np.array([[1.0, 0.0, 0.0, 200.0], [0.0, 0.0, -1.0, 200.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def _polyline(a, b, step=1.0):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return a + np.linspace(0.0, 1.0, int(np.linalg.norm(b - a) / step) + 1)[:, None] * (b - a)
+
+
+def _tree(vessels):
+    """A 3D SkeletonGraph and its stand-in pre-op from {label: (start, end, radius)} (each
+    vessel a chain of 1 mm steps; a vessel starting where another one's chain passes joins it)."""
+    from types import SimpleNamespace
+
+    from FevarPlannerLib.graph import SkeletonGraph
+
+    positions, edges, labels, radii, branches = [], [], [], [], []
+    for label, (start, end, radius) in vessels.items():
+        chain = _polyline(start, end)
+        first = len(positions)
+        if positions:
+            joint = int(np.argmin(np.linalg.norm(np.asarray(positions) - chain[0], axis=1)))
+            edges.append((joint, first))
+        positions += list(chain)
+        edges += [(first + k, first + k + 1) for k in range(len(chain) - 1)]
+        labels += [label] * len(chain)
+        radii += [radius] * len(chain)
+        branches.append(SimpleNamespace(nodes=np.arange(first, first + len(chain))))
+    positions = np.asarray(positions)
+    adjacency = SkeletonGraph._weighted_adjacency(positions, np.asarray(edges))
+    g3 = SkeletonGraph(positions, adjacency, radii=np.asarray(radii))
+    classification = SimpleNamespace(node_labels=labels, branches=branches[1:])
+    return SimpleNamespace(graph=g3, classification=classification)
+
+
+def _claimed_in_front_view(preop, legs, radius2=6.0):
+    """Labels flagged by the rule when the frame's 2D skeleton is the polylines ``legs`` (u, v)."""
+    from types import SimpleNamespace
+
+    from scipy.spatial import cKDTree
+
+    from FevarPlannerLib.projection import project
+
+    points2 = np.concatenate([_polyline(a, b) for a, b in legs])
+    view = SimpleNamespace(P=P_FRONT, g2=SimpleNamespace(positions=points2, radii=np.full(len(points2), radius2)))
+    nodes = np.arange(len(preop.graph.positions))
+    uv = project(P_FRONT, preop.graph.positions)
+    index = cKDTree(points2).query(uv)[1]
+    claimed = multiview._claimed_by_two_vessels(view, nodes, preop, preop.graph.positions, uv, index)
+    labels = np.asarray(preop.classification.node_labels, dtype=object)
+    return {label: int(np.count_nonzero(claimed & (labels == label))) for label in dict.fromkeys(labels)}
+
+
+def test_two_iliacs_apart_in_the_view_on_one_2d_leg_lose_their_targets_side_by_side_keep_them():
+    """Iliacs parting at 28 degrees, 14 mm apart at their ends (radius 4: apart in the view):
+    the frame shows one leg between them (the other off at u = +60), so both iliacs' nearest
+    points lie on it: more than half of each is claimed by two, so each loses all its targets.
+    The same iliacs nearly on top of each other (3 mm apart at the ends: they overlap in the
+    view) keep them."""
+    parted = _tree({"aorta": ((0, 0, 100), (0, 0, 0), 9.0), "iliac_left": ((0, 0, 0), (-7, 0, -28), 4.0),
+                    "iliac_right": ((0, 0, 0), (7, 0, -28), 4.0)})
+    legs = [((200, 100), (200, 200)), ((200, 200), (200, 228)), ((200, 200), (260, 228))]
+    flagged = _claimed_in_front_view(parted, legs)
+    assert flagged["aorta"] == 0
+    assert flagged["iliac_left"] == flagged["iliac_right"] == 29         # every node: the whole branch
+    together = _tree({"aorta": ((0, 0, 100), (0, 0, 0), 9.0), "iliac_left": ((0, 0, 0), (-1.5, -20, -28), 4.0),
+                      "iliac_right": ((0, 0, 0), (1.5, 20, -28), 4.0)})
+    assert _claimed_in_front_view(together, legs) == {"aorta": 0, "iliac_left": 0, "iliac_right": 0}
+
+
+def test_renals_running_on_from_one_another_along_the_rays_keep_their_shared_points(monkeypatch):
+    """Renals leaving the aorta towards and away from the viewer, 12 px apart at their tips
+    (apart in the view) and both nearest to the aorta's 2D centre line: the path between them
+    along the tree is as long as their distance (they do not part at an acute angle), so they
+    keep their targets; counting every pair (PARTED_DETOUR 0) would flag them."""
+    renals = _tree({"aorta": ((0, 0, 100), (0, 0, 0), 9.0), "renal_left": ((0, 0, 60), (6, 30, 60), 3.0),
+                    "renal_right": ((0, 0, 60), (-6, -30, 60), 3.0)})
+    legs = [((200, 100), (200, 200))]
+    assert _claimed_in_front_view(renals, legs) == {"aorta": 0, "renal_left": 0, "renal_right": 0}
+    monkeypatch.setattr(multiview, "PARTED_DETOUR", 0.0)
+    flagged = _claimed_in_front_view(renals, legs)
+    assert flagged["renal_left"] > 10 and flagged["renal_right"] > 10
