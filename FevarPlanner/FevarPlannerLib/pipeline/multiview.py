@@ -171,8 +171,9 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
 
 
 def _whole_branches(preop: Preoperative, local: np.ndarray, flagged: np.ndarray) -> np.ndarray:
-    """``flagged`` (per deformation node; ``local`` maps graph nodes to its rows, -1 outside)
-    with every branch more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` flagged flagged whole."""
+    """A copy of ``flagged`` (one flag per deformation node; ``local`` maps graph nodes to its
+    rows, -1 outside) in which a branch with more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` of
+    its nodes flagged is flagged whole: a branch mostly hidden in the view, all of it."""
     flagged = flagged.copy()
     for branch in preop.classification.branches:
         rows = local[branch.nodes]
@@ -206,10 +207,10 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     (tortuous iliacs crossing at 50-70 degrees) the frame's vessel near both is one of them,
     and the other's own 2D vessel lies further off, unclaimed. Which one belongs there is
     unknown, so neither takes a nearest-point target from this view (the other views and
-    S_L, S_S move them); a branch mostly claimed so gives none at all. Two vessels that overlap in the estimate's projection (within the
-    share: the iliacs side by side in a lateral view) share their 2D centre line rightly
-    and keep it, and so do vessels that run on from one another rather than part at an
-    acute angle (:data:`PARTED_DETOUR`).
+    S_L, S_S move them); a branch mostly claimed so gives none at all. Two vessels that
+    overlap in the estimate's projection (within the share: the iliacs side by side in a
+    lateral view) share their 2D centre line rightly and keep it, and so do vessels that
+    run on from one another rather than part at an acute angle (:data:`PARTED_DETOUR`).
     """
     radii2 = getattr(view.g2, "radii", None)
     radii3 = preop.graph.radii
@@ -229,7 +230,8 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
         bound = PARTED_DETOUR * np.linalg.norm(positions[nodes[a]] - positions[nodes[b]], axis=1)
         sources, row = np.unique(nodes[a], return_inverse=True)
         along = csgraph.dijkstra(preop.graph.adjacency, directed=False, indices=sources, limit=float(bound.max()))
-        claimed[a[~(along[row, nodes[b]] <= bound)]] = True
+        parted = ~(along[row, nodes[b]] <= bound)
+        claimed[a[parted]] = claimed[b[parted]] = True
     local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
     local[nodes] = np.arange(len(nodes))
     return _whole_branches(preop, local, claimed)
