@@ -10,11 +10,13 @@ import scipy.sparse as sp
 from scipy import ndimage as ndi
 from scipy.sparse import csgraph
 
+from FevarPlannerLib import pipeline
 from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
 from FevarPlannerLib.graph.skeleton_graph import _walk_back
+from FevarPlannerLib.pipeline import fallback
 from FevarPlannerLib.segmentation import fluoro
 from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
-from fixtures import random_masks, y_mask_2d
+from fixtures import drawn_mask, phantom_case, preop_model, random_masks, y_mask_2d
 
 
 def _laplacian_smoothing_by_sparse_product(graph: SkeletonGraph, iterations: int, weight: float) -> np.ndarray:
@@ -87,3 +89,73 @@ def test_walk_back_follows_dijkstra_predecessors_to_the_source():
         walked = _walk_back(predecessors, node)
         assert walked.dtype == np.int64
         np.testing.assert_array_equal(walked, path)
+
+
+def test_with_positions_equals_rebuilding_the_graph_from_its_edges():
+    rng = np.random.default_rng(6)
+    graph = SkeletonGraph.from_image(skeletonize_2d(y_mask_2d()))
+    positions = graph.positions + rng.normal(0.0, 0.4, graph.positions.shape)
+    positions[3] = positions[graph.adjacency.indices[graph.adjacency.indptr[3]]]      # a zero-length edge
+    moved = graph.with_positions(positions)
+    rebuilt = SkeletonGraph(positions, SkeletonGraph._weighted_adjacency(positions, graph.edges()),
+                            graph.grid_indices, graph.unit_mm, graph.radii)
+    for part in ("indptr", "indices", "data"):
+        mine, plain = getattr(moved.adjacency, part), getattr(rebuilt.adjacency, part)
+        assert mine.dtype == plain.dtype
+        np.testing.assert_array_equal(mine, plain)
+    np.testing.assert_array_equal(moved.degrees, rebuilt.degrees)
+    np.testing.assert_array_equal(moved.positions, positions)
+    assert moved.dim == 2 and moved.unit_mm == graph.unit_mm and moved.grid_indices is graph.grid_indices
+    assert moved.adjacency.data is not graph.adjacency.data
+
+
+def _never_worse_than_sv_vessel_by_vessel(result, alternatives, preop, views):
+    """The plausibility check with every vessel's fit measured on its own (one query per vessel)."""
+    sv = preop.centerline.points
+    vessels = sorted((v for v in fallback._vessels(preop.centerline) if v.label != "other"),
+                     key=lambda v: v.label != "aorta")
+    result, warnings = result.copy(), []
+    sv_fits = fallback._fits_px(sv, [vessel.nodes for vessel in vessels], views, preop.kept)
+    for vessel, sv_fit in zip(vessels, sv_fits):
+        reason, _ = fallback._judge(result, vessel, sv, sv_fit, views, preop.kept)
+        if reason is None:
+            continue
+        best, best_fit, best_name = None, np.inf, None
+        for points, name in list(alternatives()) + [(sv, fallback.SV_NAME)]:
+            moved = fallback._replaced(result, points, vessel)
+            why, fit = fallback._judge(moved, vessel, sv, sv_fit, views, preop.kept)
+            if why is None and fit < best_fit:
+                best, best_fit, best_name = moved, fit, name
+        if best is None:
+            best, best_name = fallback._replaced(result, sv, vessel), fallback.SV_NAME
+        result = best
+        warnings.append(f"{vessel.label}: {reason}; replaced by {best_name}")
+    return result, warnings
+
+
+def test_plausibility_fits_in_one_query_equal_the_vessel_by_vessel_check():
+    case = phantom_case("fallback", seed=11)
+    preop = preop_model(case)
+    mask = drawn_mask(preop.centerline, case.P_true, (case.carm.rows, case.carm.cols))
+    view = pipeline._prepare_view(preop, mask, case.P_true, "main", None, "proposed", False, {})
+    result = pipeline.register_frame(preop, mask, case.P_true).deformed.points
+    vessels = {v.label: v for v in fallback._vessels(preop.centerline)}
+    rng = np.random.default_rng(2)
+    variants = [result]
+    for labels, scale, shift in ((("iliac_left",), 1.2, 0.0), (("aorta",), 1.0, 9.0),
+                                 (("renal_right", "iliac_right"), 0.9, 4.0), (("aorta", "renal_left"), 1.1, 6.0)):
+        changed = result.copy()
+        for label in labels:
+            nodes = vessels[label].nodes
+            root = changed[nodes].mean(axis=0)
+            changed[nodes] = root + scale * (changed[nodes] - root) + shift * rng.normal(size=3)
+        variants.append(changed)
+    replaced = 0
+    for changed in variants:
+        alternatives = lambda: [(result, "registration"), (variants[2], "shifted aorta")]     # noqa: E731
+        fast, warnings = fallback._never_worse_than_sv(changed, alternatives, preop, [view])
+        plain, plain_warnings = _never_worse_than_sv_vessel_by_vessel(changed, alternatives, preop, [view])
+        np.testing.assert_array_equal(fast, plain)
+        assert warnings == plain_warnings
+        replaced += len(warnings)
+    assert replaced >= 4

@@ -162,10 +162,32 @@ class SkeletonGraph:
                    grid_indices, unit_mm)
 
     def with_positions(self, positions) -> "SkeletonGraph":
-        """The same nodes and edges at new positions (edge lengths recomputed)."""
+        """The same nodes and edges at new positions (edge lengths recomputed).
+
+        The adjacency keeps its sparsity structure (it is already canonical: sorted, no
+        zeros, weights >= ``_MIN_WEIGHT``); only its entries are recomputed, each stored
+        entry ``(i, j)`` as ``|positions[i] - positions[j]|``: the same numbers as building
+        it again from the edges, without the sparse matrix conversions.
+        """
         positions = np.asarray(positions, dtype=float)
-        return SkeletonGraph(positions, self._weighted_adjacency(positions, self.edges()), self.grid_indices,
-                             self.unit_mm, self.radii)
+        if positions.shape != self.positions.shape:
+            raise ValueError(f"positions must have shape {self.positions.shape}, got {positions.shape}")
+        if not np.all(np.isfinite(positions)):
+            raise ValueError("skeleton positions contain NaN or infinite values")
+        rows = np.repeat(np.arange(len(positions)), np.diff(self.adjacency.indptr))
+        weights = np.maximum(np.linalg.norm(positions[rows] - positions[self.adjacency.indices], axis=1), _MIN_WEIGHT)
+        adjacency = sp.csr_matrix((weights, self.adjacency.indices.copy(), self.adjacency.indptr.copy()),
+                                  shape=self.adjacency.shape)
+        return SkeletonGraph._canonical(positions, adjacency, self.grid_indices, self.unit_mm, self.radii,
+                                        self.degrees)
+
+    @classmethod
+    def _canonical(cls, positions, adjacency, grid_indices, unit_mm, radii, degrees) -> "SkeletonGraph":
+        """A graph from parts already in the constructor's canonical form (no checks, no copies)."""
+        graph = cls.__new__(cls)
+        graph.positions, graph.adjacency, graph.grid_indices = positions, adjacency, grid_indices
+        graph.degrees, graph.dim, graph.unit_mm, graph.radii = degrees, positions.shape[1], unit_mm, radii
+        return graph
 
     def edges(self) -> np.ndarray:
         """Undirected edges as an (m, 2) array with ``i < j``, sorted."""

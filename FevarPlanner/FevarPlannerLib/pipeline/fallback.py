@@ -68,9 +68,11 @@ def _fits_px(points: np.ndarray, node_sets: list, views: list, kept: np.ndarray)
     return [float(np.mean(fit)) if fit else 0.0 for fit in fits]
 
 
-def _judge(points, vessel: _Vessel, preop_points, sv_fit: float, views, kept) -> tuple[str | None, float]:
-    """Why ``points`` are implausible for ``vessel`` (None if plausible), and its 2D fit."""
-    fit = _fit_px(points, vessel.nodes, views, kept)
+def _judge(points, vessel: _Vessel, preop_points, sv_fit: float, views, kept,
+           fit: float | None = None) -> tuple[str | None, float]:
+    """Why ``points`` are implausible for ``vessel`` (None if plausible), and its 2D fit
+    (``fit``, when already measured on these ``points``)."""
+    fit = _fit_px(points, vessel.nodes, views, kept) if fit is None else fit
     rest = _length(preop_points, vessel.edges)
     change = _length(points, vessel.edges) / rest - 1.0 if rest > 0 else 0.0
     if abs(change) > LENGTH_TOLERANCE:
@@ -119,8 +121,12 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
     vessels.sort(key=lambda v: v.label != "aorta")
     result, warnings = result.copy(), []
     sv_fits = _fits_px(sv, [vessel.nodes for vessel in vessels], views, preop.kept)
-    for vessel, sv_fit in zip(vessels, sv_fits):
-        reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept)
+    # the fits of the vessels still to judge on ``result``, one query per view while it stays
+    fits = _fits_px(result, [vessel.nodes for vessel in vessels], views, preop.kept)
+    for k, (vessel, sv_fit) in enumerate(zip(vessels, sv_fits)):
+        if fits is None:
+            fits = [None] * k + _fits_px(result, [v.nodes for v in vessels[k:]], views, preop.kept)
+        reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept, fits[k])
         if reason is None:
             continue
         options = list(alternatives()) + [(sv, SV_NAME)]
@@ -132,6 +138,6 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
                 best, best_fit, best_name = moved, fit, name
         if best is None:            # SV moved with its junction may fit worse than SV in place
             best, best_name = _replaced(result, sv, vessel), SV_NAME
-        result = best
+        result, fits = best, None
         warnings.append(f"{vessel.label}: {reason}; replaced by {best_name}")
     return result, warnings
