@@ -8,15 +8,18 @@ test, on small generated masks and graphs, to the bit.
 import numpy as np
 import scipy.sparse as sp
 from scipy import ndimage as ndi
+from scipy.linalg import cholesky_banded
 from scipy.sparse import csgraph
 
 from FevarPlannerLib import pipeline
+from FevarPlannerLib.deformation.energy import _build_model
+from FevarPlannerLib.deformation.solve import _BandedPreconditioner
 from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
 from FevarPlannerLib.graph.skeleton_graph import _walk_back
 from FevarPlannerLib.pipeline import fallback, multiview
 from FevarPlannerLib.segmentation import fluoro
 from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
-from fixtures import drawn_mask, phantom_case, preop_model, random_masks, y_mask_2d
+from fixtures import carm, drawn_mask, phantom_case, preop_model, random_masks, vessel_tree, y_mask_2d
 
 
 def _laplacian_smoothing_by_sparse_product(graph: SkeletonGraph, iterations: int, weight: float) -> np.ndarray:
@@ -192,3 +195,20 @@ def test_views_prepared_on_two_threads_register_as_one_after_the_other(monkeypat
 def _rotation_about_z(angle: float) -> np.ndarray:
     cos, sin = np.cos(angle), np.sin(angle)
     return np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_banded_hessian_summed_by_bincount_equals_np_add_at():
+    """The preconditioner's band storage: every Hessian entry added into its place in order."""
+    tree = vessel_tree(160)
+    rng = np.random.default_rng(9)
+    extra = [(carm(50.0), rng.normal(256.0, 40.0, (len(tree.points), 2)), rng.random(len(tree.points)))]
+    model = _build_model(tree.points, rng.normal(256.0, 40.0, (len(tree.points), 2)), tree.edges, carm(0.0),
+                         500.0, 10.0, None, None, extra)
+    preconditioner = _BandedPreconditioner(model, 0.1)
+    assert preconditioner.usable
+    rows, cols, values = preconditioner._hessian_blocks(model, model.points, 0.1)
+    upper = rows <= cols
+    assert len(np.unique(np.c_[rows[upper], cols[upper]], axis=0)) < np.count_nonzero(upper)     # places shared
+    band = np.zeros((preconditioner.band + 1, 3 * len(tree.points)))
+    np.add.at(band, (preconditioner.band + rows[upper] - cols[upper], cols[upper]), values[upper])
+    np.testing.assert_array_equal(preconditioner.factor, cholesky_banded(band, lower=False, check_finite=False))

@@ -41,8 +41,9 @@ class _BandedPreconditioner:
         self.band = 3 * band_nodes + 2
         rows, cols, values = self._hessian_blocks(model, model.points, ridge)
         upper = rows <= cols
-        ab = np.zeros((self.band + 1, 3 * n))
-        np.add.at(ab, (self.band + rows[upper] - cols[upper], cols[upper]), values[upper])
+        # upper band storage; the entries of a place add up in their order (as np.add.at would)
+        slots = (self.band + rows[upper] - cols[upper]) * (3 * n) + cols[upper]
+        ab = np.bincount(slots, values[upper], (self.band + 1) * 3 * n).reshape(self.band + 1, 3 * n)
         self.factor = scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
         n_nodes = len(order)
         self.to_permuted = (np.arange(3)[None, :] * n_nodes + order[:, None]).ravel()   # x index -> (3, n) index
