@@ -14,11 +14,11 @@ from scipy.sparse import csgraph
 from FevarPlannerLib import pipeline
 from FevarPlannerLib.deformation.energy import _build_model
 from FevarPlannerLib.deformation.solve import _BandedPreconditioner
-from FevarPlannerLib.graph import SkeletonGraph, smooth_positions
+from FevarPlannerLib.graph import SkeletonGraph, skeleton_graph_2d, smooth_positions
 from FevarPlannerLib.graph.skeleton_graph import _walk_back
 from FevarPlannerLib.pipeline import fallback, multiview
 from FevarPlannerLib.segmentation import fluoro
-from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeletonize_2d
+from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeleton_2d_box, skeletonize_2d
 from fixtures import carm, drawn_mask, phantom_case, preop_model, random_masks, vessel_tree, y_mask_2d
 
 
@@ -212,3 +212,19 @@ def test_banded_hessian_summed_by_bincount_equals_np_add_at():
     band = np.zeros((preconditioner.band + 1, 3 * len(tree.points)))
     np.add.at(band, (preconditioner.band + rows[upper] - cols[upper], cols[upper]), values[upper])
     np.testing.assert_array_equal(preconditioner.factor, cholesky_banded(band, lower=False, check_finite=False))
+
+
+def test_skeleton_graph_from_the_skeleton_box_equals_the_full_grid_graph():
+    for mask in [y_mask_2d(), np.pad(y_mask_2d(width=6.0), ((30, 5), (3, 40)))]:
+        mask = mask.copy()
+        mask[-12:-4, 2:9] = True                 # a second piece, away from the tree
+        plain = SkeletonGraph.from_image(skeletonize_2d(mask), 0.4, mask=mask)
+        box, thin = skeleton_2d_box(mask)
+        assert thin.shape == tuple(b.stop - b.start for b in box) != mask.shape
+        fast = skeleton_graph_2d(mask, pixel_size=0.4, radii=True)
+        assert len(fast) == len(plain) > 50 and fast.unit_mm == plain.unit_mm
+        for part in ("positions", "grid_indices", "radii", "degrees"):
+            np.testing.assert_array_equal(getattr(fast, part), getattr(plain, part))
+        for part in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(fast.adjacency, part), getattr(plain.adjacency, part))
+        assert skeleton_graph_2d(mask).radii is None

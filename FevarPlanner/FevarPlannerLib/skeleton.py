@@ -45,6 +45,7 @@ from .io import Volume
 __all__ = [
     "clean_mask",
     "skeletonize_2d",
+    "skeleton_2d_box",
     "skeletonize_3d",
     "grid_edges",
     "local_radius",
@@ -497,6 +498,20 @@ def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: i
     numpy.ndarray of bool, same shape as ``mask``.
     """
     binary = as_binary(mask)
+    box, thin = skeleton_2d_box(binary, smooth_sigma=smooth_sigma, downsample=downsample)
+    out = np.zeros(binary.shape, dtype=bool)
+    out[box] = thin
+    return out
+
+
+def skeleton_2d_box(mask: np.ndarray, *, smooth_sigma: float = 1.0,
+                    downsample: int | None = None) -> tuple[tuple[slice, slice], np.ndarray]:
+    """:func:`skeletonize_2d` as ``(box, skeleton inside the box)``; outside ``box`` it is empty.
+
+    The same skeleton without the full-size grid, for callers that only read its pixels (on
+    a 1024 x 1024 frame, writing and scanning the full grid costs about 0.4 ms).
+    """
+    binary = as_binary(mask)
     if binary.ndim != 2:
         raise ValueError(f"skeletonize_2d: expected a 2D mask, got shape {binary.shape}")
     box, crop = _cleaned_crop(binary, int(math.ceil(3 * smooth_sigma)) + 2)
@@ -510,9 +525,7 @@ def skeletonize_2d(mask: np.ndarray, *, smooth_sigma: float = 1.0, downsample: i
     thin = thin_zhang_suen(_drop_small_components(work))
     if step > 1:
         thin = _upsample_skeleton(thin, step, crop.shape)
-    out = np.zeros(binary.shape, dtype=bool)
-    out[box] = thin
-    return out
+    return box, thin
 
 
 def _unrepresented_ridge(mask: np.ndarray, thin: np.ndarray, spacing_kji: np.ndarray) -> int:

@@ -46,6 +46,7 @@ from common import argument_parser, pyplot, save_figure, single_threaded_blas, w
 
 single_threaded_blas()      # before NumPy
 
+import functools  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -90,14 +91,21 @@ def frame_cases(seed: int, second_angle: float):
     return preop, views
 
 
+@functools.cache
+def _timer_users() -> tuple:
+    """The modules of the pipeline package that use its stage timer (found once: a scan of
+    ``sys.modules`` costs about a millisecond, which would land in "other")."""
+    return tuple(module for name, module in sorted(sys.modules.items())
+                 if (name == pipeline.__name__ or name.startswith(pipeline.__name__ + ".")) and hasattr(module, "_timed"))
+
+
 @contextmanager
 def _cpu_stage_timer(cpu: dict):
     """Make the pipeline's stage timer record this process's CPU time into ``cpu`` as well.
 
     The stage timer is patched in every module of the pipeline package that uses it.
     """
-    users = [module for name, module in sorted(sys.modules.items())
-             if (name == pipeline.__name__ or name.startswith(pipeline.__name__ + ".")) and hasattr(module, "_timed")]
+    users = _timer_users()
     wall_timer = pipeline._timed
 
     @contextmanager

@@ -130,18 +130,31 @@ class SkeletonGraph:
         array = np.asarray(skeleton2d)
         if array.ndim != 2:
             raise ValueError(f"2D skeleton must be a 2D array, got shape {array.shape}")
+        return cls.from_image_box((slice(0, array.shape[0]), slice(0, array.shape[1])), array, array.shape,
+                                  pixel_size, prune_triangles=prune_triangles, mask=mask)
+
+    @classmethod
+    def from_image_box(cls, box, skeleton_in_box: np.ndarray, shape, pixel_size: float = 1.0, *,
+                       prune_triangles: bool = True, mask: np.ndarray | None = None) -> "SkeletonGraph":
+        """:meth:`from_image` of a skeleton on a grid of ``shape`` that is empty outside ``box``
+        (slices), given as its part inside ``box`` (``skeleton.skeleton_2d_box``): the same graph,
+        nodes in the same order, without the full grid."""
+        array = np.asarray(skeleton_in_box)
+        shape = tuple(int(n) for n in shape)
         if not pixel_size > 0:
             raise ValueError(f"pixel_size must be positive, got {pixel_size}")
-        indices = np.stack(np.unravel_index(_skeleton.nonzero_linear(array), array.shape), axis=1)
+        start = np.array([b.start for b in box], dtype=np.int64)
+        # C order inside the box is C order on the whole grid: every pixel lies in the box
+        indices = np.stack(np.unravel_index(_skeleton.nonzero_linear(array), array.shape), axis=1) + start
         if len(indices) == 0:
-            raise ValueError(f"2D skeleton of shape {array.shape} is empty (no non-zero pixel)")
+            raise ValueError(f"2D skeleton of shape {shape} is empty (no non-zero pixel)")
         positions = indices[:, ::-1].astype(float)
         radii = None
         if mask is not None:
-            if np.shape(mask) != array.shape:
-                raise ValueError(f"vessel mask of shape {np.shape(mask)} does not match the skeleton's {array.shape}")
+            if np.shape(mask) != shape:
+                raise ValueError(f"vessel mask of shape {np.shape(mask)} does not match the skeleton's {shape}")
             radii = _skeleton.local_radius(mask, indices)
-        return cls._from_grid(indices, array.shape, positions, pixel_size, prune_triangles, radii)
+        return cls._from_grid(indices, shape, positions, pixel_size, prune_triangles, radii)
 
     @classmethod
     def from_points(cls, positions, edges, *, grid_indices=None, unit_mm: float = 1.0) -> "SkeletonGraph":

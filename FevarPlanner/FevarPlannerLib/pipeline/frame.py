@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from .. import baselines, evaluation, graph, matching, skeleton
+from .. import baselines, evaluation, graph, matching
 from ..alignment import MIN_OFFSET_PX, PoseCheck, check_misalignment
 from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
@@ -28,7 +28,7 @@ from .visibility import Visibility, frame_visibility
 
 
 def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
-    return graph.SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), pixel_size=mm_per_pixel, mask=mask)
+    return graph.skeleton_graph_2d(mask, pixel_size=mm_per_pixel, radii=True)
 
 
 def _classify_2d(g2: graph.SkeletonGraph, P: np.ndarray, at: np.ndarray) -> graph.Classification:
