@@ -454,7 +454,7 @@ def local_radius(mask: np.ndarray, indices: np.ndarray, spacing=None) -> np.ndar
     start = np.array([b.start for b in box])
     boundary = _boundary(binary[box])
     edge = np.stack(np.unravel_index(nonzero_linear(boundary), boundary.shape), axis=1) + start
-    tree = cKDTree(edge * spacing)
+    tree = cKDTree(edge * spacing, leafsize=32)      # (any leaf size gives the same nearest distances)
     radii[inside] = tree.query(indices[inside] * spacing)[0] + 0.5 * float(spacing.min())
     return radii
 
