@@ -16,7 +16,7 @@ from FevarPlannerLib.deformation.energy import _build_model
 from FevarPlannerLib.deformation.solve import _BandedPreconditioner
 from FevarPlannerLib.graph import SkeletonGraph, skeleton_graph_2d, smooth_positions
 from FevarPlannerLib.graph.skeleton_graph import _walk_back
-from FevarPlannerLib.pipeline import fallback, multiview
+from FevarPlannerLib.pipeline import fallback
 from FevarPlannerLib.segmentation import fluoro
 from FevarPlannerLib.skeleton import _euler_number_2d, clean_mask, skeleton_2d_box, skeletonize_2d
 from fixtures import carm, drawn_mask, phantom_case, preop_model, random_masks, vessel_tree, y_mask_2d
@@ -162,39 +162,6 @@ def test_plausibility_fits_in_one_query_equal_the_vessel_by_vessel_check():
         assert warnings == plain_warnings
         replaced += len(warnings)
     assert replaced >= 4
-
-
-def test_views_prepared_on_two_threads_register_as_one_after_the_other(monkeypatch):
-    """The views' 2D stages side by side (multiview.map_views) give the serial result to the bit,
-    and an unusable view still leaves a warning in its place."""
-    case = phantom_case("threads", seed=11)
-    preop = preop_model(case)
-    truth = case.intraop.to_centerline()
-    shape = (case.carm.rows, case.carm.cols)
-    turned = case.P_true.copy()            # the C-arm turned 25 degrees about the body axis at the anatomy
-    turned[:, :3] = case.P_true[:, :3] @ _rotation_about_z(np.deg2rad(25.0)).T
-    turned[:, 3] = case.P_true[:, 3] + case.P_true[:, :3] @ preop.centre - turned[:, :3] @ preop.centre
-    frames = [(drawn_mask(truth, case.P_true, shape), case.P_true), (drawn_mask(truth, turned, shape), turned),
-              (np.zeros(shape, dtype=bool), case.P_true)]
-    results = {}
-    for threads in (1, 2):
-        monkeypatch.setattr(multiview, "VIEW_THREADS", threads)
-        results[threads] = pipeline.register_views(preop, frames, names=["ap", "turned", "empty"])
-    serial, threaded = results[1], results[2]
-    np.testing.assert_array_equal(threaded.deformed.points, serial.deformed.points)
-    assert threaded.warnings == serial.warnings and threaded.warnings[0].startswith("view empty not used")
-    assert [v.name for v in threaded.views] == ["ap", "turned"] and threaded.energy == serial.energy
-    assert set(threaded.timings) == set(serial.timings)
-    seen = []
-    monkeypatch.setattr(multiview, "VIEW_THREADS", 2)
-    assert multiview.map_views(lambda item: seen.append(item) or multiview.map_views(str, [item, item]), [1, 2, 3]) == \
-        [["1", "1"], ["2", "2"], ["3", "3"]]
-    assert sorted(seen) == [1, 2, 3]
-
-
-def _rotation_about_z(angle: float) -> np.ndarray:
-    cos, sin = np.cos(angle), np.sin(angle)
-    return np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
 
 
 def test_banded_hessian_summed_by_bincount_equals_np_add_at():

@@ -26,14 +26,8 @@ for both views of the two-view variant, which registers them jointly), timed by 
 timer; the benchmark adds the CPU time beside the wall time of each. Wall time
 (``time.perf_counter``) and CPU time of this process (``time.process_time``) are both
 recorded: the machine is shared with other work, so wall times are noisy and the CPU time
-is the better guide (one BLAS thread). The goals: 33 ms for one view, 66 ms for two.
-
-The two views run twice: one after the other (``multiview.VIEW_THREADS = 1``, the stage
-breakdown) and side by side, the views' masks and their 2D stages (skeleton, graph, pose
-check) on two threads (``VIEW_THREADS = 2``, the pipeline's default). Threads show in wall
-time only (the CPU time adds up both threads), so the threaded variant records the totals;
-``wall_gain_ms`` is the serial minus the threaded median wall time, the two measured in
-alternation so that both see the same load.
+is the better guide (one BLAS thread, no worker threads: CPU time <= wall time). The goals:
+33 ms for one view, 66 ms for two.
 
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame.py --out OUT [--repeats 30]
 
@@ -56,7 +50,6 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from FevarPlannerLib import phantom, pipeline, segmentation  # noqa: E402
-from FevarPlannerLib.pipeline import multiview  # noqa: E402
 from FevarPlannerLib.quality import FluoroPrior  # noqa: E402
 
 STAGES = ("mask", "skeleton2d", "graph2d", "matching", "deformation", "plausibility", "pose", "other")
@@ -126,20 +119,17 @@ def _cpu_stage_timer(cpu: dict):
             module._timed = wall_timer
 
 
-def _mask(preop, view) -> np.ndarray:
-    """The vessel mask of one view's raw frame (the prior projected through its P)."""
-    _, frame, _, P = view
-    return segmentation.segment_fluoro(frame, FluoroPrior.from_centerline(preop.centerline, P))
-
-
-def time_views(preop, views, threads: int = 1) -> tuple[dict, dict, dict]:
-    """One pass of the per-frame path over ``views`` (registered jointly) with ``threads``
-    view threads: ({stage: wall s}, {stage: CPU s}, facts)."""
-    multiview.VIEW_THREADS = threads
-    start = _clock()
-    masks = multiview.map_views(lambda view: _mask(preop, view), views)
-    seconds = _since(start)
-    wall, cpu = {"mask": seconds[0]}, {"mask": seconds[1]}
+def time_views(preop, views) -> tuple[dict, dict, dict]:
+    """One pass of the per-frame path over ``views`` (registered jointly): ({stage: wall s}, {stage: CPU s}, facts)."""
+    wall, cpu = {"mask": 0.0}, {"mask": 0.0}
+    masks = []
+    for _, frame, _, P in views:
+        start = _clock()
+        prior = FluoroPrior.from_centerline(preop.centerline, P)
+        masks.append(segmentation.segment_fluoro(frame, prior))
+        seconds = _since(start)
+        wall["mask"] += seconds[0]
+        cpu["mask"] += seconds[1]
     start = _clock()
     with _cpu_stage_timer(cpu):
         result = pipeline.register_views(preop, [(mask, P) for mask, (_, _, _, P) in zip(masks, views)],
@@ -204,28 +194,7 @@ def summarise(runs: list[tuple[dict, dict, dict]]) -> dict:
             "facts": runs[0][2]}
 
 
-def threaded_comparison(preop, views, repeats: int) -> dict:
-    """Two views one after the other and on two view threads, in alternation: median totals."""
-    serial, threaded = [], []
-    time_views(preop, views, threads=2)        # warm-up: the pool's threads
-    for _ in range(repeats):
-        serial.append(time_views(preop, views, threads=1))
-        threaded.append(time_views(preop, views, threads=2))
-    multiview.VIEW_THREADS = 2
-
-    def totals(runs, which, statistic=np.median):
-        return 1e3 * float(statistic([sum(run[which].values()) for run in runs]))
-
-    # the fastest run is the one least disturbed by the machine's other work
-    out = {name: {"wall_ms": totals(runs, 0), "cpu_ms": totals(runs, 1), "fastest_wall_ms": totals(runs, 0, np.min)}
-           for name, runs in (("serial", serial), ("two_threads", threaded))}
-    out["wall_gain_ms"] = out["serial"]["wall_ms"] - out["two_threads"]["wall_ms"]
-    same = all(run[2]["result_sum"] == serial[0][2]["result_sum"] for run in serial + threaded)
-    out["same_result"] = bool(same)
-    return out
-
-
-def plot(path: Path, per_view: dict, two_views: dict, threads: dict) -> None:
+def plot(path: Path, per_view: dict, two_views: dict) -> None:
     plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
     bars = per_view | {"two views (joint)": two_views}
@@ -239,15 +208,13 @@ def plot(path: Path, per_view: dict, two_views: dict, threads: dict) -> None:
     axes[0].set_xticks(x, STAGES, rotation=20)
     axes[0].set(ylabel="median CPU time per frame (ms)", title="per-frame stages, 1024 x 1024 raw frame")
     axes[0].legend(fontsize=8)
-    labels = ["one view", "two views", "two views\n(alternating)", "two views,\n2 threads"]
-    totals = [per_view[names[0]]["cpu_ms"]["total"], two_views["cpu_ms"]["total"],
-              threads["serial"]["cpu_ms"], threads["two_threads"]["cpu_ms"]]
-    walls = [per_view[names[0]]["wall_ms"]["total"], two_views["wall_ms"]["total"],
-             threads["serial"]["wall_ms"], threads["two_threads"]["wall_ms"]]
-    xs = np.arange(len(labels))
-    axes[1].bar(xs - 0.2, totals, 0.4, label="CPU (both threads)")
+    labels = ["one view", "two views"]
+    totals = [per_view[names[0]]["cpu_ms"]["total"], two_views["cpu_ms"]["total"]]
+    walls = [per_view[names[0]]["wall_ms"]["total"], two_views["wall_ms"]["total"]]
+    xs = np.arange(2)
+    axes[1].bar(xs - 0.2, totals, 0.4, label="CPU")
     axes[1].bar(xs + 0.2, walls, 0.4, label="wall (shared machine: noisy)", color="tab:gray")
-    for xi, goal in zip(xs, (GOALS_MS["one_view"],) + (GOALS_MS["two_views"],) * 3):
+    for xi, goal in zip(xs, (GOALS_MS["one_view"], GOALS_MS["two_views"])):
         axes[1].hlines(goal, xi - 0.45, xi + 0.45, colors="k", linestyles="--")
     axes[1].set_xticks(xs, labels)
     axes[1].set(ylabel="median per-frame time (ms)", title="total against the goal (dashed)")
@@ -267,18 +234,14 @@ def main() -> None:
     runs = {}
     for name, chosen in [(view[0], [view]) for view in views] + [("two views", views)]:
         time_views(preop, chosen)     # warm-up: imports, caches
-        runs[name] = summarise([time_views(preop, chosen) for _ in range(args.repeats)])     # one thread
+        runs[name] = summarise([time_views(preop, chosen) for _ in range(args.repeats)])
         print(name, {k: round(v, 2) for k, v in runs[name]["cpu_ms"].items()}, "CPU ms;",
               f"wall total {runs[name]['wall_ms']['total']:.1f} ms", flush=True)
     per_view = {k: v for k, v in runs.items() if k != "two views"}
     two = runs["two views"]
-    threads = threaded_comparison(preop, views, args.repeats)
-    print("two views, serial against 2 view threads:", threads, flush=True)
     payload = {"frame_shape": [FRAME_SIZE, FRAME_SIZE], "repeats": args.repeats, "seed": args.seed,
                "goals_ms": GOALS_MS, "nodes_3d": len(preop.centerline), "views": per_view, "two_views": two,
-               "two_views_how": "pipeline.register_views on both frames (one joint deformation), two masks; "
-                                "stages one view after the other (VIEW_THREADS = 1)",
-               "two_views_threads": threads,
+               "two_views_how": "pipeline.register_views on both frames (one joint deformation), two masks",
                "note": "medians over repeats; CPU time = time.process_time of this process (one BLAS thread); "
                        "wall times are noisy on the shared 2-core machine"}
     if not args.no_breakdown:
@@ -287,7 +250,7 @@ def main() -> None:
         payload["mask_profile"] = profile_mask(preop, frame, P, max(5, args.repeats // 3))
         print(payload["mask_breakdown"], *payload["mask_profile"], sep="\n")
     write_report(args.out, "bench_frame", payload)
-    plot(args.out / "bench_frame.png", per_view, two, threads)
+    plot(args.out / "bench_frame.png", per_view, two)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
 from .frame import register_views
-from .multiview import map_views
 from .outputs import _write_failure_qc, check_output_folder, write_outputs
 from .results import PlanResult, ViewFrame
 
@@ -56,13 +55,6 @@ def _vessel_mask(frame, progress=None, prior=None) -> np.ndarray:
 
     _report(progress, 0.4, "segmenting vessels in the frame")
     return segmentation.segment_fluoro(frame.fluoro.image, prior)
-
-
-def _blamed_mask(view_and_prior) -> np.ndarray:
-    """:func:`_vessel_mask` of one view, its errors naming the view's frame file."""
-    view, prior = view_and_prior
-    with _blamed_on(_view_frame_path(view)):
-        return _vessel_mask(view, None, prior)
 
 
 def _case_views(case: Case) -> list[View]:
@@ -132,10 +124,11 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     qc = quality.QCData(case.ct, lumen, views[0].fluoro.image, None, priors[0])
     with _blamed_on(case.paths.get(case.stage_3d)):
         quality.check_preop_tree(preop.centerline, lumen, qc)     # before registering: both sides
+    masks = []
     with _timed(timings, "segmentation2d"):
-        if any(view.fluoro_mask is None for view in views):
-            _report(progress, 0.4, "segmenting vessels in the frame")
-        masks = map_views(_blamed_mask, zip(views, priors))         # side by side: no progress from threads
+        for view, prior in zip(views, priors):
+            with _blamed_on(_view_frame_path(view)):
+                masks.append(_vessel_mask(view, progress, prior))
     qc.mask2d = masks[0]
     for view, mask, prior in zip(views, masks, priors):
         try:

@@ -21,8 +21,7 @@ from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
 from .fallback import _never_worse_than_sv
-from .multiview import (CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with,
-                        map_views)
+from .multiview import CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with
 from .results import FrameResult, METHODS, ViewFrame
 from .visibility import Visibility, frame_visibility
 
@@ -332,35 +331,16 @@ def _with_unclassified_views(preop, views, combo, deformed, alpha, beta):
     return deformed, energy, full
 
 
-def _prepare_views(preop, frames, names, images, method, refine_pose, timings) -> list:
-    """:func:`_prepare_view` of every view (side by side: :func:`map_views`), in order; a
-    ValueError in its place for a view that cannot be used. Stage times add up in ``timings``."""
-    def prepare(view):
-        (mask2d, P), name, image = view
-        own = {}
-        try:
-            return _prepare_view(preop, mask2d, P, name, image, method, refine_pose, own), own
-        except ValueError as exc:
-            return exc, own
-
-    prepared = []
-    for view, own in map_views(prepare, zip(frames, names, images)):
-        for stage, seconds in own.items():
-            timings[stage] = timings.get(stage, 0.0) + seconds
-        prepared.append(view)
-    return prepared
-
-
 def _register_views(preop, frames, names, images, method, refine_pose, alpha, beta) -> FrameResult:
     timings = {}
     views, warnings, failures = [], [], []
-    for view, name in zip(_prepare_views(preop, frames, names, images, method, refine_pose, timings), names):
-        if isinstance(view, ValueError):
+    for (mask2d, P), name, image in zip(frames, names, images):
+        try:
+            views.append(_prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings))
+        except ValueError as exc:
             # one unreadable view (vessels overlapping at a steep angle) must not sink the others
-            failures.append(view)
-            warnings.append(f"view {name} not used: {view}")
-        else:
-            views.append(view)
+            failures.append(exc)
+            warnings.append(f"view {name} not used: {exc}")
     if not views:
         raise ValueError(f"view {names[0]}: {failures[0]}" if len(frames) > 1 else str(failures[0])) from failures[0]
     warnings += [w for w in map(_pose_warning, views) if w]

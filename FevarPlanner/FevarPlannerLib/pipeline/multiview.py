@@ -5,10 +5,6 @@ rigidly, and the combinations of per-view candidate correspondences.
 
 from __future__ import annotations
 
-import functools
-import threading
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import scipy.sparse
 from scipy.sparse import csgraph
@@ -23,31 +19,6 @@ from ..projection import pixels_per_mm, project
 MAX_CANDIDATE_COMBINATIONS = 16
 #: Length (mm) of the seen vessel next to an unseen piece whose direction that piece keeps.
 TANGENT_MM = 15.0
-#: Threads on which the views' independent 2D stages (mask, skeleton, graph, pose check) run
-#: side by side; 1 runs them one after the other. Much of that work is NumPy, SciPy and
-#: scikit-image kernels that let go of the GIL: sampled with py-spy on a 1024 x 1024 frame,
-#: the vessel mask holds it 26 % of its time, the skeleton, graph and pose check 52 %
-#: (Testing/benchmarks/bench_frame.py times both ways). The results are the same.
-VIEW_THREADS = 2
-_POOL_PREFIX = "fevar-view"
-
-
-@functools.cache
-def _view_pool(threads: int) -> ThreadPoolExecutor:
-    """One pool per thread count, kept for the process (starting threads per frame costs)."""
-    return ThreadPoolExecutor(threads, thread_name_prefix=_POOL_PREFIX)
-
-
-def map_views(function, items) -> list:
-    """``[function(item) for item in items]``, on :data:`VIEW_THREADS` threads when several.
-
-    The results come in the order of ``items``; an exception of ``function`` is raised here.
-    """
-    items = list(items)
-    nested = threading.current_thread().name.startswith(_POOL_PREFIX)     # a view's work waiting on views: no pool
-    if VIEW_THREADS <= 1 or len(items) < 2 or nested:
-        return [function(item) for item in items]
-    return list(_view_pool(VIEW_THREADS).map(function, items))
 
 
 def _carry_unseen(preop: Preoperative, moved: np.ndarray, assigned: np.ndarray, visible: list) -> np.ndarray:
