@@ -192,7 +192,7 @@ class SkeletonGraph:
         adjacency = sp.csr_matrix((weights, self.adjacency.indices.copy(), self.adjacency.indptr.copy()),
                                   shape=self.adjacency.shape)
         return SkeletonGraph._canonical(positions, adjacency, self.grid_indices, self.unit_mm, self.radii,
-                                        self.degrees)
+                                        self.degrees.copy())
 
     @classmethod
     def _canonical(cls, positions, adjacency, grid_indices, unit_mm, radii, degrees) -> "SkeletonGraph":
