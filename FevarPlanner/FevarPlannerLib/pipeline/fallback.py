@@ -55,14 +55,19 @@ def _fit_px(points: np.ndarray, nodes: np.ndarray, views: list, kept: np.ndarray
 
 def _fits_px(points: np.ndarray, node_sets: list, views: list, kept: np.ndarray) -> list:
     """:func:`_fit_px` of each of several node sets, with one skeleton query per view."""
-    fits = [[] for _ in node_sets]
+    return _fits_of([(points, nodes) for nodes in node_sets], views, kept)
+
+
+def _fits_of(sets: list, views: list, kept: np.ndarray) -> list:
+    """:func:`_fit_px` of each ``(points, nodes)`` of ``sets``, with one skeleton query per view."""
+    fits = [[] for _ in sets]
     for v in views:
-        shown = [nodes[v.visible[kept[nodes]]] for nodes in node_sets]
-        uv = [project(v.P, points[nodes]) for nodes in shown if len(nodes)]
+        shown = [(points, nodes[v.visible[kept[nodes]]]) for points, nodes in sets]
+        uv = [project(v.P, points[nodes]) for points, nodes in shown if len(nodes)]
         if not uv:
             continue
         distances = iter(np.split(v.skeleton_index.distances(np.concatenate(uv)), np.cumsum([len(u) for u in uv])[:-1]))
-        for fit, nodes in zip(fits, shown):
+        for fit, (_, nodes) in zip(fits, shown):
             if len(nodes):
                 fit.append(next(distances).mean())
     return [float(np.mean(fit)) if fit else 0.0 for fit in fits]
@@ -120,9 +125,10 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
     vessels = [v for v in _vessels(preop.centerline) if v.label != "other"]
     vessels.sort(key=lambda v: v.label != "aorta")
     result, warnings = result.copy(), []
-    sv_fits = _fits_px(sv, [vessel.nodes for vessel in vessels], views, preop.kept)
-    # the fits of the vessels still to judge on ``result``, one query per view while it stays
-    fits = _fits_px(result, [vessel.nodes for vessel in vessels], views, preop.kept)
+    # SV's fits and those of the vessels still to judge on ``result``: one query per view while it stays
+    both = _fits_of([(sv, vessel.nodes) for vessel in vessels] + [(result, vessel.nodes) for vessel in vessels],
+                    views, preop.kept)
+    sv_fits, fits = both[:len(vessels)], both[len(vessels):]
     for k, (vessel, sv_fit) in enumerate(zip(vessels, sv_fits)):
         if fits is None:
             fits = [None] * k + _fits_px(result, [v.nodes for v in vessels[k:]], views, preop.kept)
