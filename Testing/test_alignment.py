@@ -346,3 +346,20 @@ def test_a_turn_of_the_papers_range_is_accepted():
     coarse = {name: _rigid((3.0, 0.0), 40.0)(uv) for name, uv in regions.items()}
     check = alignment.check_misalignment(regions, frame, P, targets=coarse, reference="upper_aorta", force=True)
     assert not check.applied and "failed fit" in check.why
+
+
+def test_an_upper_aorta_longer_than_the_frames_is_fitted_where_they_overlap(monkeypatch):
+    """The CT shows 40 px more upper aorta than the frame (its top is cut off), the frame is
+    off by 2.5 deg: the points beyond the frame's top end meet its end sample, not the vessel,
+    and get no weight. The turn is within 0.5 deg (0.15-0.47 on seeds 27-29, 40); counting
+    them it is 0.7-1.3 deg off."""
+    motion = _rigid((3.0, -5.0), 2.5, centre=(320.0, 320.0))
+    rng = np.random.default_rng(27)
+    regions, frame = _stable_frame(rng, motion)
+    keep = np.ones(len(frame), bool)
+    keep[:40] = False                                   # the upper aorta's 40 top samples
+    check = alignment.check_misalignment(regions, frame[keep], P, reference="upper_aorta")
+    assert check.applied and check.rotation_deg == pytest.approx(2.5, abs=0.5)
+    monkeypatch.setattr(alignment, "_within_curve", lambda offset, normals, weights: np.ones(len(offset)))
+    counted = alignment.check_misalignment(regions, frame[keep], P, reference="upper_aorta")
+    assert abs(counted.rotation_deg - 2.5) > 0.6 > 2.0 * abs(check.rotation_deg - 2.5)

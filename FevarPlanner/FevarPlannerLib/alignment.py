@@ -250,12 +250,11 @@ def _unbent_reference(moved: np.ndarray, pivot: np.ndarray, curve, tree, normals
         n = normals[nearest]
         offset = placed - curve[nearest]
         residual = np.einsum("ij,ij->i", n, offset)
-        # a point beyond an end of the frame's curve meets it at its end, not across it: no weight
-        inside = np.abs(offset[:, 0] * n[:, 1] - offset[:, 1] * n[:, 0]) <= CURVE_END_PX
         arm = placed - pivot - cross * across
         jacobian = np.column_stack([n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1], n @ across,
                                     (n @ (rotation @ across)) * s])
-        w = np.sqrt(_huber_weights(residual) * inside)
+        w = _huber_weights(residual)
+        w = np.sqrt(w * _within_curve(offset, n, w))
         step = np.linalg.lstsq(jacobian * w[:, None], -residual * w, rcond=None)[0]
         theta, cross, kappa = theta + step[0], cross + step[1], kappa + step[2]
         if np.abs(step).max() < BEND_SETTLED:
@@ -263,6 +262,18 @@ def _unbent_reference(moved: np.ndarray, pivot: np.ndarray, curve, tree, normals
     if not abs(kappa) >= min_bend_px:
         return None
     return (moved - pivot) @ _rotation(theta).T + pivot + cross * across, placed
+
+
+def _within_curve(offset: np.ndarray, normals: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """1 for points that meet the frame's curve across it, 0 for points beyond one of its ends.
+
+    ``offset``: each point minus its nearest curve sample; ``normals`` there. A point past an
+    end (a reference slid along a straight vessel, an upper aorta longer in the CT than in
+    the frame) meets the end sample at a distance along the curve: its distance across says
+    nothing about the pose. Every point counts when fewer than three weighted ones are left.
+    """
+    inside = np.abs(offset[:, 0] * normals[:, 1] - offset[:, 1] * normals[:, 0]) <= CURVE_END_PX
+    return inside if np.count_nonzero(inside & (weights > 0)) >= 3 else np.ones(len(offset))
 
 
 def _rotation(theta: float) -> np.ndarray:
@@ -477,11 +488,14 @@ def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals, free=None) 
     for _ in range(ICP_ITERATIONS):
         _, nearest = tree.query(moved)
         n = normals[nearest]
-        residual = np.einsum("ij,ij->i", n, moved - curve_uv[nearest])
+        offset = moved - curve_uv[nearest]
+        residual = np.einsum("ij,ij->i", n, offset)
         centre = moved.mean(axis=0)
         arm = moved - centre
         jacobian = np.column_stack([n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1], n])
         w = _huber_weights(residual)
+        if free is not None:
+            w = w * _within_curve(offset, n, w)
         step = np.linalg.lstsq(jacobian * np.sqrt(w)[:, None], -residual * np.sqrt(w), rcond=None)[0]
         c, s = np.cos(step[0]), np.sin(step[0])
         new = arm @ np.array([[c, -s], [s, c]]).T + centre + step[1:]
