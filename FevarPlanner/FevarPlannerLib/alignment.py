@@ -13,7 +13,12 @@ ostia only by a few millimetres (as much as a misalignment of a few pixels). A m
 across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
 straight vessel cannot show) on the renal ostia, and the correction is applied only when
 the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
-read as deformation and ``P`` is kept.
+read as deformation and ``P`` is kept. Two refinements keep the upper aorta's short lever
+(about 130 px in an abdominal frame, about 1.2 mm of 3D error per degree) from being misread:
+a bend of the upper aorta about the renal level (the wire's, or the patient's breathing) is
+fitted beside the rigid motion, so that half the bend is not taken for a turn of the frame;
+and its points beyond the ends of the frame's vessels (an upper aorta that the CT shows
+further up than the frame) get no weight.
 """
 
 from __future__ import annotations
