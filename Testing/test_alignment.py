@@ -264,76 +264,7 @@ def test_renals_the_wire_moved_against_the_misalignment_do_not_veto_it():
     assert not joint.applied
 
 
-# ---------------------------------------------------------------- an upper aorta the wire bent (issue 10)
-
-def _bent(kappa_px, top=100.0, pivot=260.0):
-    """A bend of the upper aorta about the renal level (v = ``pivot``): each point moves across
-    it (along u) by ``kappa_px ((pivot - v) / (pivot - top))^2``, nothing at the renals,
-    ``kappa_px`` at its top; the renals stay."""
-    def bend(uv):
-        uv = uv.copy()
-        above = uv[:, 1] < pivot
-        uv[above, 0] += kappa_px * ((pivot - uv[above, 1]) / (pivot - top)) ** 2
-        return uv
-    return bend
-
-
-def _bent_and_misaligned(seed, kappa_px, motion):
-    """Stable regions and a frame whose upper aorta is bent by ``kappa_px`` (its renals are not)
-    and then moved by ``motion`` (the misalignment)."""
-    rng = np.random.default_rng(seed)
-    regions, _ = _stable_frame(rng)
-    clean, _ = _stable_frame(rng, noise=0.0)
-    curves = [np.column_stack([300.0 + 6.0 * np.sin(np.linspace(0, 2, 160)), np.linspace(100.0, 260.0, 160)]),
-              np.column_stack([np.linspace(302.0, 360.0, 60), 250.0 + 0.1 * np.linspace(0.0, 58.0, 60) ** 1.3]),
-              np.column_stack([np.linspace(238.0, 298.0, 60), 240.0 + 0.004 * np.linspace(60.0, 0.0, 60) ** 2])]
-    curves[0] = _bent(kappa_px)(curves[0])
-    frame = np.concatenate([motion(c) + rng.normal(scale=0.2, size=c.shape) for c in curves])
-    return regions, frame
-
-
-@pytest.mark.parametrize("seed", [20, 21, 22])
-def test_a_bent_upper_aorta_is_not_read_as_a_turn(seed):
-    """The wire bent the upper aorta 8 px at its top about the renal level, and the frame is
-    off by 2 deg and (4, 6) px. The rigid fit of the upper aorta alone reads about half the
-    bend as a turn (1.4 deg too far); fitted with the bend it is within 0.5 deg (the bend's
-    extra freedom makes the turn noisier: 0.2 px of frame noise moves it by up to 0.4 deg),
-    and the upper aorta's offset across it within 1 px at the renals."""
-    motion = _rigid((4.0, 6.0), 2.0, centre=(320.0, 320.0))
-    regions, frame = _bent_and_misaligned(seed, 8.0, motion)
-    check = alignment.check_misalignment(regions, frame, P, reference="upper_aorta")
-    assert check.applied, check.why
-    assert check.rotation_deg == pytest.approx(2.0, abs=0.5)
-    renal_end = regions["upper_aorta"][regions["upper_aorta"][:, 1] > 230.0]
-    assert np.abs((_corrected_uv(check, renal_end) - motion(renal_end))[:, 0]).mean() < 1.0
-    rigid = alignment.check_misalignment(regions, frame, P, reference="upper_aorta", min_offset_px=np.inf, force=True)
-    assert abs(rigid.rotation_deg - 2.0) > 1.0          # no bend refit (its threshold out of reach)
-    assert abs(check.rotation_deg - 2.0) < 0.5 * abs(rigid.rotation_deg - 2.0)
-
-
-def test_a_bend_alone_leaves_p():
-    """Only the bend (8 px at the top), the frame aligned: deformation, P kept; the rigid reading
-    would have turned the frame by about a degree and a half."""
-    regions, frame = _bent_and_misaligned(23, 8.0, lambda uv: uv)
-    check = alignment.check_misalignment(regions, frame, P, reference="upper_aorta")
-    assert not check.applied and np.array_equal(check.P, P)
-    assert abs(check.rotation_deg) < 0.5 and check.offset_px < 1.0
-    rigid = alignment.check_misalignment(regions, frame, P, reference="upper_aorta", min_offset_px=np.inf, force=True)
-    assert abs(rigid.rotation_deg) > 1.0
-
-
-def test_a_small_bend_keeps_the_rigid_fit():
-    """A bend below MIN_OFFSET_PX at the top (1 px) is skeleton noise: the rigid fit stands, bit for bit."""
-    motion = _rigid((4.0, 6.0), 2.0, centre=(320.0, 320.0))
-    regions, frame = _bent_and_misaligned(24, 1.0, motion)
-    check = alignment.check_misalignment(regions, frame, P, reference="upper_aorta")
-    assert check.applied and check.rotation_deg == pytest.approx(2.0, abs=0.3)
-    rigid = alignment.check_misalignment(regions, frame, P, reference="upper_aorta", min_offset_px=np.inf, force=True)
-    np.testing.assert_array_equal(check.P, rigid.P)
-    bent = alignment.check_misalignment(*_bent_and_misaligned(24, 4.0, motion), P, reference="upper_aorta")
-    assert bent.applied and not np.array_equal(bent.P, alignment.check_misalignment(
-        *_bent_and_misaligned(24, 4.0, motion), P, reference="upper_aorta", min_offset_px=np.inf, force=True).P)
-
+# ---------------------------------------------------------------- the upper aorta's short lever (issue 10)
 
 def test_a_turn_of_the_papers_range_is_accepted():
     """The paper's robustness sweep turns the frame by up to 30 deg: a 32 deg fit is a correction,
@@ -348,18 +279,24 @@ def test_a_turn_of_the_papers_range_is_accepted():
     assert not check.applied and "failed fit" in check.why
 
 
+def _turn_errors(seeds, motion, degrees):
+    """|fitted - true| turn (deg) of a frame whose upper aorta lacks its 40 top samples."""
+    errors = []
+    for seed in seeds:
+        regions, frame = _stable_frame(np.random.default_rng(seed), motion)
+        check = alignment.check_misalignment(regions, frame[40:], P, reference="upper_aorta", force=True)
+        errors.append(abs(check.rotation_deg - degrees))
+    return np.array(errors)
+
+
 def test_an_upper_aorta_longer_than_the_frames_is_fitted_where_they_overlap(monkeypatch):
     """The CT shows 40 px more upper aorta than the frame (its top is cut off), the frame is
     off by 2.5 deg: the points beyond the frame's top end meet its end sample, not the vessel,
-    and get no weight. The turn is within 0.5 deg (0.15-0.47 on seeds 27-29, 40); counting
-    them it is 0.7-1.3 deg off."""
+    and get no weight. The turn is off by 0.31 deg on average (seeds 27-29, 40; at most 0.47);
+    counting those points, by 0.59 (0.47-0.75)."""
     motion = _rigid((3.0, -5.0), 2.5, centre=(320.0, 320.0))
-    rng = np.random.default_rng(27)
-    regions, frame = _stable_frame(rng, motion)
-    keep = np.ones(len(frame), bool)
-    keep[:40] = False                                   # the upper aorta's 40 top samples
-    check = alignment.check_misalignment(regions, frame[keep], P, reference="upper_aorta")
-    assert check.applied and check.rotation_deg == pytest.approx(2.5, abs=0.5)
+    seeds = (27, 28, 29, 40)
+    weighted = _turn_errors(seeds, motion, 2.5)
     monkeypatch.setattr(alignment, "_within_curve", lambda offset, normals, weights: np.ones(len(offset)))
-    counted = alignment.check_misalignment(regions, frame[keep], P, reference="upper_aorta")
-    assert abs(counted.rotation_deg - 2.5) > 0.6 > 2.0 * abs(check.rotation_deg - 2.5)
+    counted = _turn_errors(seeds, motion, 2.5)
+    assert weighted.mean() < 0.4 < 0.5 < counted.mean() and weighted.max() < 0.5

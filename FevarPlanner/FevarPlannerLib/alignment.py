@@ -13,12 +13,10 @@ ostia only by a few millimetres (as much as a misalignment of a few pixels). A m
 across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
 straight vessel cannot show) on the renal ostia, and the correction is applied only when
 the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
-read as deformation and ``P`` is kept. Two refinements keep the upper aorta's short lever
-(about 130 px in an abdominal frame, about 1.2 mm of 3D error per degree) from being misread:
-a bend of the upper aorta about the renal level (the wire's, or the patient's breathing) is
-fitted beside the rigid motion, so that half the bend is not taken for a turn of the frame;
-and its points beyond the ends of the frame's vessels (an upper aorta that the CT shows
-further up than the frame) get no weight.
+read as deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
+abdominal frame, about 1.2 mm of 3D error per degree of turn), so its points beyond the ends
+of the frame's vessels (an upper aorta that the CT shows further up than the frame, or that
+slid along itself in the fit) get no weight: they meet the curve's end sample, not the vessel.
 """
 
 from __future__ import annotations
@@ -155,7 +153,7 @@ def _distances(tree, uv: np.ndarray) -> np.ndarray:
     return np.minimum(tree.query(uv)[0], DISTANCE_CAP_PX)
 
 
-def _stable_regions_fit(source, regions, curve, P, starts, tree, reference, min_bend_px=None):
+def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     """The in-plane rigid fit of the stable points, the reference region first.
 
     With the reference region (the upper aorta, which a wire does not move) in the frame,
@@ -163,127 +161,32 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference, min_
     start, the one leaving it nearest to the curve); the offset along it, which a nearly
     straight vessel cannot show, is then taken from the other regions
     (:func:`_along_reference_shift`): their ostia may have moved with the wire, so they
-    decide only what the reference leaves open. A wire may also bend the reference about its
-    end next to the other regions (the upper aorta about the renal level): when a bend moves
-    its far end by ``min_bend_px`` or more, the turn and cross offset are those of that end
-    (:func:`_unbent_reference`), not the rigid fit's, which would read half the bend as a turn.
-    Without a usable reference all regions are fitted at once. Returns the fit of ``source``
-    (all regions, in order) and where the fit and any bend of the reference put them (the
-    reference's bend is deformation: the decision measures what is left after it).
+    decide only what the reference leaves open. Without a usable reference all regions are
+    fitted at once. Returns the fit of ``source`` (all regions, in order).
     """
     normals = _curve_normals(curve, tree)
     names = list(regions)
     bounds = np.cumsum([0] + [len(regions[name]) for name in names])
     if reference not in regions or len(regions[reference]) < MIN_REFERENCE_POINTS:
         fits = [_closest_point_fit(source, curve, P, start, tree, normals) for start in starts]
-        best = min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
-        return best, best.moved
+        return min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
     k = names.index(reference)
     own = slice(bounds[k], bounds[k + 1])
     along = _principal_direction(source[own])
     fits = [_closest_point_fit(source[own], curve, P, None if start is None else _restricted(start, own), tree, normals,
                                free=along) for start in starts]
     best = min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
+    moved = _apply_rigid(source, source[own], best.moved)
     others = np.ones(len(source), bool)
     others[own] = False
-    moved = _along_shifted(source, own, others, best.moved, curve, tree, normals)
-    explained = moved
-    if np.any(others):
-        unbent = _unbent_reference(moved[own], _pivot_end(moved[own], moved[others]), curve, tree, normals, min_bend_px)
-        if unbent is not None:
-            rigid, bent = unbent
-            moved = _along_shifted(source, own, others, rigid, curve, tree, normals)
-            explained = moved.copy()
-            explained[own] += bent - rigid
-    return fit_in_plane_rigid(source, moved, P), explained
-
-
-def _along_shifted(source, own, others, reference_moved, curve, tree, normals) -> np.ndarray:
-    """``source`` moved by the rigid motion of the reference (rows ``own``) to ``reference_moved``,
-    then along the reference's course by the shift that brings the other regions nearest to
-    the curve (:func:`_along_reference_shift`; none with fewer than three other points)."""
-    moved = _apply_rigid(source, source[own], reference_moved)
     if np.count_nonzero(others) >= 3:
-        direction = _principal_direction(reference_moved)
+        direction = _principal_direction(best.moved)
         moved = moved + _along_reference_shift(moved[others], direction, curve, tree, normals) * direction
-    return moved
+    return fit_in_plane_rigid(source, moved, P)
 
 
 #: The reference region needs this many points in the frame to fix the rotation on its own.
 MIN_REFERENCE_POINTS = 10
-#: Gauss-Newton passes of the bent reference fit and the step (rad, px) that ends them.
-BEND_ITERATIONS = 30
-BEND_SETTLED = 1e-5
-#: A point meeting the frame's curve this far (px) along it from its nearest sample lies beyond
-#: the curve's end (the samples are about a pixel apart).
-CURVE_END_PX = 1.5
-
-
-def _pivot_end(reference_uv: np.ndarray, others_uv: np.ndarray) -> np.ndarray:
-    """The end of the reference (along its course) nearest to the other regions: its pivot."""
-    direction = _principal_direction(reference_uv)
-    along = (reference_uv - reference_uv.mean(axis=0)) @ direction
-    ends = reference_uv[[int(np.argmin(along)), int(np.argmax(along))]]
-    return ends[int(np.argmin(np.linalg.norm(ends - others_uv.mean(axis=0), axis=1)))]
-
-
-def _unbent_reference(moved: np.ndarray, pivot: np.ndarray, curve, tree, normals, min_bend_px) -> tuple | None:
-    """The reference ``moved`` (rigidly fitted) refitted as rigid motion plus a bend about ``pivot``.
-
-    The bend displaces a point across the vessel by ``kappa (s / L)^2``, ``s`` its distance
-    along the vessel from the pivot, ``L`` the vessel's length: nothing at the pivot, where
-    the vessel keeps its direction, ``kappa`` px at the far end. Point-to-line Gauss-Newton
-    on the rotation, the offset across the vessel and ``kappa`` (Huber weights), from the rigid
-    fit; the offset along it stays (the other regions give it).
-    Returns the points moved by the rigid part alone and by rigid part and bend, or None when
-    the bend is below ``min_bend_px`` (then the rigid fit stands: a bend that small is noise
-    of the skeletons).
-    """
-    if min_bend_px is None:
-        return None
-    direction = _principal_direction(moved)
-    if (moved.mean(axis=0) - pivot) @ direction < 0:
-        direction = -direction
-    across = np.array([-direction[1], direction[0]])
-    s = (moved - pivot) @ direction
-    s = (np.maximum(s, 0.0) / max(float(s.max()), 1e-9)) ** 2
-    theta, cross, kappa = 0.0, 0.0, 0.0
-    for _ in range(BEND_ITERATIONS):
-        rotation = _rotation(theta)
-        placed = (moved - pivot + kappa * np.outer(s, across)) @ rotation.T + pivot + cross * across
-        _, nearest = tree.query(placed)
-        n = normals[nearest]
-        offset = placed - curve[nearest]
-        residual = np.einsum("ij,ij->i", n, offset)
-        arm = placed - pivot - cross * across
-        jacobian = np.column_stack([n[:, 1] * arm[:, 0] - n[:, 0] * arm[:, 1], n @ across,
-                                    (n @ (rotation @ across)) * s])
-        w = _huber_weights(residual)
-        w = np.sqrt(w * _within_curve(offset, n, w))
-        step = np.linalg.lstsq(jacobian * w[:, None], -residual * w, rcond=None)[0]
-        theta, cross, kappa = theta + step[0], cross + step[1], kappa + step[2]
-        if np.abs(step).max() < BEND_SETTLED:
-            break
-    if not abs(kappa) >= min_bend_px:
-        return None
-    return (moved - pivot) @ _rotation(theta).T + pivot + cross * across, placed
-
-
-def _within_curve(offset: np.ndarray, normals: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """1 for points that meet the frame's curve across it, 0 for points beyond one of its ends.
-
-    ``offset``: each point minus its nearest curve sample; ``normals`` there. A point past an
-    end (a reference slid along a straight vessel, an upper aorta longer in the CT than in
-    the frame) meets the end sample at a distance along the curve: its distance across says
-    nothing about the pose. Every point counts when fewer than three weighted ones are left.
-    """
-    inside = np.abs(offset[:, 0] * normals[:, 1] - offset[:, 1] * normals[:, 0]) <= CURVE_END_PX
-    return inside if np.count_nonzero(inside & (weights > 0)) >= 3 else np.ones(len(offset))
-
-
-def _rotation(theta: float) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    return np.array([[c, -s], [s, c]])
 
 
 def _restricted(fit: PoseRefinement, rows: slice) -> PoseRefinement:
@@ -383,8 +286,8 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         coarse = robust_fit_in_plane_rigid(source, np.concatenate([targets[name] for name in regions]), P)
         if abs(coarse.rotation_deg) <= MAX_ROTATION_DEG:
             starts.append(coarse)
-    fit, explained = _stable_regions_fit(source, regions, curve_uv, P, starts, tree, reference, min_offset_px)
-    before, after = _distances(tree, source), _distances(tree, explained)
+    fit = _stable_regions_fit(source, regions, curve_uv, P, starts, tree, reference)
+    before, after = _distances(tree, source), _distances(tree, fit.moved)
     offset = float(np.linalg.norm(fit.moved - source, axis=1).mean())
     bounds = np.cumsum([0] + [len(uv) for uv in regions.values()])
     per_region = {name: (float(before[i:j].mean()), float(after[i:j].mean()))
@@ -434,6 +337,9 @@ def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool
                   f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
 
 
+#: A point meeting the frame's curve this far (px) along it from its nearest sample lies beyond
+#: the curve's end (the samples of a 2D skeleton are 1 to 1.4 px apart).
+CURVE_END_PX = 1.5
 #: Closest-point passes of :func:`closest_point_rigid` and the change (px) that ends them.
 ICP_ITERATIONS = 50
 ICP_SETTLED_PX = 1e-3
@@ -487,7 +393,8 @@ def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals, free=None) 
 
     ``free``: a unit direction whose motion does not count towards settling (the course of a
     straight reference vessel, along which the points may slide for many passes while the fit
-    itself has settled; the offset along it is found elsewhere).
+    itself has settled; the offset along it is found elsewhere). Points of such a reference
+    beyond the curve's ends get no weight (:func:`_within_curve`).
     """
     moved = source_uv.copy() if start is None else np.asarray(start.moved, float).copy()
     for _ in range(ICP_ITERATIONS):
@@ -512,3 +419,15 @@ def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals, free=None) 
         if change < ICP_SETTLED_PX:
             break
     return fit_in_plane_rigid(source_uv, moved, P)
+
+
+def _within_curve(offset: np.ndarray, normals: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """1 for points that meet the frame's curve across it, 0 for points beyond one of its ends.
+
+    ``offset``: each point minus its nearest curve sample; ``normals`` there. A point past an
+    end (an upper aorta the CT shows further up than the frame, a reference slid along a
+    straight vessel) meets the end sample at a distance along the curve: its distance across
+    says nothing about the pose. Every point counts when fewer than three weighted ones are left.
+    """
+    inside = np.abs(offset[:, 0] * normals[:, 1] - offset[:, 1] * normals[:, 0]) <= CURVE_END_PX
+    return inside if np.count_nonzero(inside & (weights > 0)) >= 3 else np.ones(len(offset))
