@@ -300,3 +300,21 @@ def test_an_upper_aorta_longer_than_the_frames_is_fitted_where_they_overlap(monk
     monkeypatch.setattr(alignment, "_within_curve", lambda offset, normals, weights: np.ones(len(offset)))
     counted = _turn_errors(seeds, motion, 2.5)
     assert weighted.mean() < 0.4 < 0.5 < counted.mean() and weighted.max() < 0.5
+
+
+@pytest.mark.parametrize("turn", [3.0, -2.0])
+def test_the_turn_is_the_upper_aortas_when_the_wire_moved_the_rest(turn):
+    """A phantom frame whose iliacs the wire straightened (80 %) and swung (6 deg), whose renals
+    it tilted (10 deg up, 8 deg down) and whose sac it bent, given with a P turned by ``turn``
+    about the frame centre and shifted 12 px: the check turns it back within 0.15 deg (0.05 on
+    this case; its turn comes from the upper aorta alone, which this wire left straight)."""
+    params = dict(PHANTOM, iliac_straighten=(0.8, 0.8), iliac_swing_deg=(6.0, 6.0), renal_tilt_deg=(10.0, -8.0),
+                  bend_lateral_deg=5.0, deformation_scale=1.0)
+    case = phantom.generate_case(phantom.random_params(np.random.default_rng(12), **params), name="w")
+    preop = pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    truth = case.intraop.to_centerline()
+    mask = benchmark.draw_skeleton_mask(project(case.P_true, truth.points), truth.edges, (case.carm.rows, case.carm.cols))
+    centre = ((case.carm.cols - 1) / 2.0, (case.carm.rows - 1) / 2.0)
+    wrong = in_plane_transform(case.P_true, translation=(12.0, 0.0), rotation_deg=turn, center=centre)
+    pose = pipeline.register_frame(preop, mask, wrong).views[0].pose_correction
+    assert pose["applied"] and pose["rotation_deg"] == pytest.approx(-turn, abs=0.15)
