@@ -16,6 +16,7 @@ import numpy as np
 from .. import evaluation, io, planning, plausibility, quality, skeleton
 from ..centerline import Centerline
 from ..files import InputError, InputWarning, check_inside, display_path
+from ..given_mask import condition_given_mask
 from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
@@ -48,9 +49,10 @@ def _read_ground_truth(case: Case) -> Centerline | None:
 
 
 def _vessel_mask(frame, progress=None, prior=None) -> np.ndarray:
-    """The given vessel mask of a case or view, or the frame segmented."""
+    """The given vessel mask of a case or view (its JPEG / binarisation damage repaired), or the
+    frame segmented."""
     if frame.fluoro_mask is not None:
-        return frame.fluoro_mask
+        return condition_given_mask(frame.fluoro_mask)
     from .. import segmentation
 
     _report(progress, 0.4, "segmenting vessels in the frame")

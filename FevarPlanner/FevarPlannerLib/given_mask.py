@@ -1,0 +1,154 @@
+"""Conditioning of a given (user-supplied) binary 2D vessel mask before it is thinned (issue 10).
+
+A label stored as JPEG and binarised by someone else comes damaged in two ways:
+
+* binarised strictly (``vessel = (grey == 0)`` on the dark-on-white label, as the authors'
+  MATLAB does): compression noise leaves pinholes inside the vessel and a ragged, dithered
+  band along its edge (whole 8 x 8 blocks can lose their border pixels);
+* binarised loosely (``> 0`` on the inverted label): the compression's grey halo becomes a
+  dithered fringe outside the edge, with specks in the background and small background
+  pockets trapped between fringe and vessel.
+
+Thinned as they are, both grow 2D-skeleton spurs and rungs across the wide vessels, which the
+graph matching then cannot pair with the 3D skeleton. :func:`condition_given_mask` repairs
+them at the mask's own scale: a majority vote over a window of a fraction of the vessels'
+half-width (pinholes, dithered edge, fringe), removal of specks and filling of holes smaller
+than a vessel's cross-section. A clean mask is left almost unchanged (only corners sharper
+than the window are rounded).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage as ndi
+
+__all__ = ["condition_given_mask", "vessel_half_width_px", "MAJORITY_FRACTION"]
+
+#: Majority window radius as a fraction of the vessels' median half-width.
+MAJORITY_FRACTION = 0.3
+#: Smallest and largest majority radius (pixels): 1 keeps a 3 x 3 vote on thin vessels.
+MAJORITY_RADIUS_PX = (1, 8)
+#: Specks and holes smaller than a disc of this fraction of the half-width are dropped / filled
+#: (the half-width is a whole-mask figure, pulled up by the aorta and sac; half of it is about
+#: the half-width of the narrower branches, so a real branch piece is kept).
+PIECE_RADIUS_FRACTION = 0.5
+
+_EIGHT = np.ones((3, 3), dtype=bool)
+
+
+def vessel_half_width_px(mask: np.ndarray) -> float:
+    """The typical half-width (pixels) of the vessels of a binary 2D mask.
+
+    Across a vessel of half-width ``h`` the distance to the background runs evenly from 0 to
+    ``h``, so ``h`` is twice the median distance of the vessel pixels. It is taken on the mask
+    after a 3 x 3 majority vote with every hole filled, so that pinholes and a dithered edge
+    do not shrink it.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray of bool, shape (rows, cols)
+
+    Returns
+    -------
+    float
+        Half-width in pixels (at least 1).
+    """
+    solid = _all_holes_filled(_majority(mask, 1))
+    if not solid.any():
+        return 1.0
+    distance = ndi.distance_transform_edt(solid)
+    return max(1.0, 2.0 * float(np.median(distance[solid])))
+
+
+def _majority(mask: np.ndarray, radius: int) -> np.ndarray:
+    """A pixel is vessel when more than half of the (2 radius + 1)^2 window around it is."""
+    size = 2 * radius + 1
+    share = ndi.uniform_filter(mask.astype(np.float32), size=size, mode="constant")
+    return share > 0.5
+
+
+def _without_small_pieces(mask: np.ndarray, min_area: float) -> np.ndarray:
+    """``mask`` without its 8-connected components smaller than ``min_area`` (the largest stays)."""
+    labels, count = ndi.label(mask, structure=_EIGHT)
+    if count <= 1:
+        return mask
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    keep = sizes >= min_area
+    keep[int(np.argmax(sizes))] = True
+    keep[0] = False
+    return keep[labels]
+
+
+def _holes(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Labels of the background pockets of ``mask`` (4-connected background not reaching the
+    border, so a pocket touching the vessel only at a corner is still enclosed) and their areas."""
+    labels, _ = ndi.label(~mask)
+    sizes = np.bincount(labels.ravel())
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    sizes[border] = 0
+    sizes[0] = 0
+    return labels, sizes
+
+
+def _with_small_holes_filled(mask: np.ndarray, max_area: float) -> np.ndarray:
+    """``mask`` with its enclosed background pockets smaller than ``max_area`` filled."""
+    labels, sizes = _holes(mask)
+    small = (sizes > 0) & (sizes < max_area)
+    return mask | small[labels] if small.any() else mask
+
+
+def _all_holes_filled(mask: np.ndarray) -> np.ndarray:
+    labels, sizes = _holes(mask)
+    return mask | (sizes > 0)[labels]
+
+
+def _box(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return (slice(max(rows[0] - pad, 0), min(rows[-1] + pad + 1, mask.shape[0])),
+            slice(max(cols[0] - pad, 0), min(cols[-1] + pad + 1, mask.shape[1])))
+
+
+def condition_given_mask(mask: np.ndarray) -> np.ndarray:
+    """Repair a damaged binary 2D vessel mask (pinholes, dithered edge, halo fringe, specks).
+
+    Steps, at the scale ``h`` = :func:`vessel_half_width_px` of the mask:
+
+    1. holes smaller than a branch's cross-section (a disc of radius ``PIECE_RADIUS_FRACTION * h``)
+       are filled (pinholes);
+    2. a majority vote over a square window of radius ``MAJORITY_FRACTION * h`` (clipped to
+       :data:`MAJORITY_RADIUS_PX`) settles the dithered band along the edge;
+    3. specks smaller than that cross-section are dropped and the holes the vote closed off are
+       filled again.
+
+    Work is done on the mask's bounding box. A clean mask keeps a Dice of about 0.99 or more
+    with itself.
+
+    Parameters
+    ----------
+    mask : numpy.ndarray, shape (rows, cols)
+        Non-zero is vessel.
+
+    Returns
+    -------
+    numpy.ndarray of bool, same shape.
+    """
+    binary = np.asarray(mask) != 0
+    if binary.ndim != 2:
+        raise ValueError(f"condition_given_mask: expected a 2D mask, got shape {binary.shape}")
+    if not binary.any():
+        return binary
+    half_width = vessel_half_width_px(binary[_box(binary, 2)])
+    radius = int(np.clip(round(MAJORITY_FRACTION * half_width), *MAJORITY_RADIUS_PX))
+    box = _box(binary, radius + 2)
+    crop = binary[box]
+    cross_section = math.pi * (PIECE_RADIUS_FRACTION * half_width) ** 2
+    work = _with_small_holes_filled(crop, cross_section)
+    work = _majority(work, radius)
+    work = _with_small_holes_filled(_without_small_pieces(work, cross_section), cross_section)
+    out = np.zeros_like(binary)
+    out[box] = work
+    return out
