@@ -612,28 +612,26 @@ def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -
     return LinesAcross(where)
 
 
-def _shifted(image: np.ndarray, step: tuple, count: int, fill: float) -> np.ndarray:
-    """``image`` read ``count`` steps of ``step`` (d_row, d_col) further on; ``fill`` beyond the grid."""
-    dr, dc = step[0] * count, step[1] * count
-    out = np.full_like(image, fill)
-    rows, cols = image.shape
-    if abs(dr) >= rows or abs(dc) >= cols:
-        return out
-    out[max(-dr, 0):rows - max(dr, 0), max(-dc, 0):cols - max(dc, 0)] = \
-        image[max(dr, 0):rows - max(-dr, 0), max(dc, 0):cols - max(-dc, 0)]
-    return out
-
-
 def _line_extreme(image: np.ndarray, step: tuple, n: int, reduce, fill: float) -> np.ndarray:
-    """``reduce`` (np.minimum / np.maximum) of ``image`` over ``n`` pixels along ``step`` from each
-    pixel, by doubling spans: log2(n) + 1 array operations."""
-    out, span = image, 1
-    while 2 * span <= n:
-        out = reduce(out, _shifted(out, step, span, fill))
-        span *= 2
-    if span < n:
-        out = reduce(out, _shifted(out, step, n - span, fill))
-    return out
+    """``reduce`` (np.minimum / np.maximum) of ``image`` over ``n`` pixels along ``step`` (d_row,
+    d_col) from each pixel (``fill`` beyond the grid), by doubling spans: log2(n) + 1 array
+    operations between two padded buffers, no allocation per operation."""
+    rows, cols = image.shape
+    pad_r, pad_c = abs(step[0]) * n, abs(step[1]) * n
+    buffers = [np.full((rows + 2 * pad_r, cols + 2 * pad_c), fill, dtype=image.dtype) for _ in range(2)]
+    inside = (slice(pad_r, pad_r + rows), slice(pad_c, pad_c + cols))
+    buffers[0][inside] = image
+
+    def ahead(buffer, count):
+        dr, dc = step[0] * count, step[1] * count
+        return buffer[pad_r + dr:pad_r + dr + rows, pad_c + dc:pad_c + dc + cols]
+
+    current, span = 0, 1
+    while span < n:
+        count = span if 2 * span <= n else n - span
+        reduce(buffers[current][inside], ahead(buffers[current], count), out=buffers[1 - current][inside])
+        current, span = 1 - current, span + count
+    return buffers[current][inside]
 
 
 def _line_opening(image: np.ndarray, step: tuple, length: float) -> np.ndarray:
@@ -650,7 +648,21 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
     the pelvis, a step at a table or box edge, the exposure's slope), so that goes."""
     flat = np.zeros_like(oriented)
     for (k, length), chosen in across.where.items():
-        background = _line_opening(oriented, LINE_STEPS[k], length)
-        residue = (oriented - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
-        flat[chosen] = np.maximum(flat[chosen], residue[chosen])
+        step = LINE_STEPS[k]
+        box, inner = _box_around(chosen, 2 * (int(math.ceil(length)) + 2) * np.abs(step))
+        part = oriented[box]
+        background = _line_opening(part, step, length)
+        residue = (part - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
+        target = flat[box][inner]
+        np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
     return flat
+
+
+def _box_around(region: np.ndarray, reach) -> tuple:
+    """The bounding box of ``region`` widened by ``reach`` (rows, cols) px, clipped to the grid, and
+    within it the slices of the unwidened box."""
+    rows, cols = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
+    r0, r1 = max(rows[0] - reach[0], 0), min(rows[-1] + 1 + reach[0], region.shape[0])
+    c0, c1 = max(cols[0] - reach[1], 0), min(cols[-1] + 1 + reach[1], region.shape[1])
+    return ((slice(r0, r1), slice(c0, c1)),
+            (slice(rows[0] - r0, rows[-1] + 1 - r0), slice(cols[0] - c0, cols[-1] + 1 - c0)))
