@@ -342,6 +342,46 @@ def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, stra
     return devices
 
 
+#: A wide vessel's lumen (its core: what an opening by a disk of CORE_RADII times
+#: WIDE_RADIUS_PX keeps, so that a wire or catheter no longer joins pieces, less the pixels whose
+#: contrast per px of expected radius falls under GAP_FRACTION of the wide vessels' median) runs
+#: on for many diameters; a core piece shorter than BLOCK_DIAMETERS times the expected diameter
+#: is a vertebral body, a pelvic fragment or a box corner, not a vessel; when more than
+#: BLOCK_SHARE of the core is such blocks, the frame shows a column of vertebral bodies (the
+#: discs between them), not a contrast-filled aorta.
+CORE_RADII = 0.4
+BLOCK_DIAMETERS = 2.0
+GAP_FRACTION = 0.5
+BLOCK_SHARE = 0.5
+
+
+def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: np.ndarray) -> bool:
+    """True when most of the wide part of ``vessel`` (where ``radius``, the projected radius, is
+    at least :data:`WIDE_RADIUS_PX`) is made of short blocks (:data:`BLOCK_DIAMETERS`), not of a
+    lumen that runs on: a column of vertebral bodies without contrast, not an aorta.
+    ``contrast``: the frame with vessels bright and the background flattened."""
+    wide = vessel & (radius >= WIDE_RADIUS_PX)
+    if not wide.any():
+        return False
+    core_radius = max(1, int(round(CORE_RADII * WIDE_RADIUS_PX)))
+    disk = np.hypot(*np.mgrid[-core_radius:core_radius + 1, -core_radius:core_radius + 1]) <= core_radius
+    per_radius = contrast / np.maximum(radius, 1.0)        # a lumen's contrast grows with its chord
+    core = ndi.binary_opening(wide & (per_radius >= GAP_FRACTION * float(np.median(per_radius[wide]))),
+                              structure=disk)
+    labels, _ = ndi.label(core)
+    in_blocks = 0
+    for index, region in enumerate(ndi.find_objects(labels), start=1):
+        if region is None:
+            continue
+        piece = labels[region] == index
+        coords = np.argwhere(piece).astype(float)
+        centred = coords - coords.mean(axis=0)
+        spread = np.sqrt(max(float(np.linalg.eigvalsh(centred.T @ centred / len(coords))[-1]), 0.0))
+        if 2.0 * math.sqrt(3.0) * spread < BLOCK_DIAMETERS * 2.0 * float(np.median(radius[region][piece])):
+            in_blocks += int(piece.sum())
+    return in_blocks > BLOCK_SHARE * max(int(core.sum()), 1)
+
+
 def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4, spine=None) -> np.ndarray:
     """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
     (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
@@ -422,6 +462,8 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
+    if _wide_vessels_are_blocks(vessel, radius, oriented):
+        return np.zeros(frame.shape, dtype=bool)        # bones, no contrast: nothing to segment
     vessel = _remove_small_objects(vessel, min_area_fraction * total)
     soft = _soft_extent(vessel, relative, contrast_fraction)
     full = np.zeros(frame.shape, dtype=bool)
