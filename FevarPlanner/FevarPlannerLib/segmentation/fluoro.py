@@ -637,20 +637,24 @@ def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -
     projected ``radius``, in length classes a factor :data:`LINE_CLASS_RATIO` apart). Each
     direction is also allowed within its vessel's radius around where it is nearest, with the
     longest length met there: near a junction (a renal ostium, the bifurcation) a pixel of the
-    wider vessel may lie nearest to a branch's first nodes."""
-    angle = _node_directions(prior)[nearest] + 0.5 * np.pi
+    wider vessel may lie nearest to a branch's first nodes. Decided on every other pixel (the
+    maps are piecewise constant) and spread back. Everywhere on the grid, not only in the
+    prior's band: the noise floor of the edge (:func:`_contrast_noise_floor`) is read outside it."""
+    half = (slice(None, None, 2), slice(None, None, 2))
+    angle = _node_directions(prior)[nearest[half]] + 0.5 * np.pi
     step_index = np.round(angle / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
-    needed = LINE_RADII * radius + LINE_PAD_PX
+    needed = LINE_RADII * radius[half] + LINE_PAD_PX
     classes = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
     where = {}
     for k in range(len(LINE_STEPS)):
         own = step_index == k
         if not own.any():
             continue
-        reach = max(1, int(math.ceil(float(radius[own].max()))))
+        reach = max(1, int(math.ceil(0.5 * float(radius[half][own].max()))))
         length = ndi.maximum_filter(np.where(own, classes, 0.0).astype(np.float32), size=2 * reach + 1)
         for value in np.unique(length[length > 0]):
-            where[(k, float(value))] = length == value
+            chosen = np.repeat(np.repeat(length == value, 2, axis=0), 2, axis=1)
+            where[(k, float(value))] = chosen[:nearest.shape[0], :nearest.shape[1]]
     return LinesAcross(where)
 
 
