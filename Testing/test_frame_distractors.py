@@ -165,10 +165,12 @@ def test_bench_frame_with_every_distractor(bench, subtracted, polarity, least):
     quality.check_frame_mask(mask, prior, frame=frame.frame)      # an angiogram passes the gate
 
 
-@pytest.mark.parametrize("subtracted", [False, True])
-def test_bench_frame_without_contrast_is_refused_in_one_line(bench, subtracted):
+@pytest.mark.parametrize("subtracted, drawn", [(False, None), (True, None), (False, ("spine",))])
+def test_bench_frame_without_contrast_is_refused_in_one_line(bench, subtracted, drawn):
+    from FevarPlannerLib.phantom import distractors
+
     case, prior = bench
-    frame = _render(case, 4, subtracted=subtracted, contrast=False)
+    frame = _render(case, 4, subtracted=subtracted, contrast=False, distractors=drawn or distractors.DISTRACTORS)
     with pytest.raises(quality.QualityError, match="frame check") as failure:
         quality.check_frame_mask(seg.segment_fluoro(frame.frame, prior), prior, frame=frame.frame)
     assert "\n" not in str(failure.value)
@@ -192,3 +194,18 @@ def test_line_opening_flattens_plateaus_and_steps_but_keeps_a_tube():
     across = fluoro.LinesAcross({(0, 20.0): np.ones(image.shape, dtype=bool)})
     flat = fluoro._flatten_across(image, across)[15]
     assert flat[30] > 0.2 and np.abs(np.delete(flat, np.arange(23, 38))).max() < 0.05
+
+
+def test_unsubtracted_bench_frames_through_plan_run_or_exit_2(small_case, tmp_path, capsys):
+    """The command line on the small case with its frame rendered as an unsubtracted bench frame
+    (spine, pelvis, box, devices, ...): with contrast it plans; without, exit code 2, one line."""
+    from FevarPlannerLib.phantom import distractors
+
+    case_dir, _ = small_case
+    case = ph.generate_case(ph.PhantomParams(ct_spacing_mm=2.0, detector_pixel_mm=1.2, seed=3), name="case")
+    for contrast, expected in ((True, 0), (False, 2)):
+        frame = distractors.render_bench_frame(case, np.random.default_rng(8), contrast=contrast).frame
+        code, err = _plan_with_frame(case_dir, frame, tmp_path / str(contrast), capsys)
+        assert code == expected, (contrast, err)
+        if expected == 2:
+            assert len(err.splitlines()) == 1 and "fluoro.png" in err and "frame check" in err, err
