@@ -319,27 +319,41 @@ def select_frame(image: np.ndarray, prior: FluoroPrior | None = None, *, photome
     return int(np.argmax(scores))
 
 
+def _piece_shapes(labels: np.ndarray, n: int, value: np.ndarray) -> tuple:
+    """Per labelled piece 1..n: (pixel count, length, elongation, mean of ``value``). The length is
+    that of a bar with the piece's spread along its principal axis (2 sqrt(3) sigma_major), the
+    elongation sigma_minor / sigma_major; from the pieces' moments, all pieces at once."""
+    rows, cols = np.nonzero(labels)
+    index = labels[rows, cols]
+    rows, cols = rows.astype(float), cols.astype(float)
+
+    def per_piece(values):
+        return np.bincount(index, weights=values, minlength=n + 1)[1:]
+
+    count = np.bincount(index, minlength=n + 1)[1:].astype(float)
+    safe = np.maximum(count, 1.0)
+    mean_r, mean_c = per_piece(rows) / safe, per_piece(cols) / safe
+    var_r = per_piece(rows ** 2) / safe - mean_r ** 2
+    var_c = per_piece(cols ** 2) / safe - mean_c ** 2
+    cov = per_piece(rows * cols) / safe - mean_r * mean_c
+    half_trace, root = 0.5 * (var_r + var_c), np.sqrt((0.5 * (var_r - var_c)) ** 2 + cov ** 2)
+    major = np.sqrt(np.maximum(half_trace + root, 0.0))
+    minor = np.sqrt(np.maximum(half_trace - root, 0.0))
+    mean_value = per_piece(value[labels > 0].astype(float)) / safe
+    return count, 2.0 * math.sqrt(3.0) * major, minor / np.maximum(major, 1e-9), mean_value
+
+
 def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, straightness: float = 0.08,
                            width_ratio: float = 0.55, min_length: float = 20.0) -> np.ndarray:
     """Components that look like a wire, catheter or sheath: long, very straight and thinner than
     the vessel expected where they lie. Returns the mask of those components."""
     labels, n = ndi.label(mask)
-    devices = np.zeros_like(mask)
-    for index, region in enumerate(ndi.find_objects(labels), start=1):
-        if region is None:
-            continue
-        component = labels[region] == index
-        coords = np.argwhere(component).astype(float)
-        if len(coords) < 3:
-            continue
-        centred = coords - coords.mean(axis=0)
-        eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(coords)), 0.0))
-        length = 2.0 * math.sqrt(3.0) * eigen[1]
-        width = len(coords) / max(length, 1.0)
-        expected = float(np.median(expected_width[region][component]))
-        if length >= min_length and eigen[0] / max(eigen[1], 1e-9) <= straightness and width < width_ratio * expected:
-            devices[region] |= component
-    return devices
+    if n == 0:
+        return np.zeros_like(mask)
+    count, length, elongation, expected = _piece_shapes(labels, n, expected_width)
+    width = count / np.maximum(length, 1.0)
+    device = (count >= 3) & (length >= min_length) & (elongation <= straightness) & (width < width_ratio * expected)
+    return np.concatenate([[False], device])[labels]
 
 
 #: A wide vessel's lumen (its core: what an opening by a disk of CORE_RADII times
@@ -368,17 +382,11 @@ def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: n
     per_radius = contrast / np.maximum(radius, 1.0)        # a lumen's contrast grows with its chord
     core = ndi.binary_opening(wide & (per_radius >= GAP_FRACTION * float(np.median(per_radius[wide]))),
                               structure=disk)
-    labels, _ = ndi.label(core)
-    in_blocks = 0
-    for index, region in enumerate(ndi.find_objects(labels), start=1):
-        if region is None:
-            continue
-        piece = labels[region] == index
-        coords = np.argwhere(piece).astype(float)
-        centred = coords - coords.mean(axis=0)
-        spread = np.sqrt(max(float(np.linalg.eigvalsh(centred.T @ centred / len(coords))[-1]), 0.0))
-        if 2.0 * math.sqrt(3.0) * spread < BLOCK_DIAMETERS * 2.0 * float(np.median(radius[region][piece])):
-            in_blocks += int(piece.sum())
+    labels, n = ndi.label(core)
+    if n == 0:
+        return False
+    count, length, _, expected = _piece_shapes(labels, n, radius)
+    in_blocks = float(count[length < BLOCK_DIAMETERS * 2.0 * expected].sum())
     return in_blocks > BLOCK_SHARE * max(int(core.sum()), 1)
 
 
