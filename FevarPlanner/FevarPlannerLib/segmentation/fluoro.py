@@ -357,23 +357,23 @@ def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, stra
 
 
 #: A wide vessel's lumen (its core: what an opening by a disk of CORE_RADII times
-#: WIDE_RADIUS_PX keeps, so that a wire or catheter no longer joins pieces, less the pixels whose
-#: contrast per px of expected radius falls under GAP_FRACTION of the wide vessels' median) runs
-#: on for many diameters; a core piece shorter than BLOCK_DIAMETERS times the expected diameter
-#: is a vertebral body, a pelvic fragment or a box corner, not a vessel; when more than
-#: BLOCK_SHARE of the core is such blocks, the frame shows a column of vertebral bodies (the
-#: discs between them), not a contrast-filled aorta.
-CORE_RADII = 0.4
-BLOCK_DIAMETERS = 2.0
+#: WIDE_RADIUS_PX keeps, so that a wire, catheter or sheath no longer joins pieces, less the
+#: pixels whose contrast per px of expected radius falls under GAP_FRACTION of the wide vessels'
+#: median) runs on: its longest core piece spans at least LONGEST_SHARE of the projected wide
+#: vessels' length. Vertebral bodies, pelvic fragments and box corners without contrast in the
+#: lumen (the discs between the vertebrae, the devices cut away) are short pieces.
+CORE_RADII = 0.67
 GAP_FRACTION = 0.5
-BLOCK_SHARE = 0.5
+LONGEST_SHARE = 0.4
 
 
-def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: np.ndarray) -> bool:
-    """True when most of the wide part of ``vessel`` (where ``radius``, the projected radius, is
-    at least :data:`WIDE_RADIUS_PX`) is made of short blocks (:data:`BLOCK_DIAMETERS`), not of a
-    lumen that runs on: a column of vertebral bodies without contrast, not an aorta.
-    ``contrast``: the frame with vessels bright and the background flattened."""
+def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: np.ndarray,
+                             expected_length: float) -> bool:
+    """True when the wide part of ``vessel`` (where ``radius``, the projected radius, is at least
+    :data:`WIDE_RADIUS_PX`) has no core piece as long as :data:`LONGEST_SHARE` of
+    ``expected_length`` (px, the projected wide vessels'): short blocks (vertebral bodies
+    without contrast), not an aorta. ``contrast``: the frame with vessels bright and the
+    background flattened."""
     wide = vessel & (radius >= WIDE_RADIUS_PX)
     if not wide.any():
         return False
@@ -384,10 +384,21 @@ def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: n
                               structure=disk)
     labels, n = ndi.label(core)
     if n == 0:
-        return False
-    count, length, _, expected = _piece_shapes(labels, n, radius)
-    in_blocks = float(count[length < BLOCK_DIAMETERS * 2.0 * expected].sum())
-    return in_blocks > BLOCK_SHARE * max(int(core.sum()), 1)
+        return True
+    _, length, _, _ = _piece_shapes(labels, n, radius)
+    return float(length.max()) < LONGEST_SHARE * expected_length
+
+
+def _wide_tree_length(prior: FluoroPrior, factor: int, shape: tuple) -> float:
+    """The length (px of the grid reduced by ``factor``) of the projected wide vessels inside the
+    frame: the principal extent (2 sqrt(3) sigma) of their nodes."""
+    uv = (prior.uv + 0.5) / factor - 0.5
+    inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] >= 0)
+              & (uv[:, 1] < shape[0]) & (prior.radii_px / factor >= WIDE_RADIUS_PX))
+    if inside.sum() < 2:
+        return 0.0
+    centred = uv[inside] - uv[inside].mean(axis=0)
+    return 2.0 * math.sqrt(3.0) * math.sqrt(max(float(np.linalg.eigvalsh(centred.T @ centred / len(centred))[-1]), 0.0))
 
 
 def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4, spine=None) -> np.ndarray:
@@ -470,7 +481,8 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
-    if _wide_vessels_are_blocks(vessel, radius, oriented):
+    expected_length = prior.derived(("wide_length", small_shape, factor), lambda: _wide_tree_length(prior, factor, small_shape))
+    if _wide_vessels_are_blocks(vessel, radius, oriented, expected_length):
         return np.zeros(frame.shape, dtype=bool)        # bones, no contrast: nothing to segment
     vessel = _remove_small_objects(vessel, min_area_fraction * total)
     soft = _soft_extent(vessel, relative, contrast_fraction)
