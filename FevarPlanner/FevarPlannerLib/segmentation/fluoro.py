@@ -320,7 +320,7 @@ def select_frame(image: np.ndarray, prior: FluoroPrior | None = None, *, photome
 
 
 def _piece_shapes(labels: np.ndarray, n: int, value: np.ndarray) -> tuple:
-    """Per labelled piece 1..n: (pixel count, length, elongation, mean of ``value``). The length is
+    """Per labelled piece 1..n: (pixel count, length, elongation, median of ``value``). The length is
     that of a bar with the piece's spread along its principal axis (2 sqrt(3) sigma_major), the
     elongation sigma_minor / sigma_major; from the pieces' moments, all pieces at once."""
     rows, cols = np.nonzero(labels)
@@ -339,8 +339,21 @@ def _piece_shapes(labels: np.ndarray, n: int, value: np.ndarray) -> tuple:
     half_trace, root = 0.5 * (var_r + var_c), np.sqrt((0.5 * (var_r - var_c)) ** 2 + cov ** 2)
     major = np.sqrt(np.maximum(half_trace + root, 0.0))
     minor = np.sqrt(np.maximum(half_trace - root, 0.0))
-    mean_value = per_piece(value[labels > 0].astype(float)) / safe
-    return count, 2.0 * math.sqrt(3.0) * major, minor / np.maximum(major, 1e-9), mean_value
+    return count, 2.0 * math.sqrt(3.0) * major, minor / np.maximum(major, 1e-9), _piece_medians(index, value[labels > 0], n)
+
+
+def _piece_medians(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``np.median`` of ``values`` per piece 1..n (``index``: each value's piece), all at once."""
+    order = np.lexsort((values, index))
+    ranked = values[order].astype(float)
+    count = np.bincount(index, minlength=n + 1)[1:]
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    low = start + np.maximum(count - 1, 0) // 2
+    high = start + count // 2
+    medians = np.zeros(n)
+    present = count > 0
+    medians[present] = 0.5 * (ranked[low[present]] + ranked[np.minimum(high[present], len(ranked) - 1)])
+    return medians
 
 
 def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, straightness: float = 0.08,
@@ -657,24 +670,20 @@ def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -
     projected ``radius``, in length classes a factor :data:`LINE_CLASS_RATIO` apart). Each
     direction is also allowed within its vessel's radius around where it is nearest, with the
     longest length met there: near a junction (a renal ostium, the bifurcation) a pixel of the
-    wider vessel may lie nearest to a branch's first nodes. Decided on every other pixel (the
-    maps are piecewise constant) and spread back. Everywhere on the grid, not only in the
-    prior's band: the noise floor of the edge (:func:`_contrast_noise_floor`) is read outside it."""
-    half = (slice(None, None, 2), slice(None, None, 2))
-    angle = _node_directions(prior)[nearest[half]] + 0.5 * np.pi
+    wider vessel may lie nearest to a branch's first nodes."""
+    angle = _node_directions(prior)[nearest] + 0.5 * np.pi
     step_index = np.round(angle / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
-    needed = LINE_RADII * radius[half] + LINE_PAD_PX
+    needed = LINE_RADII * radius + LINE_PAD_PX
     classes = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
     where = {}
     for k in range(len(LINE_STEPS)):
         own = step_index == k
         if not own.any():
             continue
-        reach = max(1, int(math.ceil(0.5 * float(radius[half][own].max()))))
+        reach = max(1, int(math.ceil(float(radius[own].max()))))
         length = ndi.maximum_filter(np.where(own, classes, 0.0).astype(np.float32), size=2 * reach + 1)
         for value in np.unique(length[length > 0]):
-            chosen = np.repeat(np.repeat(length == value, 2, axis=0), 2, axis=1)
-            where[(k, float(value))] = chosen[:nearest.shape[0], :nearest.shape[1]]
+            where[(k, float(value))] = length == value
     return LinesAcross(where)
 
 
