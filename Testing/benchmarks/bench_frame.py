@@ -29,6 +29,10 @@ recorded: the machine is shared with other work, so wall times are noisy and the
 is the better guide (one BLAS thread, no worker threads: CPU time <= wall time). The goals:
 33 ms for one view, 66 ms for two.
 
+The mask stage is also timed on the AP anatomy rendered as a bench frame with every distractor
+(:mod:`phantom.distractors`: spine, pelvis, box, rail, table, collimator, devices, ruler, text,
+exposure), unsubtracted and subtracted (``mask_by_frame_kind``, with its Dice; issue 11).
+
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame.py --out OUT [--repeats 30]
 
 Writes ``bench_frame.json`` and ``bench_frame.png`` into ``--out``.
