@@ -103,3 +103,109 @@ def test_a_run_with_the_bolus_arriving_is_segmented_on_its_fullest_frame():
     run = np.stack(run)
     assert seg.select_frame(run, prior) == 2
     assert seg.dice(seg.segment_fluoro(run, prior), truth) >= 0.95
+
+
+# ----------------------------------------------------------------------------------------
+# Bench frames (phantom.distractors): bones, the phantom's box and rail, table, collimator,
+# devices, ruler, text and exposure; unsubtracted and DSA, either polarity
+# ----------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def bench():
+    from FevarPlannerLib.phantom import distractors
+
+    case = distractors.bench_case(102)
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    return case, prior
+
+
+def _render(case, seed, **kwargs):
+    from FevarPlannerLib.phantom import distractors
+
+    return distractors.render_bench_frame(case, np.random.default_rng(seed), **kwargs)
+
+
+def _taken(mask, truth, part) -> float:
+    """The fraction of a distractor's pixels (away from the vessels) that the mask takes."""
+    from scipy import ndimage as ndi
+
+    away = part & ~ndi.binary_dilation(truth, iterations=3)
+    return float((mask & away).sum() / max(away.sum(), 1))
+
+
+def test_bench_frames_draw_each_distractor_and_subtraction_removes_the_bones(bench):
+    case, _ = bench
+    raw = _render(case, 1, distractors=("spine", "wire", "text"))
+    dsa = _render(case, 1, distractors=("spine", "wire", "text"), subtracted=True)
+    bright = _render(case, 1, distractors=("spine", "wire", "text"), polarity="bright")
+    assert set(raw.parts) == {"spine", "wire", "text"} and set(dsa.parts) == {"wire", "text"}
+    spine = raw.parts["spine"] & ~raw.mask
+    assert np.median(raw.frame[spine]) < 0.8 * np.median(dsa.frame[spine])     # the vertebrae absorb
+    assert np.median(bright.frame[raw.mask]) > np.median(bright.frame[~raw.mask])  # vessels bright
+    with pytest.raises(ValueError, match="unknown"):
+        _render(case, 1, distractors=("bone",))
+
+
+def test_unsubtracted_frame_keeps_the_vessels_and_drops_the_spine(bench):
+    case, prior = bench
+    frame = _render(case, 2, distractors=("spine",))
+    mask = seg.segment_fluoro(frame.frame, prior)
+    assert seg.dice(mask, frame.mask) >= 0.85          # 0.62-0.67 before the background flattening
+    assert _taken(mask, frame.mask, frame.parts["spine"]) <= 0.1
+
+
+@pytest.mark.parametrize("subtracted, polarity, least", [(False, "dark", 0.8), (True, "bright", 0.93)])
+def test_bench_frame_with_every_distractor(bench, subtracted, polarity, least):
+    case, prior = bench
+    frame = _render(case, 3, subtracted=subtracted, polarity=polarity)
+    mask = seg.segment_fluoro(frame.frame, prior)
+    assert seg.dice(mask, frame.mask) >= least
+    taken = {name: _taken(mask, frame.mask, part) for name, part in frame.parts.items()}
+    assert max(taken.values()) <= 0.1, taken
+    quality.check_frame_mask(mask, prior, frame=frame.frame)      # an angiogram passes the gate
+
+
+@pytest.mark.parametrize("subtracted, drawn", [(False, None), (True, None), (False, ("spine",))])
+def test_bench_frame_without_contrast_is_refused_in_one_line(bench, subtracted, drawn):
+    from FevarPlannerLib.phantom import distractors
+
+    case, prior = bench
+    frame = _render(case, 4, subtracted=subtracted, contrast=False, distractors=drawn or distractors.DISTRACTORS)
+    with pytest.raises(quality.QualityError, match="frame check") as failure:
+        quality.check_frame_mask(seg.segment_fluoro(frame.frame, prior), prior, frame=frame.frame)
+    assert "\n" not in str(failure.value)
+
+
+def test_line_opening_flattens_plateaus_and_steps_but_keeps_a_tube():
+    from scipy import ndimage as ndi
+
+    from FevarPlannerLib.segmentation import fluoro
+
+    image = np.random.default_rng(0).random((40, 50)).astype(np.float32)
+    footprint = np.zeros((13, 13), dtype=bool)
+    footprint[6 + np.arange(6), 6 + np.arange(6)] = True            # 6 pixels along the diagonal
+    reference = ndi.grey_opening(image, footprint=footprint)
+    mine = fluoro._line_opening(image, (1, 1), 5 * np.sqrt(2))
+    assert np.allclose(mine[8:-8, 8:-8], reference[8:-8, 8:-8])
+    columns = np.arange(80)
+    plateau = 0.3 * ((columns >= 10) & (columns < 60))               # a vertebra: 50 px wide
+    tube = 0.2 * np.sqrt(np.clip(1 - ((columns - 30) / 6.0) ** 2, 0, None))   # a vessel: 12 px wide
+    image = np.tile(plateau + tube + 0.001 * columns, (30, 1)).astype(np.float32)  # and an exposure slope
+    across = fluoro.LinesAcross({(0, 20.0): np.ones(image.shape, dtype=bool)})
+    flat = fluoro._flatten_across(image, across)[15]
+    assert flat[30] > 0.2 and np.abs(np.delete(flat, np.arange(23, 38))).max() < 0.05
+
+
+def test_unsubtracted_bench_frames_through_plan_run_or_exit_2(small_case, tmp_path, capsys):
+    """The command line on the small case with its frame rendered as an unsubtracted bench frame
+    (spine, pelvis, box, devices, ...): with contrast it plans; without, exit code 2, one line."""
+    from FevarPlannerLib.phantom import distractors
+
+    case_dir, _ = small_case
+    case = ph.generate_case(ph.PhantomParams(ct_spacing_mm=2.0, detector_pixel_mm=1.2, seed=3), name="case")
+    for contrast, expected in ((True, 0), (False, 2)):
+        frame = distractors.render_bench_frame(case, np.random.default_rng(8), contrast=contrast).frame
+        code, err = _plan_with_frame(case_dir, frame, tmp_path / str(contrast), capsys)
+        assert code == expected, (contrast, err)
+        if expected == 2:
+            assert len(err.splitlines()) == 1 and "fluoro.png" in err and "frame check" in err, err

@@ -29,6 +29,10 @@ recorded: the machine is shared with other work, so wall times are noisy and the
 is the better guide (one BLAS thread, no worker threads: CPU time <= wall time). The goals:
 33 ms for one view, 66 ms for two.
 
+The mask stage is also timed on the AP anatomy rendered as a bench frame with every distractor
+(:mod:`phantom.distractors`: spine, pelvis, box, rail, table, collimator, devices, ruler, text,
+exposure), unsubtracted and subtracted (``mask_by_frame_kind``, with its Dice; issue 11).
+
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame.py --out OUT [--repeats 30]
 
 Writes ``bench_frame.json`` and ``bench_frame.png`` into ``--out``.
@@ -167,6 +171,29 @@ def mask_breakdown(preop, frame: np.ndarray, P: np.ndarray, repeats: int) -> dic
     return out
 
 
+def mask_by_frame_kind(seed: int, repeats: int) -> dict:
+    """CPU ms (median) of the mask stage (prior + segment_fluoro, as :func:`time_views`) and its Dice
+    on the 1024 x 1024 AP frame of ``seed`` rendered as a bench frame (:mod:`phantom.distractors`,
+    every distractor): unsubtracted, and subtracted (DSA), vessels dark (issue 11)."""
+    from FevarPlannerLib.phantom.distractors import render_bench_frame
+
+    params = replace(phantom.random_params(np.random.default_rng(seed)), detector_rows=FRAME_SIZE,
+                     detector_cols=FRAME_SIZE, primary_angle_deg=0.0, secondary_angle_deg=0.0)
+    case = phantom.generate_case(params, name="frame_AP")
+    preop = pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    out = {}
+    for kind, subtracted in (("unsubtracted", False), ("subtracted", True)):
+        bench = render_bench_frame(case, np.random.default_rng(seed), subtracted=subtracted)
+        times = []
+        for _ in range(repeats + 1):
+            start = _clock()
+            mask = segmentation.segment_fluoro(bench.frame, FluoroPrior.from_centerline(preop.centerline, case.P_true))
+            times.append(_since(start)[1])
+        out[kind] = {"mask_cpu_ms": 1e3 * float(np.median(times[1:])),
+                     "dice": float(segmentation.dice(mask, bench.mask))}
+    return out
+
+
 def profile_mask(preop, frame: np.ndarray, P: np.ndarray, repeats: int, top: int = 12) -> list[str]:
     """The functions segment_fluoro spends its (cumulative) time in, most first."""
     import cProfile
@@ -249,6 +276,8 @@ def main() -> None:
         payload["mask_breakdown"] = mask_breakdown(preop, frame, P, max(5, args.repeats // 3))
         payload["mask_profile"] = profile_mask(preop, frame, P, max(5, args.repeats // 3))
         print(payload["mask_breakdown"], *payload["mask_profile"], sep="\n")
+        payload["mask_by_frame_kind"] = mask_by_frame_kind(args.seed, max(5, args.repeats // 3))
+        print("bench frames (every distractor):", payload["mask_by_frame_kind"])
     write_report(args.out, "bench_frame", payload)
     plot(args.out / "bench_frame.png", per_view, two)
 

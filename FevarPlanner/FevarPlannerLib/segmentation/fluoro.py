@@ -5,6 +5,7 @@ the pre-operative tree as a prior; choosing the frame of a run.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -318,27 +319,99 @@ def select_frame(image: np.ndarray, prior: FluoroPrior | None = None, *, photome
     return int(np.argmax(scores))
 
 
+def _piece_shapes(labels: np.ndarray, n: int, value: np.ndarray) -> tuple:
+    """Per labelled piece 1..n: (pixel count, length, elongation, median of ``value``). The length is
+    that of a bar with the piece's spread along its principal axis (2 sqrt(3) sigma_major), the
+    elongation sigma_minor / sigma_major; from the pieces' moments, all pieces at once."""
+    rows, cols = np.nonzero(labels)
+    index = labels[rows, cols]
+    rows, cols = rows.astype(float), cols.astype(float)
+
+    def per_piece(values):
+        return np.bincount(index, weights=values, minlength=n + 1)[1:]
+
+    count = np.bincount(index, minlength=n + 1)[1:].astype(float)
+    safe = np.maximum(count, 1.0)
+    mean_r, mean_c = per_piece(rows) / safe, per_piece(cols) / safe
+    var_r = per_piece(rows ** 2) / safe - mean_r ** 2
+    var_c = per_piece(cols ** 2) / safe - mean_c ** 2
+    cov = per_piece(rows * cols) / safe - mean_r * mean_c
+    half_trace, root = 0.5 * (var_r + var_c), np.sqrt((0.5 * (var_r - var_c)) ** 2 + cov ** 2)
+    major = np.sqrt(np.maximum(half_trace + root, 0.0))
+    minor = np.sqrt(np.maximum(half_trace - root, 0.0))
+    return count, 2.0 * math.sqrt(3.0) * major, minor / np.maximum(major, 1e-9), _piece_medians(index, value[labels > 0], n)
+
+
+def _piece_medians(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``np.median`` of ``values`` per piece 1..n (``index``: each value's piece), all at once."""
+    order = np.lexsort((values, index))
+    ranked = values[order].astype(float)
+    count = np.bincount(index, minlength=n + 1)[1:]
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    low = start + np.maximum(count - 1, 0) // 2
+    high = start + count // 2
+    medians = np.zeros(n)
+    present = count > 0
+    medians[present] = 0.5 * (ranked[low[present]] + ranked[np.minimum(high[present], len(ranked) - 1)])
+    return medians
+
+
 def _straight_thin_devices(mask: np.ndarray, expected_width: np.ndarray, *, straightness: float = 0.08,
                            width_ratio: float = 0.55, min_length: float = 20.0) -> np.ndarray:
     """Components that look like a wire, catheter or sheath: long, very straight and thinner than
     the vessel expected where they lie. Returns the mask of those components."""
     labels, n = ndi.label(mask)
-    devices = np.zeros_like(mask)
-    for index, region in enumerate(ndi.find_objects(labels), start=1):
-        if region is None:
-            continue
-        component = labels[region] == index
-        coords = np.argwhere(component).astype(float)
-        if len(coords) < 3:
-            continue
-        centred = coords - coords.mean(axis=0)
-        eigen = np.sqrt(np.maximum(np.linalg.eigvalsh(centred.T @ centred / len(coords)), 0.0))
-        length = 2.0 * math.sqrt(3.0) * eigen[1]
-        width = len(coords) / max(length, 1.0)
-        expected = float(np.median(expected_width[region][component]))
-        if length >= min_length and eigen[0] / max(eigen[1], 1e-9) <= straightness and width < width_ratio * expected:
-            devices[region] |= component
-    return devices
+    if n == 0:
+        return np.zeros_like(mask)
+    count, length, elongation, expected = _piece_shapes(labels, n, expected_width)
+    width = count / np.maximum(length, 1.0)
+    device = (count >= 3) & (length >= min_length) & (elongation <= straightness) & (width < width_ratio * expected)
+    return np.concatenate([[False], device])[labels]
+
+
+#: A wide vessel's lumen (its core: what an opening by a disk of CORE_RADII times
+#: WIDE_RADIUS_PX keeps, so that a wire, catheter or sheath no longer joins pieces, less the
+#: pixels whose contrast per px of expected radius falls under GAP_FRACTION of the wide vessels'
+#: median) runs on: its longest core piece spans at least LONGEST_SHARE of the projected wide
+#: vessels' length. Vertebral bodies, pelvic fragments and box corners without contrast in the
+#: lumen (the discs between the vertebrae, the devices cut away) are short pieces.
+CORE_RADII = 0.67
+GAP_FRACTION = 0.5
+LONGEST_SHARE = 0.4
+
+
+def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: np.ndarray,
+                             expected_length: float) -> bool:
+    """True when the wide part of ``vessel`` (where ``radius``, the projected radius, is at least
+    :data:`WIDE_RADIUS_PX`) has no core piece as long as :data:`LONGEST_SHARE` of
+    ``expected_length`` (px, the projected wide vessels'): short blocks (vertebral bodies
+    without contrast), not an aorta. ``contrast``: the frame with vessels bright and the
+    background flattened."""
+    wide = vessel & (radius >= WIDE_RADIUS_PX)
+    if not wide.any():
+        return False
+    core_radius = max(1, int(round(CORE_RADII * WIDE_RADIUS_PX)))
+    disk = np.hypot(*np.mgrid[-core_radius:core_radius + 1, -core_radius:core_radius + 1]) <= core_radius
+    per_radius = contrast / np.maximum(radius, 1.0)        # a lumen's contrast grows with its chord
+    core = ndi.binary_opening(wide & (per_radius >= GAP_FRACTION * float(np.median(per_radius[wide]))),
+                              structure=disk)
+    labels, n = ndi.label(core)
+    if n == 0:
+        return True
+    _, length, _, _ = _piece_shapes(labels, n, radius)
+    return float(length.max()) < LONGEST_SHARE * expected_length
+
+
+def _wide_tree_length(prior: FluoroPrior, factor: int, shape: tuple) -> float:
+    """The length (px of the grid reduced by ``factor``) of the projected wide vessels inside the
+    frame: the principal extent (2 sqrt(3) sigma) of their nodes."""
+    uv = (prior.uv + 0.5) / factor - 0.5
+    inside = (np.isfinite(uv).all(axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < shape[1]) & (uv[:, 1] >= 0)
+              & (uv[:, 1] < shape[0]) & (prior.radii_px / factor >= WIDE_RADIUS_PX))
+    if inside.sum() < 2:
+        return 0.0
+    centred = uv[inside] - uv[inside].mean(axis=0)
+    return 2.0 * math.sqrt(3.0) * math.sqrt(max(float(np.linalg.eigvalsh(centred.T @ centred / len(centred))[-1]), 0.0))
 
 
 def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float = 1.4, spine=None) -> np.ndarray:
@@ -403,6 +476,9 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     if vessels == "auto":
         vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
     oriented = small if vessels == "bright" else 1.0 - small
+    widest = prior.derived(("widest", small_shape, factor, reach), lambda: _widest_nearby(radius))
+    across = prior.derived(("across", small_shape, factor, reach), lambda: _lines_across(prior, nearest, radius))
+    oriented = _flatten_across(oriented, across)
     response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
@@ -414,11 +490,13 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     spine = _spine_lookup(tree)
     vessel, relative = _vessel_region_relative(oriented, tree, spine, radius, float(sigmas[-1]), contrast_fraction)
     vessel &= band
-    widest = prior.derived(("widest", small_shape, factor, reach), lambda: _widest_nearby(radius))
     vessel &= _within_expected_width(vessel, widest, spine=spine)
     thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
+    expected_length = prior.derived(("wide_length", small_shape, factor), lambda: _wide_tree_length(prior, factor, small_shape))
+    if _wide_vessels_are_blocks(vessel, radius, oriented, expected_length):
+        return np.zeros(frame.shape, dtype=bool)        # bones, no contrast: nothing to segment
     vessel = _remove_small_objects(vessel, min_area_fraction * total)
     soft = _soft_extent(vessel, relative, contrast_fraction)
     full = np.zeros(frame.shape, dtype=bool)
@@ -545,3 +623,121 @@ def _soft_extent(vessel: np.ndarray, relative: np.ndarray, contrast_fraction: fl
     as a device, a bone or too wide, and stays out)."""
     rim = ndi.binary_dilation(vessel) & ~vessel & (relative < contrast_fraction)
     return np.where(vessel | rim, np.clip(relative, 0.0, 1.0), 0.0).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------------------
+# Unsubtracted frames: the background flattened across each vessel's expected direction
+# ----------------------------------------------------------------------------------------
+
+#: Line directions (d_row, d_col) of the openings that flatten the background: along u, the
+#: rising diagonal, along v, the falling diagonal (0, 45, 90, 135 degrees).
+LINE_STEPS = ((0, 1), (1, 1), (1, 0), (1, -1))
+#: The opening's line spans this many times the widest expected radius (+ LINE_PAD_PX): it
+#: must bridge the lumen even when the vessel runs up to ~40 degrees off its projected
+#: direction (deformation, the 22.5 degree binning of the direction), and stay shorter than
+#: a vertebral body or a pelvic plate so that they stay background.
+LINE_RADII = 2.8
+LINE_PAD_PX = 3.0
+LINE_CLASS_RATIO = 1.25
+#: The least background transmission a residue is divided by (:func:`_flatten_across`).
+TRANSMISSION_FLOOR = 0.1
+
+
+@dataclass(frozen=True)
+class LinesAcross:
+    """Per line direction of :data:`LINE_STEPS` and line length (px of the reduced grid), where
+    an opening by that line flattens the background: ``{(step index, length): bool map}``."""
+
+    where: dict
+
+
+def _node_directions(prior: FluoroPrior) -> np.ndarray:
+    """Per node of the prior, the angle (radians, of (du, dv)) of its projected edges (their mean axis)."""
+    tangent = np.zeros((len(prior.uv), 2))
+    if len(prior.edges):
+        d = prior.uv[prior.edges[:, 1]] - prior.uv[prior.edges[:, 0]]
+        d = np.where(np.isfinite(d), d, 0.0)
+        doubled = np.column_stack([d[:, 0] ** 2 - d[:, 1] ** 2, 2 * d[:, 0] * d[:, 1]])   # axis, not sign
+        np.add.at(tangent, prior.edges[:, 0], doubled)
+        np.add.at(tangent, prior.edges[:, 1], doubled)
+    return 0.5 * np.arctan2(tangent[:, 1], tangent[:, 0])
+
+
+def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -> LinesAcross:
+    """Which opening flattens the background where: a line across the projected vessel nearest
+    to each pixel (the direction of :data:`LINE_STEPS` closest to the perpendicular of the
+    vessel's projected direction), long enough to bridge it (:data:`LINE_RADII` times its
+    projected ``radius``, in length classes a factor :data:`LINE_CLASS_RATIO` apart). Each
+    direction is also allowed within its vessel's radius around where it is nearest, with the
+    longest length met there: near a junction (a renal ostium, the bifurcation) a pixel of the
+    wider vessel may lie nearest to a branch's first nodes."""
+    angle = _node_directions(prior)[nearest] + 0.5 * np.pi
+    step_index = np.round(angle / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
+    needed = LINE_RADII * radius + LINE_PAD_PX
+    classes = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
+    where = {}
+    for k in range(len(LINE_STEPS)):
+        own = step_index == k
+        if not own.any():
+            continue
+        reach = max(1, int(math.ceil(float(radius[own].max()))))
+        length = ndi.maximum_filter(np.where(own, classes, 0.0).astype(np.float32), size=2 * reach + 1)
+        for value in np.unique(length[length > 0]):
+            where[(k, float(value))] = length == value
+    return LinesAcross(where)
+
+
+def _line_extreme(image: np.ndarray, step: tuple, n: int, reduce, fill: float) -> np.ndarray:
+    """``reduce`` (np.minimum / np.maximum) of ``image`` over ``n`` pixels along ``step`` (d_row,
+    d_col) from each pixel (``fill`` beyond the grid), by doubling spans: log2(n) + 1 array
+    operations between two padded buffers, no allocation per operation."""
+    rows, cols = image.shape
+    pad_r, pad_c = abs(step[0]) * n, abs(step[1]) * n
+    buffers = [np.full((rows + 2 * pad_r, cols + 2 * pad_c), fill, dtype=image.dtype) for _ in range(2)]
+    inside = (slice(pad_r, pad_r + rows), slice(pad_c, pad_c + cols))
+    buffers[0][inside] = image
+
+    def ahead(buffer, count):
+        dr, dc = step[0] * count, step[1] * count
+        return buffer[pad_r + dr:pad_r + dr + rows, pad_c + dc:pad_c + dc + cols]
+
+    current, span = 0, 1
+    while span < n:
+        count = span if 2 * span <= n else n - span
+        reduce(buffers[current][inside], ahead(buffers[current], count), out=buffers[1 - current][inside])
+        current, span = 1 - current, span + count
+    return buffers[current][inside]
+
+
+def _line_opening(image: np.ndarray, step: tuple, length: float) -> np.ndarray:
+    """Grey opening of ``image`` by a straight line of ``length`` px along ``step``."""
+    n = max(2, int(math.ceil(length / math.hypot(*step))) + 1)
+    eroded = _line_extreme(image, step, n, np.minimum, np.inf)
+    return _line_extreme(eroded, (-step[0], -step[1]), n, np.maximum, -np.inf)
+
+
+def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
+    """``oriented`` (vessels bright) less its background: per pixel, the largest residue of the
+    openings :class:`LinesAcross` allows there. A line across a vessel does not fit in its lumen,
+    so the vessel stays; it fits in what is wider than the vessel across it (vertebral bodies,
+    the pelvis, a step at a table or box edge, the exposure's slope), so that goes."""
+    flat = np.zeros_like(oriented)
+    for (k, length), chosen in across.where.items():
+        step = LINE_STEPS[k]
+        box, inner = _box_around(chosen, 2 * (int(math.ceil(length)) + 2) * np.abs(step))
+        part = oriented[box]
+        background = _line_opening(part, step, length)
+        residue = (part - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
+        target = flat[box][inner]
+        np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
+    return flat
+
+
+def _box_around(region: np.ndarray, reach) -> tuple:
+    """The bounding box of ``region`` widened by ``reach`` (rows, cols) px, clipped to the grid, and
+    within it the slices of the unwidened box."""
+    rows, cols = np.flatnonzero(region.any(axis=1)), np.flatnonzero(region.any(axis=0))
+    r0, r1 = max(rows[0] - reach[0], 0), min(rows[-1] + 1 + reach[0], region.shape[0])
+    c0, c1 = max(cols[0] - reach[1], 0), min(cols[-1] + 1 + reach[1], region.shape[1])
+    return ((slice(r0, r1), slice(c0, c1)),
+            (slice(rows[0] - r0, rows[-1] + 1 - r0), slice(cols[0] - c0, cols[-1] + 1 - c0)))
