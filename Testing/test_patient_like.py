@@ -119,6 +119,19 @@ def test_accessory_renal_beside_the_main_one_is_not_taken_for_it():
     assert names[graph.anatomical_roles(points, **directions, sizes=sizes)["renal_right"]] == "renal_right"
 
 
+def test_a_side_without_an_end_still_gets_a_renal_role_from_the_calibre_rule():
+    """A frame mask that lost a renal leaves no end on that side: the rule falls back to the
+    best-scoring end instead of failing on an empty tie (was ``max() arg is an empty sequence``)."""
+    names, points, sizes = _ends_with_an_accessory_renal()
+    keep = [i for i, name in enumerate(names) if name not in ("renal_right", "coeliac")]
+    names, points, sizes = [names[i] for i in keep], points[keep], sizes[keep]
+    directions = {"left": (1, 0, 0), "superior": (0, 0, 1), "anterior": (0, -1, 0)}
+    roles = graph.anatomical_roles(points, **directions, sizes=sizes)
+    assert len(set(roles.values())) == len(graph.BRANCH_LABELS)
+    assert names[roles["renal_left"]] == "renal_left"
+    assert points[roles["renal_right"]][0] > 0                          # no end on the right to give it
+
+
 def test_algorithm1_on_a_2d_frame_preserves_the_main_renal_not_the_narrower_accessory():
     """A frame (pixels) where the accessory renal runs 13-25 px below the main left renal and
     reaches further out: with the mask's radii, Algorithm 1 keeps the main renal."""

@@ -86,11 +86,13 @@ def anatomical_roles(end_positions, *, left, superior, anterior=None, sizes=None
 def _widest_of_the_best(order: list, score: np.ndarray, lateral: np.ndarray, sizes, margin: float) -> int:
     """The first of ``order`` (best score first), or with ``sizes`` the widest of those
     scoring within ``margin`` of it and reaching at least half as far to the side (an
-    accessory renal beside it, not a visceral branch near the midline)."""
+    accessory renal beside it, not a visceral branch near the midline). The first always
+    stands, even when no end lies on that side and ``lateral`` is negative."""
     if sizes is None:
         return order[0]
     best = order[0]
-    tied = [i for i in order if score[i] >= score[best] - margin and lateral[i] >= 0.5 * lateral[best]]
+    tied = [i for i in order
+            if i == best or (score[i] >= score[best] - margin and lateral[i] >= 0.5 * lateral[best])]
     return max(tied, key=lambda i: (float(sizes[i]), -tied.index(i)))
 
 
