@@ -37,6 +37,8 @@ FLAP_BRIDGE_MM = 1.5
 #: A traced aorta shorter than this (mm along z, or half the scan's height if that is less) is not
 #: the aorta (a vertebral body between two discs, a bowel loop): the next seed is tried.
 MIN_AORTA_TRACE_MM = 60.0
+#: A seed blob with the spine's bone centroid this far (mm) to its left lies where the IVC runs.
+IVC_SPINE_OFFSET_MM = 12.0
 #: How many distinct seeds are tried before the CT is refused.
 MAX_SEED_TRIES = 5
 #: A traced cross-section more than this many times the area of the one before is a leak into a
@@ -57,6 +59,33 @@ def _superior_step(ct: Volume) -> int:
 def _posterior_sign_j(ct: Volume) -> float:
     """+1 when increasing j goes posterior (towards +y in LPS), else -1 (or 0 if oblique)."""
     return float(np.sign(ct.direction[1, 1]))
+
+
+def _left_sign_i(ct: Volume) -> float:
+    """+1 when increasing i goes to the patient's left (towards +x in LPS), else -1 (or 0 if oblique)."""
+    return float(np.sign(ct.direction[0, 0]))
+
+
+def _spine_to_the_left_mm(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, posterior: float,
+                          left: float, reach_mm: float = 60.0, half_width_mm: float = 50.0) -> float:
+    """How far (mm) the cortical bone behind a blob lies to the patient's left of it (centroid).
+
+    The abdominal aorta runs in front of the vertebral body or left of it, the IVC right of it:
+    a bright round tube with the spine well to its left is the IVC (the same size and, in a
+    venous or late phase, as bright as the aorta). 0 when the axes are oblique or no bone is seen.
+    """
+    if posterior == 0 or left == 0:
+        return 0.0
+    j0, i0 = centre_ji
+    start = j0 + posterior * radius_mm / spacing_ji[0]
+    stop = start + posterior * reach_mm / spacing_ji[0]
+    rows = slice(int(max(min(start, stop), 0)), int(min(max(start, stop) + 1, hu_slice.shape[0])))
+    half = int(round(half_width_mm / spacing_ji[1]))
+    first = int(max(i0 - half, 0))
+    cols = np.nonzero(hu_slice[rows, first:int(min(i0 + half + 1, hu_slice.shape[1]))] > BONE_HU)[1]
+    if len(cols) < 3:
+        return 0.0
+    return float((cols.mean() + first - i0) * spacing_ji[1] * left)
 
 
 def _round_blobs(hu_slice: np.ndarray, spacing_ji, hu_window, radius_mm) -> list[dict]:
@@ -170,16 +199,18 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
 
 def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
                           step_mm: float = 5.0) -> list:
-    """Every aorta-like cross-section of :func:`find_aorta_in_slices`, best circle score first.
+    """Every aorta-like cross-section of :func:`find_aorta_in_slices`, best circle score first,
+    those with the spine more than :data:`IVC_SPINE_OFFSET_MM` to their left (the IVC's
+    place, :func:`_spine_to_the_left_mm`) after all others.
 
     Returns
     -------
     list of (k, centre_ji, radius_mm, score)
     """
     spacing_ji = _slice_axes_mm(ct)
-    posterior = _posterior_sign_j(ct)
+    posterior, left = _posterior_sign_j(ct), _left_sign_i(ct)
     step = max(1, int(round(step_mm / ct.spacing[2])))
-    found = []
+    found, right_of_spine = [], []
     for k in range(step // 2, ct.shape[0], step):
         hu_slice = np.asarray(ct.array[k])
         for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
@@ -187,8 +218,11 @@ def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_
                 continue
             if _inside_bone(hu_slice, blob["centre"], blob["radius"], spacing_ji):
                 continue
+            spine_left = _spine_to_the_left_mm(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior, left)
             found.append((k, blob["centre"], blob["radius"], blob["score"]))
-    return sorted(found, key=lambda candidate: -candidate[3])
+            right_of_spine.append(spine_left > IVC_SPINE_OFFSET_MM)
+    order = sorted(range(len(found)), key=lambda n: (right_of_spine[n], -found[n][3]))
+    return [found[n] for n in order]
 
 
 class _Trace:
@@ -213,22 +247,21 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     its rim, down to half way between the lumen's
     lower bound and soft tissue: a false lumen fills later), and that reading is kept if it
     is wider (or the plain one ended) and keeps the trace's width (0.6 of it, as a plain
-    reading must); where the plain reading saw two lumens of similar size (radius ratio 0.7 as
-    in :func:`_two_lumens`: a bifurcation, or a flap through the middle) it
+    reading must); where the plain reading saw two separate lumens of similar size
+    (:func:`_two_separate_lumens`: a bifurcation, or a flap through the middle) it
     must restore 0.85 of it: two channels bridged are one round lumen nearly as
     wide as the aorta, two iliacs bridged at the crotch are not.
     """
-    args = (hu_slice, centre, radius, spacing_ji, lumen_hu, min_radius, max_growth, previous, reference_radius,
-            detect_split)
-    plain = _lumen_cross_section(*args, bridge=False)
+    args = (hu_slice, centre, radius, spacing_ji, lumen_hu, min_radius, max_growth, previous, reference_radius)
+    plain = _lumen_cross_section(*args, detect_split, bridge=False)
     width = (reference_radius or radius)
     if plain is not None and plain[0] is not None and plain[3] >= 0.85 * width:
         return plain
-    bridged = _lumen_cross_section(*args, bridge=True)
+    bridged = _lumen_cross_section(*args, False, bridge=True)     # read as one lumen: no split
     if bridged is None or bridged[0] is None:
         return plain
     ended = plain is None or plain[0] is None
-    two_alike = ended and plain is not None and len(plain[4]) == 2 and plain[4][1][1] >= 0.7 * plain[4][0][1]
+    two_alike = ended and plain is not None and _two_separate_lumens(plain[4], spacing_ji)
     wider = ended or bridged[3] >= plain[3] + 0.5 * min(spacing_ji)
     if wider and bridged[3] >= (0.85 if two_alike else 0.6) * min(width, radius):
         return bridged
@@ -288,7 +321,7 @@ def _lumen_cross_section(hu_slice: np.ndarray, centre, radius: float, spacing_ji
     edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
     new_radius = float(edt.max())
     split = _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM) if detect_split else []
-    if len(split) == 2 and split[1][1] >= 0.7 * split[0][1]:     # two lumens of similar size: a bifurcation (as _two_lumens)
+    if _two_separate_lumens(split, spacing_ji):     # two lumens of similar size: a bifurcation
         return None, lo_ji, None, new_radius, split
     if new_radius < min_radius:
         return None
@@ -302,6 +335,17 @@ def _lumen_cross_section(hu_slice: np.ndarray, centre, radius: float, spacing_ji
     if previous is not None and mask.sum() > MAX_AREA_JUMP * previous[0].sum():   # a sudden area jump: a leak
         mask &= new_dist <= 1.05 * new_radius + 1.0
     return mask, lo_ji, peak + lo_ji, new_radius, []
+
+
+def _two_separate_lumens(split: list, spacing_ji) -> bool:
+    """True for two (centre, radius) lumens of similar size (radius ratio >= 0.7) at least 0.8
+    times the sum of their radii apart, as :func:`_two_lumens` asks of the iliacs (two maxima
+    along the ridge of one flattened lumen are not two lumens)."""
+    if len(split) != 2:
+        return False
+    (c0, r0), (c1, r1) = split
+    apart = float(np.hypot(*((np.asarray(c0) - np.asarray(c1)) * np.asarray(spacing_ji))))
+    return r1 >= 0.7 * r0 and apart >= 0.8 * (r0 + r1)
 
 
 def _paste(mask: np.ndarray, offset, shape) -> np.ndarray:
