@@ -375,7 +375,9 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
     """Extend ``trace`` slice by slice until the lumen ends; paint it into ``out``.
 
     Radius continuity (the new radius between 0.6 and ``max_growth`` times the last one,
-    smoothed) keeps the trace out of the heart, the arch's far side and side branches.
+    smoothed) keeps the trace out of the heart, the arch's far side and side branches. Only
+    the downward aorta trace looks for the bifurcation (two separate lumens of similar size):
+    going up, two such lumens are the channels of a dissection, never a split.
     Returns the blobs the lumen split into where it stopped (for the iliacs), else [].
     """
     spacing_ji = _slice_axes_mm(ct)
@@ -384,7 +386,7 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
         recent = [trace.radii[j] for j in sorted(trace.radii, key=lambda j: -abs(j - k))[-15:]]
         found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
                                 trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
-                                detect_split=trace.name == "aorta")
+                                detect_split=trace.name == "aorta" and trace.step != _superior_step(ct))
         if found is None:
             return []
         mask, offset, centre, radius, split = found
