@@ -109,3 +109,20 @@ def test_vertebral_bodies_alone_are_refused_in_one_line():
     with pytest.raises(InputError, match=r"no aorta found: .* trace at most \d+ mm") as error:
         seg.segment_ct_classical(ct)                                   # ... but none runs the length of an aorta
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("overlap_px", [3, 5])
+def test_a_chamber_touching_the_lumen_is_cut_back_to_the_traced_disc(overlap_px):
+    """A heart chamber as bright as the lumen, touching it with no wall between: the next
+    cross-section would take a crescent of the chamber (up to the radius clip); the area
+    jump against the last cross-section cuts it back to the traced disc."""
+    rows, cols = np.mgrid[0:200, 0:200]
+    aorta = np.hypot(rows - 100, cols - 100) <= 10
+    chamber = np.hypot(rows - (100 - 10 - 40 + overlap_px), cols - 100) <= 40
+    hu = np.where(aorta | chamber, 350.0, 40.0) + np.random.default_rng(0).normal(0, 10, rows.shape)
+    previous = (aorta[80:121, 80:121], np.array([80, 80]))
+    mask, offset, centre, radius, _ = classical._lumen_in_slice(
+        hu.astype(np.float32), np.array([100.0, 100.0]), 10.0, (1.0, 1.0), (195.0, 600.0), 4.2,
+        previous=previous, reference_radius=10.0)
+    assert np.hypot(*(centre - 100.0)) <= 1.0 and radius == pytest.approx(10.0, abs=0.6)
+    assert mask.sum() <= 1.15 * aorta.sum()

@@ -59,7 +59,7 @@ IVC_SPINE_OFFSET_MM = 12.0
 MAX_SEED_TRIES = 5
 #: A traced cross-section more than this many times the area of the one before is a leak into a
 #: neighbour (heart, vein, bowel, bone) and is cut back to the traced disc.
-MAX_AREA_JUMP = 1.6
+MAX_AREA_JUMP = 1.25
 
 
 def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
