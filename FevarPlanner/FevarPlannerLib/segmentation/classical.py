@@ -108,7 +108,9 @@ def _round_blobs(hu_slice: np.ndarray, spacing_ji, hu_window, radius_mm) -> list
     """Round bright blobs of one axial slice: centre (j, i), inscribed radius (mm), circle score.
 
     The circle score is the area of the inscribed disc over the blob's area (1 for a disc,
-    small for an elongated or branched blob) times the blob's solidity.
+    small for an elongated or branched blob) times the blob's solidity. The blobs of the slice
+    with thin dark lines closed (:func:`_bridge_thin_gaps`) are listed too: a lumen split by a
+    dissection flap is one round blob again.
     """
     lo, hi = hu_window
     smooth = ndi.gaussian_filter(hu_slice.astype(np.float32), 0.7 / np.asarray(spacing_ji))
@@ -260,13 +262,12 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     Where the lumen seems to narrow, split or end, a thin dark line inside the traced disc
     may be a dissection flap: the slice is read again with such lines bridged
     (:func:`_bridge_thin_gaps`, within 0.85 ``radius`` and within the last cross-section less
-    its rim, down to half way between the lumen's
-    lower bound and soft tissue: a false lumen fills later), and that reading is kept if it
-    is wider (or the plain one ended) and keeps the trace's width (0.6 of it, as a plain
-    reading must); where the plain reading saw two separate lumens of similar size
-    (:func:`_two_separate_lumens`: a bifurcation, or a flap through the middle) it
-    must restore 0.85 of it: two channels bridged are one round lumen nearly as
-    wide as the aorta, two iliacs bridged at the crotch are not.
+    its rim, down to half way between the lumen's lower bound and soft tissue: a false lumen
+    fills later), and that reading is kept if it is wider (or the plain one ended) and keeps
+    the trace's width (0.6 of it, as a plain reading must). Where the plain reading saw two
+    separate lumens of similar size (:func:`_two_separate_lumens`: a bifurcation, or a flap
+    through the middle) it must restore 0.85 of it: two channels bridged are one round lumen
+    nearly as wide as the aorta, two iliacs bridged at the crotch are not.
     """
     args = (hu_slice, centre, radius, spacing_ji, lumen_hu, min_radius, max_growth, previous, reference_radius)
     plain = _lumen_cross_section(*args, detect_split, bridge=False)
