@@ -102,13 +102,19 @@ def test_an_ivc_brighter_than_the_aorta_is_not_the_seed():
     assert np.asarray(truth.array)[k, int(round(centre[0])), int(round(centre[1]))]
 
 
-def test_vertebral_bodies_alone_are_refused_in_one_line():
+def test_vertebral_bodies_alone_are_refused_in_one_line_with_a_qc_picture(tmp_path):
+    from FevarPlannerLib import quality
+
     params = ph.random_params(np.random.default_rng(SEED), ct_spacing_mm=SPACING_MM, lumen_hu=45.0)
     ct, _, _ = stressed_phantom_ct(params, StressorOptions(("spine_contact",)), np.random.default_rng(SEED))
     assert classical.aorta_seed_candidates(ct)                         # round bright blobs there are ...
     with pytest.raises(InputError, match=r"no aorta found: .* trace at most \d+ mm") as error:
         seg.segment_ct_classical(ct)                                   # ... but none runs the length of an aorta
     assert "\n" not in str(error.value)
+    shown = np.asarray(error.value.qc.lumen.array)                     # the rejected traces, for the QC picture
+    assert 0 < np.nonzero(shown.any(axis=(1, 2)))[0].size * ct.spacing[2] < classical.MIN_AORTA_TRACE_MM
+    picture = quality.write_segmentation_qc(tmp_path / "segmentation_qc.png", error.value.qc, str(error.value))
+    assert picture.stat().st_size > 10000
 
 
 @pytest.mark.parametrize("overlap_px", [3, 5])

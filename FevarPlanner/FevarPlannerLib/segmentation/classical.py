@@ -30,8 +30,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage import measure
 
-from ..files import InputError
 from ..io import Volume
+from ..quality import QCData, QualityError
 from .threshold import _bounding_box, _check_ct, postprocess_mask
 
 
@@ -432,8 +432,9 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
 
     Raises
     ------
-    InputError
-        "no aorta found: ..." (one line) when no seed qualifies.
+    quality.QualityError
+        "no aorta found: ..." (one line, an :class:`InputError`: exit code 2) when no seed
+        qualifies; its QC data show the CT with the rejected traces.
 
     Returns
     -------
@@ -445,12 +446,13 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     """
     candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm)
     if not candidates:
-        raise InputError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
-                         f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice")
+        raise QualityError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
+                           f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice",
+                           QCData(ct=ct))
     counter = _SliceCounter(ct.shape[0], progress)
     needed = min(MIN_AORTA_TRACE_MM, 0.5 * ct.shape[0] * ct.spacing[2])
     rejected = np.zeros(ct.shape[1:], dtype=bool)       # in-plane footprint of the seeds' traces that were too short
-    tried, longest = 0, 0.0
+    tried, longest, shown = 0, 0.0, np.zeros(ct.shape, dtype=bool)
     for k0, centre, radius, _ in candidates:
         if rejected[tuple(np.round(centre).astype(int))]:
             continue
@@ -468,8 +470,10 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
             return labels, traces, lumen_hu
         rejected |= ndi.binary_dilation((labels == 1).any(axis=0), iterations=2)
         longest = max(longest, length)
-    raise InputError(f"no aorta found: the {tried} best round bright blobs in front of the spine trace at most "
-                     f"{longest:.0f} mm along the body, an aorta at least {needed:.0f} mm (vertebral bodies or bowel?)")
+        shown |= labels == 1
+    raise QualityError(f"no aorta found: the {tried} best round bright blobs in front of the spine trace at most "
+                       f"{longest:.0f} mm along the body, an aorta at least {needed:.0f} mm (vertebral bodies or bowel?)",
+                       QCData(ct=ct, lumen=ct.with_array(shown)))
 
 
 def _trace_from_seed(ct: Volume, k0: int, centre, radius: float, radius_mm, counter):
