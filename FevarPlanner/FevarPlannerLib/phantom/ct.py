@@ -81,14 +81,20 @@ def render_ct(anatomy: Anatomy, params: PhantomParams, rng: np.random.Generator,
 
 
 def _ct_from_lumen_field(anatomy: Anatomy, params: PhantomParams, rng: np.random.Generator, volume: io.Volume,
-                         lumen: np.ndarray) -> io.Volume:
+                         lumen: np.ndarray, stressors=None) -> io.Volume:
+    """The CT from the lumen's signed distance; ``stressors`` (:class:`.stressors._Painter`) paints
+    what lies around the vessels before them and what lies on them after them."""
     voxel = float(min(volume.spacing))
     hu = _body_and_spine(volume, anatomy)
+    if stressors is not None:
+        stressors.before_vessels(hu, volume, anatomy, lumen)
     wall = _coarse_tube_field(volume, _wall_tubes(anatomy), pad_mm=_PERIVASCULAR_FAT_MM + 2.0 * voxel)
     fat = _fraction_inside(wall - _PERIVASCULAR_FAT_MM, voxel)
     hu += fat * (_FAT_HU - hu)
     hu += _fraction_inside(wall, voxel) * (params.thrombus_hu - hu)
     hu += _fraction_inside(lumen, voxel) * (params.lumen_hu - hu)
+    if stressors is not None:
+        stressors.after_vessels(hu, volume, anatomy, lumen)
     sigma = params.ct_blur_mm / np.asarray(volume.spacing)[::-1]
     hu = ndimage.gaussian_filter(hu, sigma=sigma, mode="nearest")
     hu += rng.normal(0.0, params.ct_noise_hu, size=hu.shape).astype(np.float32)

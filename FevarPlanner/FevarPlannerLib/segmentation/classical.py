@@ -1,9 +1,25 @@
 """CT without learning: trace the aorta slice by slice, grow the lumen, follow the branches.
 
-One file, a little over 500 lines, on purpose: the aorta trace, the bifurcation, the iliac
-traces and the branch growing all work on the same in-slice helpers (the disc box around a
-traced centre, the smoothed window, the blob tests against bone), and splitting them would
-leave each half importing most of the other.
+One file, about 800 lines, on purpose: the seed search, the aorta trace, the bifurcation, the
+iliac traces and the branch growing all work on the same in-slice helpers (the disc box around
+a traced centre, the smoothed window, the blob tests against bone, the flap bridging), and
+splitting them would leave each half importing most of the other.
+
+What real aortas add to a clean lumen, and how the route copes (each built as a CT stressor
+in :mod:`..phantom.stressors` and tested in ``Testing/test_ct_stressors.py``):
+
+- a dissection flap splits the lumen into two channels, neither round nor aorta-sized: seeds
+  are also looked for with thin dark lines closed (:func:`_bridge_thin_gaps`), the trace reads
+  a narrowing slice again with the flap bridged inside the last cross-section, and only the
+  downward trace takes two separate lumens of similar size for the bifurcation;
+- a seed on something else that is round and bright (a vertebral body between two discs, a
+  bowel loop) traces short: the next seed is tried (:data:`MIN_AORTA_TRACE_MM`);
+- an enhancing IVC is as round and bright as the aorta: seeds with the spine well to their
+  left come last (:data:`IVC_SPINE_OFFSET_MM`);
+- metal struts and calcified plaque are above the lumen's HU range (the seed's statistics,
+  capped below cortical bone) and stay out of it;
+- a neighbour touching the wall (heart, vein, bowel, bone) makes the cross-section jump in
+  area: it is cut back to the traced disc (:data:`MAX_AREA_JUMP`).
 """
 
 from __future__ import annotations
@@ -14,8 +30,8 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage import measure
 
-from ..files import InputError
 from ..io import Volume
+from ..quality import QCData, QualityError
 from .threshold import _bounding_box, _check_ct, postprocess_mask
 
 
@@ -32,6 +48,18 @@ ILIAC_MIN_RADIUS_MM = 2.5
 BRANCH_SIGMAS_MM = (1.5, 2.5, 4.0)
 #: How far (mm along the branch) a branch may reach from the aorta or iliacs.
 BRANCH_REACH_MM = 70.0
+#: Thin dark lines inside a lumen (a dissection flap) up to about twice this width (mm) are bridged.
+FLAP_BRIDGE_MM = 1.5
+#: A traced aorta shorter than this (mm along z, or half the scan's height if that is less) is not
+#: the aorta (a vertebral body between two discs, a bowel loop): the next seed is tried.
+MIN_AORTA_TRACE_MM = 60.0
+#: A seed blob with the spine's bone centroid this far (mm) to its left lies where the IVC runs.
+IVC_SPINE_OFFSET_MM = 12.0
+#: How many distinct seeds are tried before the CT is refused.
+MAX_SEED_TRIES = 5
+#: A traced cross-section more than this many times the area of the one before is a leak into a
+#: neighbour (heart, vein, bowel, bone) and is cut back to the traced disc.
+MAX_AREA_JUMP = 1.25
 
 
 def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
@@ -49,15 +77,69 @@ def _posterior_sign_j(ct: Volume) -> float:
     return float(np.sign(ct.direction[1, 1]))
 
 
+def _left_sign_i(ct: Volume) -> float:
+    """+1 when increasing i goes to the patient's left (towards +x in LPS), else -1 (or 0 if oblique)."""
+    return float(np.sign(ct.direction[0, 0]))
+
+
+def _spine_to_the_left_mm(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, posterior: float,
+                          left: float, reach_mm: float = 60.0, half_width_mm: float = 50.0) -> float:
+    """How far (mm) the cortical bone behind a blob lies to the patient's left of it (centroid).
+
+    The abdominal aorta runs in front of the vertebral body or left of it, the IVC right of it:
+    a bright round tube with the spine well to its left is the IVC (the same size and, in a
+    venous or late phase, as bright as the aorta). 0 when the axes are oblique or no bone is seen.
+    """
+    if posterior == 0 or left == 0:
+        return 0.0
+    j0, i0 = centre_ji
+    start = j0 + posterior * radius_mm / spacing_ji[0]
+    stop = start + posterior * reach_mm / spacing_ji[0]
+    rows = slice(int(max(min(start, stop), 0)), int(min(max(start, stop) + 1, hu_slice.shape[0])))
+    half = int(round(half_width_mm / spacing_ji[1]))
+    first = int(max(i0 - half, 0))
+    cols = np.nonzero(hu_slice[rows, first:int(min(i0 + half + 1, hu_slice.shape[1]))] > BONE_HU)[1]
+    if len(cols) < 3:
+        return 0.0
+    return float((cols.mean() + first - i0) * spacing_ji[1] * left)
+
+
 def _round_blobs(hu_slice: np.ndarray, spacing_ji, hu_window, radius_mm) -> list[dict]:
     """Round bright blobs of one axial slice: centre (j, i), inscribed radius (mm), circle score.
 
     The circle score is the area of the inscribed disc over the blob's area (1 for a disc,
-    small for an elongated or branched blob) times the blob's solidity.
+    small for an elongated or branched blob) times the blob's solidity. The blobs of the slice
+    with thin dark lines closed (:func:`_bridge_thin_gaps`) are listed too: a lumen split by a
+    dissection flap is one round blob again.
     """
     lo, hi = hu_window
     smooth = ndi.gaussian_filter(hu_slice.astype(np.float32), 0.7 / np.asarray(spacing_ji))
     inside = ndi.binary_opening((smooth >= lo) & (smooth <= hi), iterations=1)
+    blobs = _blobs_of(inside, smooth, spacing_ji, radius_mm)
+    bridged = _bridge_thin_gaps(inside, spacing_ji)      # a lumen split by a flap is one round blob again
+    if (bridged != inside).any():
+        blobs += _blobs_of(bridged, smooth, spacing_ji, radius_mm)
+    return blobs
+
+
+def _disc_element(radius_mm: float, spacing_ji) -> np.ndarray:
+    """A boolean disc of ``radius_mm`` (at least 1.5 pixels: the 3 x 3 square) on the slice's pixel grid."""
+    radius_mm = max(radius_mm, 1.5 * max(spacing_ji))
+    half = np.ceil(radius_mm / np.asarray(spacing_ji)).astype(int)
+    rows, cols = np.ogrid[-half[0]:half[0] + 1, -half[1]:half[1] + 1]
+    return np.hypot(rows * spacing_ji[0], cols * spacing_ji[1]) <= radius_mm
+
+
+def _bridge_thin_gaps(inside: np.ndarray, spacing_ji, width_mm: float = FLAP_BRIDGE_MM) -> np.ndarray:
+    """``inside`` with dark lines narrower than about 2 ``width_mm`` closed (binary closing)."""
+    element = _disc_element(width_mm, spacing_ji)
+    pad = max(element.shape)
+    closed = ndi.binary_closing(np.pad(inside, pad), structure=element)[pad:-pad, pad:-pad]
+    return closed | inside
+
+
+def _blobs_of(inside: np.ndarray, smooth: np.ndarray, spacing_ji, radius_mm) -> list[dict]:
+    """The blobs of one thresholded slice whose inscribed radius lies in ``radius_mm`` (see :func:`_round_blobs`)."""
     labels, n = ndi.label(inside)
     if n == 0:
         return []
@@ -123,17 +205,30 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
 
     Axial slices every ``step_mm`` are searched for round blobs inside ``hu_window`` with an
     inscribed radius in ``radius_mm`` and cortical bone behind them (the vertebral body);
-    the blob with the best circle score (times a preference for the middle of the range)
-    wins.
+    the blob with the best circle score wins (:func:`aorta_seed_candidates` lists them all).
 
     Returns
     -------
     (k, centre_ji, radius_mm, score) or None
     """
+    candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm, step_mm=step_mm)
+    return candidates[0] if candidates else None
+
+
+def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
+                          step_mm: float = 5.0) -> list:
+    """Every aorta-like cross-section of :func:`find_aorta_in_slices`, best circle score first,
+    those with the spine more than :data:`IVC_SPINE_OFFSET_MM` to their left (the IVC's
+    place, :func:`_spine_to_the_left_mm`) after all others.
+
+    Returns
+    -------
+    list of (k, centre_ji, radius_mm, score)
+    """
     spacing_ji = _slice_axes_mm(ct)
-    posterior = _posterior_sign_j(ct)
+    posterior, left = _posterior_sign_j(ct), _left_sign_i(ct)
     step = max(1, int(round(step_mm / ct.spacing[2])))
-    best = None
+    found, right_of_spine = [], []
     for k in range(step // 2, ct.shape[0], step):
         hu_slice = np.asarray(ct.array[k])
         for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
@@ -141,9 +236,11 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
                 continue
             if _inside_bone(hu_slice, blob["centre"], blob["radius"], spacing_ji):
                 continue
-            if best is None or blob["score"] > best[3]:
-                best = (k, blob["centre"], blob["radius"], blob["score"])
-    return best
+            spine_left = _spine_to_the_left_mm(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior, left)
+            found.append((k, blob["centre"], blob["radius"], blob["score"]))
+            right_of_spine.append(spine_left > IVC_SPINE_OFFSET_MM)
+    order = sorted(range(len(found)), key=lambda n: (right_of_spine[n], -found[n][3]))
+    return [found[n] for n in order]
 
 
 class _Trace:
@@ -160,7 +257,38 @@ class _Trace:
 def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
                     max_growth: float = 1.45, previous=None, reference_radius: float | None = None,
                     detect_split: bool = True):
-    """The lumen cross-section continuing a trace into the next slice.
+    """The lumen cross-section continuing a trace into the next slice (:func:`_lumen_cross_section`).
+
+    Where the lumen seems to narrow, split or end, a thin dark line inside the traced disc
+    may be a dissection flap: the slice is read again with such lines bridged
+    (:func:`_bridge_thin_gaps`, within 0.85 ``radius`` and within the last cross-section less
+    its rim, down to half way between the lumen's lower bound and soft tissue: a false lumen
+    fills later), and that reading is kept if it is wider (or the plain one ended) and keeps
+    the trace's width (0.6 of it, as a plain reading must). Where the plain reading saw two
+    separate lumens of similar size (:func:`_two_separate_lumens`: a bifurcation, or a flap
+    through the middle) it must restore 0.85 of it: two channels bridged are one round lumen
+    nearly as wide as the aorta, two iliacs bridged at the crotch are not.
+    """
+    args = (hu_slice, centre, radius, spacing_ji, lumen_hu, min_radius, max_growth, previous, reference_radius)
+    plain = _lumen_cross_section(*args, detect_split, bridge=False)
+    width = (reference_radius or radius)
+    if plain is not None and plain[0] is not None and plain[3] >= 0.85 * width:
+        return plain
+    bridged = _lumen_cross_section(*args, False, bridge=True)     # read as one lumen: no split
+    if bridged is None or bridged[0] is None:
+        return plain
+    ended = plain is None or plain[0] is None
+    two_alike = ended and plain is not None and _two_separate_lumens(plain[4], spacing_ji)
+    wider = ended or bridged[3] >= plain[3] + 0.5 * min(spacing_ji)
+    if wider and bridged[3] >= (0.85 if two_alike else 0.6) * min(width, radius):
+        return bridged
+    return plain
+
+
+def _lumen_cross_section(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
+                         max_growth: float = 1.45, previous=None, reference_radius: float | None = None,
+                         detect_split: bool = True, bridge: bool = False):
+    """One reading of the lumen cross-section continuing a trace into the next slice.
 
     Pixels within ``lumen_hu`` (after a light smoothing) in a window around the predicted
     ``centre`` are labelled; the components touching the predicted core (a disc of 0.6
@@ -186,6 +314,13 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     rows, cols = np.ogrid[:window.shape[0], :window.shape[1]]
     local = centre - lo_ji
     dist = np.hypot((rows - local[0]) * spacing_ji[0], (cols - local[1]) * spacing_ji[1])
+    if bridge:      # a flap inside the traced lumen joins the two channels; gaps to neighbours at the wall stay open
+        zone = dist <= 0.85 * radius
+        if previous is not None:        # the last cross-section less its rim (the wall): both channels
+            before = _paste(previous[0], previous[1] - lo_ji, window.shape)
+            zone |= ndi.binary_erosion(before, structure=_disc_element(FLAP_BRIDGE_MM, spacing_ji))
+        dimmer = (smooth >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (smooth <= lumen_hu[1])   # a false lumen
+        inside |= _bridge_thin_gaps(dimmer, spacing_ji) & zone & (smooth >= SOFT_TISSUE_HU)
     labels, _ = ndi.label(inside)
     core = dist <= 0.6 * radius
     if previous is not None:        # overlap with the last cross-section counts as well
@@ -203,7 +338,7 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     edt = ndi.distance_transform_edt(candidate, sampling=spacing_ji)
     new_radius = float(edt.max())
     split = _split_blobs(candidate, edt, lo_ji, spacing_ji, ILIAC_MIN_RADIUS_MM) if detect_split else []
-    if len(split) == 2 and split[1][1] >= 0.5 * split[0][1]:     # two lumens of similar size: a bifurcation
+    if _two_separate_lumens(split, spacing_ji):     # two lumens of similar size: a bifurcation
         return None, lo_ji, None, new_radius, split
     if new_radius < min_radius:
         return None
@@ -214,7 +349,20 @@ def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lum
     new_radius = float(own.max()) if own.max() >= min_radius else new_radius
     new_dist = np.hypot((rows - peak[0]) * spacing_ji[0], (cols - peak[1]) * spacing_ji[1])
     mask = candidate & (new_dist <= 1.25 * new_radius + 1.5)
+    if previous is not None and mask.sum() > MAX_AREA_JUMP * previous[0].sum():   # a sudden area jump: a leak
+        mask &= new_dist <= 1.05 * new_radius + 1.0
     return mask, lo_ji, peak + lo_ji, new_radius, []
+
+
+def _two_separate_lumens(split: list, spacing_ji) -> bool:
+    """True for two (centre, radius) lumens of similar size (radius ratio >= 0.7) at least 0.8
+    times the sum of their radii apart, as :func:`_two_lumens` asks of the iliacs (two maxima
+    along the ridge of one flattened lumen are not two lumens)."""
+    if len(split) != 2:
+        return False
+    (c0, r0), (c1, r1) = split
+    apart = float(np.hypot(*((np.asarray(c0) - np.asarray(c1)) * np.asarray(spacing_ji))))
+    return r1 >= 0.7 * r0 and apart >= 0.8 * (r0 + r1)
 
 
 def _paste(mask: np.ndarray, offset, shape) -> np.ndarray:
@@ -244,7 +392,9 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
     """Extend ``trace`` slice by slice until the lumen ends; paint it into ``out``.
 
     Radius continuity (the new radius between 0.6 and ``max_growth`` times the last one,
-    smoothed) keeps the trace out of the heart, the arch's far side and side branches.
+    smoothed) keeps the trace out of the heart, the arch's far side and side branches. Only
+    the downward aorta trace looks for the bifurcation (two separate lumens of similar size):
+    going up, two such lumens are the channels of a dissection, never a split.
     Returns the blobs the lumen split into where it stopped (for the iliacs), else [].
     """
     spacing_ji = _slice_axes_mm(ct)
@@ -253,7 +403,7 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
         recent = [trace.radii[j] for j in sorted(trace.radii, key=lambda j: -abs(j - k))[-15:]]
         found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
                                 trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
-                                detect_split=trace.name == "aorta")
+                                detect_split=trace.name == "aorta" and trace.step != _superior_step(ct))
         if found is None:
             return []
         mask, offset, centre, radius, split = found
@@ -275,6 +425,17 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
 def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, progress=None):
     """Find the aorta and follow it up and down the CT, then the common iliacs below it.
 
+    The seeds of :func:`aorta_seed_candidates` are tried best first (at most
+    :data:`MAX_SEED_TRIES`, skipping seeds inside the footprint of one already rejected): the
+    first whose trace runs at least :data:`MIN_AORTA_TRACE_MM` (or half the scan's height) is
+    the aorta; a shorter trace is a vertebral body between two discs or a bowel loop.
+
+    Raises
+    ------
+    quality.QualityError
+        "no aorta found: ..." (one line, an :class:`InputError`: exit code 2) when no seed
+        qualifies; its QC data show the CT with the rejected traces.
+
     Returns
     -------
     labels : numpy.ndarray of uint8
@@ -283,35 +444,71 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     lumen_hu : (float, float)
         The lumen intensity range taken from the seed's statistics.
     """
-    found = find_aorta_in_slices(ct, hu_window=hu_window, radius_mm=radius_mm)
-    if found is None:
-        raise InputError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
-                         f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice")
-    k0, centre, radius, _ = found
+    candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm)
+    if not candidates:
+        raise QualityError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
+                           f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice",
+                           QCData(ct=ct))
+    counter = _SliceCounter(ct.shape[0], progress)
+    needed = min(MIN_AORTA_TRACE_MM, 0.5 * ct.shape[0] * ct.spacing[2])
+    rejected = np.zeros(ct.shape[1:], dtype=bool)       # in-plane footprint of the seeds' traces that were too short
+    tried, longest, shown = 0, 0.0, np.zeros(ct.shape, dtype=bool)
+    for k0, centre, radius, _ in candidates:
+        if rejected[tuple(np.round(centre).astype(int))]:
+            continue
+        if tried == MAX_SEED_TRIES:
+            break
+        tried += 1
+        attempt = _trace_from_seed(ct, k0, centre, radius, radius_mm, counter)
+        if attempt is None:
+            continue
+        labels, traces, lumen_hu = attempt
+        traced = np.nonzero((labels == 1).any(axis=(1, 2)))[0]
+        length = float(np.ptp(traced) + 1) * float(ct.spacing[2])
+        if length >= needed:
+            traces += _trace_iliacs(ct, traces, lumen_hu, labels, counter)
+            return labels, traces, lumen_hu
+        rejected |= ndi.binary_dilation((labels == 1).any(axis=0), iterations=2)
+        longest = max(longest, length)
+        shown |= labels == 1
+    raise QualityError(f"no aorta found: the {tried} best round bright blobs in front of the spine trace at most "
+                       f"{longest:.0f} mm along the body, an aorta at least {needed:.0f} mm (vertebral bodies or bowel?)",
+                       QCData(ct=ct, lumen=ct.with_array(shown)))
+
+
+def _trace_from_seed(ct: Volume, k0: int, centre, radius: float, radius_mm, counter):
+    """The aorta traced up and down from one seed cross-section: (labels, [up, down traces],
+    lumen_hu), or None if the seed blob does not hold the lumen intensity taken from it."""
     lumen_hu = _lumen_range(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct))
-    labels = np.zeros(ct.shape, dtype=np.uint8)
     first = _lumen_in_slice(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct), lumen_hu, radius_mm[0])
     if first is None or first[0] is None:
-        raise InputError(f"no aorta found: the blob in slice {k0} does not hold the lumen intensity {lumen_hu}")
+        return None
+    labels = np.zeros(ct.shape, dtype=np.uint8)
     mask, offset, centre, radius, _ = first
     labels[k0, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]][mask] = 1
-    counter = _SliceCounter(ct.shape[0], progress)
     up = _superior_step(ct)
     traces = []
     for step in (up, -up):
         trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
         traces.append(trace)
         _follow(trace, ct, lumen_hu, labels, 1, counter)
-        if step == -up:
-            seeds = _bifurcation(ct, trace, lumen_hu)
-            if seeds:
-                _cut_trace_below(trace, seeds[0][0], labels)
-                _fill_crotch(ct, trace, seeds[0][0], lumen_hu, labels)
-            for k, c, r in seeds:
-                iliac = _Trace("iliac", k - step, c, r, step, ILIAC_MIN_RADIUS_MM)
-                traces.append(iliac)
-                _follow(iliac, ct, lumen_hu, labels, 2, counter)
     return labels, traces, lumen_hu
+
+
+def _trace_iliacs(ct: Volume, traces_of_aorta: list, lumen_hu, labels: np.ndarray, counter) -> list:
+    """The common iliacs from where the downward aorta trace (the second of ``traces_of_aorta``)
+    splits; the aorta trace is cut there and the crotch filled. Returns the iliac traces."""
+    down = traces_of_aorta[1]
+    seeds = _bifurcation(ct, down, lumen_hu, distal_radius=_distal_radius(traces_of_aorta))
+    if seeds:
+        _cut_trace_below(down, seeds[0][0], labels)
+        _fill_crotch(ct, down, seeds[0][0], lumen_hu, labels)
+    iliacs = []
+    for k, c, r in seeds:
+        iliac = _Trace("iliac", k - down.step, c, r, down.step, ILIAC_MIN_RADIUS_MM)
+        iliacs.append(iliac)
+        _follow(iliac, ct, lumen_hu, labels, 2, counter)
+    return iliacs
 
 
 def _disc_box(ct: Volume, centre, reach: float):
@@ -363,14 +560,27 @@ def _two_lumens(ct: Volume, k: int, centre, radius: float, lumen_hu) -> list:
     return []
 
 
-def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, tolerance_mm: float = 10.0) -> list:
+def _distal_radius(traces_of_aorta: list, n_slices: int = 10) -> float:
+    """Median traced aortic radius over the ``n_slices`` lowest traced slices (both traces: a
+    seed near the bifurcation leaves the downward trace only a slice or two, at the crotch)."""
+    radii = {}
+    for trace in traces_of_aorta:
+        radii.update(trace.radii)
+    down = traces_of_aorta[1].step
+    lowest = sorted(radii, key=lambda k: -k * down)[:n_slices]
+    return float(np.median([radii[k] for k in lowest]))
+
+
+def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, tolerance_mm: float = 10.0,
+                 distal_radius: float = 0.0) -> list:
     """Where the downward aorta trace splits into the common iliacs, or [].
 
     The split lies near or below the last slice where the trace still had the aorta's width
     (beyond it the trace may have followed one iliac): from ``tolerance_mm`` above that slice
     down to the trace's end, the first traced slice whose next slice holds :func:`_two_lumens`;
     else the first such slice within ``search_mm`` below that last full-width slice or below
-    the trace's end. An aorta that keeps its width to the end of the scan has no split.
+    the trace's end. An aorta that keeps its width to the end of the scan has no split. The
+    aortic radius each test uses is at least ``distal_radius`` (:func:`_distal_radius`).
 
     Returns
     -------
@@ -383,7 +593,7 @@ def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, t
     for k in ks:
         below = k + aorta.step
         if (k - first) * aorta.step >= 0 and 0 <= below < ct.shape[0]:
-            found = _two_lumens(ct, below, aorta.centres[k], aorta.radii[k], lumen_hu)
+            found = _two_lumens(ct, below, aorta.centres[k], max(aorta.radii[k], distal_radius), lumen_hu)
             if found:
                 return found
     for k_ref in dict.fromkeys((k_wide, ks[-1])):
@@ -391,7 +601,7 @@ def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, t
             below = k_ref + n * aorta.step
             if not 0 <= below < ct.shape[0]:
                 break
-            found = _two_lumens(ct, below, aorta.centres[k_ref], aorta.radii[k_ref], lumen_hu)
+            found = _two_lumens(ct, below, aorta.centres[k_ref], max(aorta.radii[k_ref], distal_radius), lumen_hu)
             if found:
                 return found
     return []
@@ -606,10 +816,12 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
                          progress=None, postprocess: bool = True, return_labels: bool = False):
     """Lumen mask of the aorta tree without any training (the fallback that always works).
 
-    1. :func:`find_aorta_in_slices`: the roundest bright blob in front of the spine.
-    2. :func:`trace_aorta`: follow it up and down slice by slice (overlap with the predicted
-       core, radius continuity), then the two common iliacs below the bifurcation; the
-       lumen range comes from the seed's own statistics.
+    1. :func:`aorta_seed_candidates`: round bright blobs in front of the spine, roundest first
+       (those where the IVC runs last).
+    2. :func:`trace_aorta`: follow the first seed whose trace is aorta-long up and down slice
+       by slice (overlap with the predicted core, radius continuity, flaps bridged), then the
+       two common iliacs below the bifurcation; the lumen range comes from the seed's own
+       statistics.
     3. :func:`grow_branches`: tubular bright voxels connected to the trunk within
        :data:`BRANCH_REACH_MM` along the branch, in mm whatever its course (renals, visceral
        arteries, iliac continuations); heart, kidneys, bowel and bone are not tubes.

@@ -1,0 +1,351 @@
+"""Stressors for the phantom CT: what makes a real aorta unusual for a segmenter.
+
+The plain phantom CT (:mod:`.ct`) is a clean contrast lumen in soft tissue with a spine a few
+millimetres behind it. Real pre- and post-operative scans add what the classical route has to
+survive, each an option here (:data:`STRESSORS`):
+
+``stent``
+    A stent graft from below the lowest renal down into both common iliacs: zig-zag metal
+    rings (:data:`METAL_HU`) on the lumen wall every :data:`STENT_RING_PITCH_MM` and four
+    marker balls at its top. Walled by metal, the aorta looks like bone to a naive test.
+``dissection``
+    A flap (thin, :data:`FLAP_HU`) splitting the aorta from its top to just above the
+    bifurcation, off centre (a compressed true lumen), the false lumen less opacified
+    (``false_lumen_fraction`` of the true lumen's enhancement). The label keeps both channels.
+``calcium``
+    Calcified plaques (:data:`CALCIUM_HU`) on the outer side of the wall, arcs of 25-70 degrees.
+``spine_contact``
+    A vertebral body (cortex and cancellous bone) touching the aortic wall from behind.
+``venous_contrast``
+    An enhancing IVC beside the aorta, the left renal vein crossing just in front of it, and
+    bowel loops with positive oral contrast near its anterior wall.
+``thorax``
+    The field of view continues 110 mm above the abdominal aorta (the descending thoracic
+    aorta, added to the label) with the heart's enhancing chambers touching it from the front,
+    and the lungs.
+
+:func:`stressed_phantom_ct` draws a phantom case with any of them and returns the CT and the
+lumen label on its grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import io
+from .anatomy import Anatomy, Vessel, _unit
+from .ct import _CANCELLOUS_HU, _CORTICAL_HU, _ct_from_lumen_field
+from .params import PhantomParams
+from .raster import Grid, _lumen_field, _tube_field, ct_grid, rasterize_lumen
+
+STRESSORS = ("stent", "dissection", "calcium", "spine_contact", "venous_contrast", "thorax")
+
+METAL_HU, CALCIUM_HU, FLAP_HU, LUNG_HU, MYOCARDIUM_HU = 3000.0, 1200.0, 60.0, -850.0, 110.0
+STENT_RING_PITCH_MM, STENT_AMPLITUDE_MM, STENT_PEAKS = 15.0, 4.0, 6
+THORAX_EXTENSION_MM = 110.0
+#: Voxels this far (mm) outside a lumen get a local frame (nearest centreline point, angle, arc length).
+_FRAME_REACH_MM = 4.0
+
+
+@dataclass
+class StressorOptions:
+    """Which stressors to draw and their strengths.
+
+    Attributes
+    ----------
+    names : tuple of str
+        A subset of :data:`STRESSORS`.
+    false_lumen_fraction : float
+        Enhancement of a dissection's false lumen above soft tissue, relative to the true lumen's.
+    flap_offset : float
+        Flap position from the aortic centre, as a fraction of the radius (true lumen on the
+        negative side, the smaller one when positive).
+    venous_fraction : float
+        Enhancement of the IVC and renal veins relative to the arterial lumen.
+    oral_contrast_hu : float
+        HU of the bowel contents.
+    """
+
+    names: tuple = ()
+    false_lumen_fraction: float = 0.6
+    flap_offset: float = 0.25
+    venous_fraction: float = 0.85
+    oral_contrast_hu: float = 600.0
+
+    def __post_init__(self):
+        unknown = sorted(set(self.names) - set(STRESSORS))
+        if unknown:
+            raise ValueError(f"unknown CT stressor(s) {', '.join(unknown)}; use any of {', '.join(STRESSORS)}")
+        self.names = tuple(self.names)
+
+
+class _Painter:
+    """The hooks :func:`.ct._ct_from_lumen_field` calls before and after it paints the vessels."""
+
+    def __init__(self, options: StressorOptions, params: PhantomParams, rng: np.random.Generator):
+        self.options, self.params, self.rng = options, params, rng
+
+    def before_vessels(self, hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen: np.ndarray) -> None:
+        names = self.options.names
+        axes = _Axes(volume)
+        if "thorax" in names:
+            _paint_thorax(hu, axes, anatomy, self.params)
+        if "spine_contact" in names:
+            _paint_vertebra_on_the_wall(hu, axes, anatomy)
+        if "venous_contrast" in names:
+            _paint_veins_and_bowel(hu, volume, axes, anatomy, self.params, self.options)
+
+    def after_vessels(self, hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen: np.ndarray) -> None:
+        names = self.options.names
+        if not {"stent", "dissection", "calcium"} & set(names):
+            return
+        frame = _VesselFrame(volume, anatomy)
+        if "dissection" in names:
+            _paint_dissection(hu, frame, anatomy, self.params, self.options)
+        if "calcium" in names:
+            _paint_calcium(hu, frame, self.rng)
+        if "stent" in names:
+            _paint_stent(hu, volume, frame, anatomy)
+
+
+class _Axes:
+    """The LPS coordinate of each index along i (x), j (y), k (z) of an axis-aligned volume."""
+
+    def __init__(self, volume: io.Volume):
+        self.x = volume.origin[0] + np.arange(volume.shape[2]) * volume.spacing[0]
+        self.y = volume.origin[1] + np.arange(volume.shape[1]) * volume.spacing[1]
+        self.z = volume.origin[2] + np.arange(volume.shape[0]) * volume.spacing[2]
+
+
+def _aorta_at(anatomy: Anatomy, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Aortic lumen centre (x, y) and lumen / outer radius at heights ``z`` (clamped to its ends)."""
+    aorta = anatomy.vessels["aorta"]
+    order = np.argsort(aorta.points[:, 2])
+    zs = aorta.points[order, 2]
+    centre = np.column_stack([np.interp(z, zs, aorta.points[order, d]) for d in (0, 1)])
+    return centre, np.interp(z, zs, aorta.radius[order]), np.interp(z, zs, aorta.outer_radius[order])
+
+
+# ----------------------------------------------------------------------------------------
+# Around the aorta: heart and lungs, a vertebra on the wall, veins and bowel
+# ----------------------------------------------------------------------------------------
+
+def _ellipsoid(axes: _Axes, centre, semi) -> np.ndarray:
+    dz = ((axes.z - centre[2]) / semi[2]) ** 2
+    dy = ((axes.y - centre[1]) / semi[1]) ** 2
+    dx = ((axes.x - centre[0]) / semi[0]) ** 2
+    return (dz[:, None, None] + dy[None, :, None] + dx[None, None, :]) <= 1.0
+
+
+def _paint_thorax(hu: np.ndarray, axes: _Axes, anatomy: Anatomy, params: PhantomParams) -> None:
+    """Lungs beside the mediastinum and the heart's chambers touching the aorta from the front,
+    in the slices above the abdomen (the top ``THORAX_EXTENSION_MM`` of the aorta)."""
+    aorta = anatomy.vessels["aorta"]
+    z_top = float(aorta.points[:, 2].max())
+    chest = axes.z >= z_top - THORAX_EXTENSION_MM + 10.0
+    (cx, cy), r, outer = (v[0] for v in _aorta_at(anatomy, np.array([z_top - 50.0])))
+    soft = hu > -200.0
+    lateral = np.abs(axes.x - cx + 15.0) > 45.0
+    lung = chest[:, None, None] & lateral[None, None, :] & soft & (hu < 200.0)
+    hu[lung] = LUNG_HU
+    semi = np.array([50.0, 40.0, 45.0])
+    centre = np.array([cx - 20.0, cy - outer - 2.0 - semi[1], z_top - 55.0])
+    hu[_ellipsoid(axes, centre, semi + 6.0)] = MYOCARDIUM_HU
+    hu[_ellipsoid(axes, centre, semi)] = params.lumen_hu * 0.95
+    atrium = centre + np.array([20.0, semi[1] - 8.0, 0.0])      # left atrium, just in front of the aorta
+    hu[_ellipsoid(axes, atrium, np.array([25.0, 12.0, 25.0]))] = params.lumen_hu * 0.95
+
+
+def _paint_vertebra_on_the_wall(hu: np.ndarray, axes: _Axes, anatomy: Anatomy, radius: float = 18.0,
+                                cortex: float = 1.5) -> None:
+    """A vertebral body (right of and behind the aorta) whose cortex touches the aortic outer
+    wall, in every slice; a disc (soft tissue) every 35 mm as in :mod:`.ct`."""
+    centre, _, outer = _aorta_at(anatomy, axes.z)
+    towards = _unit([-0.2, 1.0, 0.0])[:2]
+    in_disc = np.mod(axes.z, 35.0) < 8.0
+    for k in range(len(axes.z)):
+        body_centre = centre[k] + (outer[k] + radius - 0.5) * towards
+        distance = np.hypot(axes.x[None, :] - body_centre[0], axes.y[:, None] - body_centre[1])
+        if in_disc[k]:
+            hu[k][distance <= radius] = 90.0
+            continue
+        hu[k][distance <= radius] = _CORTICAL_HU
+        hu[k][distance <= radius - cortex] = _CANCELLOUS_HU
+
+
+def _tube(volume: io.Volume, points: np.ndarray, radius: float) -> np.ndarray:
+    """Voxels within ``radius`` of the polyline ``points`` (LPS)."""
+    return _tube_field(volume, [(np.asarray(points, float), np.full(len(points), radius))], pad_mm=radius) <= 0.0
+
+
+def _paint_veins_and_bowel(hu: np.ndarray, volume: io.Volume, axes: _Axes, anatomy: Anatomy, params: PhantomParams,
+                           options: StressorOptions) -> None:
+    """IVC right of the aorta, left renal vein in front of it, two bowel loops with oral contrast."""
+    vein_hu = 40.0 + options.venous_fraction * (params.lumen_hu - 40.0)
+    zs = np.linspace(axes.z[0], axes.z[-1], 40)
+    centre, r, outer = _aorta_at(anatomy, zs)
+    ivc = np.column_stack([centre[:, 0] - outer - 3.0 - 11.0, centre[:, 1] + 2.0, zs])
+    hu[_tube(volume, ivc, 11.0)] = vein_hu
+    renal = anatomy.vessels["renal_left"].points
+    z_vein = float(renal[0, 2]) - 8.0
+    (cx, cy), r0, o0 = (v[0] for v in _aorta_at(anatomy, np.array([z_vein])))
+    front = cy - o0 - 1.0 - 5.0                          # 1 mm of fat between vein and aortic wall
+    left_vein = np.array([[cx + 75.0, cy + 5.0, z_vein - 5.0], [cx + 25.0, front, z_vein],
+                          [cx - 10.0, front, z_vein], [ivc[0, 0] + 10.0, cy + 2.0, z_vein]])
+    hu[_tube(volume, left_vein, 5.0)] = vein_hu
+    for dz, gap in ((-25.0, 1.5), (20.0, 4.0)):
+        z = z_vein + dz
+        (bx, by), _, bo = (v[0] for v in _aorta_at(anatomy, np.array([z])))
+        y = by - bo - gap - 10.0
+        loop = np.array([[bx - 60.0, y - 15.0, z], [bx - 20.0, y, z - 5.0], [bx + 20.0, y, z + 5.0],
+                         [bx + 60.0, y - 20.0, z]])
+        hu[_tube(volume, loop, 10.0)] = options.oral_contrast_hu
+
+
+# ----------------------------------------------------------------------------------------
+# On the vessels: flap, plaques, stent
+# ----------------------------------------------------------------------------------------
+
+class _VesselFrame:
+    """For voxels within :data:`_FRAME_REACH_MM` of the aorta or iliac lumens: the nearest
+    centreline point's vessel, arc length ``s`` (mm, plus the axial offset), radial distance,
+    angle about the tangent and the lumen radius there."""
+
+    def __init__(self, volume: io.Volume, anatomy: Anatomy):
+        names = [n for n in ("aorta", "iliac_left", "iliac_right") if n in anatomy.vessels]
+        vessels = [anatomy.vessels[n] for n in names]
+        field = _tube_field(volume, ((v.points, v.radius) for v in vessels), pad_mm=_FRAME_REACH_MM)
+        self.index = np.argwhere(field < _FRAME_REACH_MM)
+        coords = volume.index_to_lps(self.index.astype(float))
+        points = np.vstack([v.points for v in vessels])
+        owner = np.concatenate([np.full(len(v.points), i) for i, v in enumerate(vessels)])
+        arc = np.concatenate([v.arc_length() for v in vessels])
+        tangent = np.vstack([np.gradient(v.points, axis=0) for v in vessels])
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        radius = np.concatenate([v.radius for v in vessels])
+        _, nearest = cKDTree(points).query(coords)
+        rel = coords - points[nearest]
+        t = tangent[nearest]
+        along = np.einsum("nd,nd->n", rel, t)
+        across = rel - along[:, None] * t
+        u = _perpendicular(t, np.array([1.0, 0.0, 0.0]))
+        w = np.cross(t, u)
+        self.vessel = np.asarray(names)[owner[nearest]]
+        self.s = arc[nearest] + along
+        self.radial = np.linalg.norm(across, axis=1)
+        self.angle = np.arctan2(np.einsum("nd,nd->n", across, w), np.einsum("nd,nd->n", across, u))
+        self.lateral = np.einsum("nd,nd->n", across, u)        # towards the patient's left
+        self.radius = radius[nearest]
+        self.point_index = nearest - np.concatenate([[0], np.cumsum([len(v.points) for v in vessels])])[owner[nearest]]
+
+    def paint(self, hu: np.ndarray, where: np.ndarray, value) -> None:
+        hu[tuple(self.index[where].T)] = value
+
+
+def _perpendicular(t: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Unit vectors perpendicular to each row of ``t``, as close as possible to ``reference``."""
+    u = reference[None] - np.einsum("nd,d->n", t, reference)[:, None] * t
+    return u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-9)
+
+
+def _paint_dissection(hu: np.ndarray, frame: _VesselFrame, anatomy: Anatomy, params: PhantomParams,
+                      options: StressorOptions, flap_mm: float = 1.0) -> None:
+    """A flap splitting the aorta down to 15 mm above its end; the false lumen less opacified."""
+    aorta = anatomy.vessels["aorta"]
+    inside = (frame.vessel == "aorta") & (frame.radial <= frame.radius) & (frame.s <= aorta.length - 15.0)
+    offset = frame.lateral - options.flap_offset * frame.radius     # the flap runs antero-posteriorly
+    false_hu = 40.0 + options.false_lumen_fraction * (params.lumen_hu - 40.0)
+    frame.paint(hu, inside & (offset > 0.5 * flap_mm), false_hu)
+    frame.paint(hu, inside & (np.abs(offset) <= 0.5 * flap_mm), FLAP_HU)
+
+
+def _paint_calcium(hu: np.ndarray, frame: _VesselFrame, rng: np.random.Generator, n_plaques: int = 40) -> None:
+    """Plaques on the outer side of the wall: arcs 1.5 mm thick, 3-8 mm long, 25-70 degrees wide."""
+    aorta = frame.vessel == "aorta"
+    if not aorta.any():
+        return
+    s_max = float(frame.s[aorta].max())
+    shell = aorta & (frame.radial > frame.radius) & (frame.radial <= frame.radius + 1.5)
+    for _ in range(n_plaques):
+        s0, a0 = rng.uniform(0.0, s_max), rng.uniform(-np.pi, np.pi)
+        half_angle, half_length = np.deg2rad(rng.uniform(12.5, 35.0)), rng.uniform(1.5, 4.0)
+        d_angle = np.angle(np.exp(1j * (frame.angle - a0)))
+        frame.paint(hu, shell & (np.abs(d_angle) <= half_angle) & (np.abs(frame.s - s0) <= half_length), CALCIUM_HU)
+
+
+def _paint_stent(hu: np.ndarray, volume: io.Volume, frame: _VesselFrame, anatomy: Anatomy) -> None:
+    """Zig-zag rings on the lumen wall from 10 mm below the lowest renal to 60 mm down each iliac,
+    and four marker balls at the graft's top."""
+    aorta = anatomy.vessels["aorta"]
+    renal_index = max(v.parent_index for v in anatomy.by_label("renal_left") + anatomy.by_label("renal_right"))
+    start = float(aorta.arc_length()[renal_index]) + 10.0
+    covered = np.where(frame.vessel == "aorta", frame.s >= start, frame.s <= 60.0)
+    wire_mm = max(0.5, 0.5 * float(min(volume.spacing)))
+    on_wall = covered & (np.abs(frame.radial - (frame.radius - 0.5)) <= wire_mm)
+    phase = STENT_PEAKS * frame.angle / (2 * np.pi)
+    zigzag = STENT_AMPLITUDE_MM * (2.0 * np.abs(phase - np.floor(phase) - 0.5) - 0.5)
+    ring_s = np.mod(frame.s - start + zigzag, STENT_RING_PITCH_MM)
+    frame.paint(hu, on_wall & (np.minimum(ring_s, STENT_RING_PITCH_MM - ring_s) <= wire_mm), METAL_HU)
+    axes = _Axes(volume)
+    index = int(np.argmin(np.abs(aorta.arc_length() - start)))
+    centre, radius = aorta.points[index], aorta.radius[index]
+    for angle in np.deg2rad([45.0, 135.0, 225.0, 315.0]):
+        ball = centre + (radius - 1.0) * np.array([np.cos(angle), np.sin(angle), 0.0])
+        hu[_ellipsoid(axes, ball, np.full(3, 1.5))] = METAL_HU
+
+
+# ----------------------------------------------------------------------------------------
+# The case
+# ----------------------------------------------------------------------------------------
+
+def stressed_anatomy(anatomy: Anatomy, names) -> Anatomy:
+    """``anatomy`` with the aorta continued :data:`THORAX_EXTENSION_MM` upwards when ``thorax``
+    is among ``names`` (straight, the top radius), else unchanged."""
+    if "thorax" not in names:
+        return anatomy
+    aorta = anatomy.vessels["aorta"]
+    up = _unit(aorta.points[0] - aorta.points[3])
+    steps = np.arange(int(THORAX_EXTENSION_MM), 0, -1)[:, None]
+    extra = aorta.points[0] + steps * up
+    n = len(extra)
+    extended = Vessel("aorta", np.vstack([extra, aorta.points]), np.concatenate([np.full(n, aorta.radius[0]), aorta.radius]),
+                      np.concatenate([np.full(n, aorta.outer_radius[0]), aorta.outer_radius]),
+                      np.vstack([np.repeat(aorta.outer_offset[:1], n, 0), aorta.outer_offset]))
+    vessels = {"aorta": extended}
+    for name, vessel in anatomy.vessels.items():
+        if name != "aorta":
+            vessels[name] = replace(vessel, parent_index=vessel.parent_index + (n if vessel.parent == "aorta" else 0))
+    return Anatomy(vessels)
+
+
+def _grid_with_room_in_front(anatomy: Anatomy, params: PhantomParams, front_mm: float) -> Grid:
+    """:func:`ct_grid`, extended ``front_mm`` anteriorly (for the heart and the bowel)."""
+    grid = ct_grid(anatomy, params.ct_spacing_mm, params.ct_margin_mm)
+    extra = int(np.ceil(front_mm / params.ct_spacing_mm))
+    origin = (grid.origin[0], round(grid.origin[1] - extra * params.ct_spacing_mm, 3), grid.origin[2])
+    return Grid((grid.shape[0], grid.shape[1] + extra, grid.shape[2]), grid.spacing, origin)
+
+
+def stressed_phantom_ct(params: PhantomParams, options: StressorOptions, rng: np.random.Generator):
+    """A phantom CT of the rest anatomy of ``params`` with the stressors of ``options``.
+
+    Returns
+    -------
+    ct : io.Volume
+        int16 HU.
+    truth : io.Volume
+        The lumen label on the CT grid (both channels of a dissection; the thoracic aorta too).
+    anatomy : Anatomy
+        The anatomy drawn (with the thoracic aorta when ``thorax`` is asked).
+    """
+    from .anatomy import build_preop_anatomy
+
+    anatomy = stressed_anatomy(build_preop_anatomy(params), options.names)
+    front = 60.0 if {"thorax", "venous_contrast"} & set(options.names) else 0.0
+    volume = _grid_with_room_in_front(anatomy, params, front).volume(dtype=np.int16)
+    lumen = _lumen_field(anatomy, volume)
+    ct = _ct_from_lumen_field(anatomy, params, rng, volume, lumen, stressors=_Painter(options, params, rng))
+    return ct, rasterize_lumen(anatomy, ct), anatomy
