@@ -28,6 +28,8 @@ import math
 import numpy as np
 from scipy import ndimage as ndi
 
+from .skeleton import bounding_box
+
 __all__ = ["condition_given_mask", "dithered_fraction", "vessel_half_width_px", "DITHERED_ABOVE",
            "MAJORITY_FRACTION", "repaired_mask"]
 
@@ -139,13 +141,6 @@ def _all_holes_filled(mask: np.ndarray) -> np.ndarray:
     return mask | (sizes > 0)[labels]
 
 
-def _box(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    return (slice(max(rows[0] - pad, 0), min(rows[-1] + pad + 1, mask.shape[0])),
-            slice(max(cols[0] - pad, 0), min(cols[-1] + pad + 1, mask.shape[1])))
-
-
 def condition_given_mask(mask: np.ndarray) -> np.ndarray:
     """Repair a damaged binary 2D vessel mask (pinholes, dithered edge, halo fringe, specks).
 
@@ -176,7 +171,7 @@ def condition_given_mask(mask: np.ndarray) -> np.ndarray:
         raise ValueError(f"condition_given_mask: expected a 2D mask, got shape {binary.shape}")
     if not binary.any():
         return binary
-    crop = binary[_box(binary, 2)]
+    crop = binary[bounding_box(binary, 2)]
     if dithered_fraction(crop) <= DITHERED_ABOVE:
         return binary
     step = 2 if crop.size > SAMPLE_ABOVE_PIXELS else 1
@@ -187,7 +182,7 @@ def repaired_mask(binary: np.ndarray, half_width: float) -> np.ndarray:
     """Steps 1-3 of :func:`condition_given_mask` on a bool mask, at vessel half-width ``half_width``
     (pixels), whether the mask is dithered or not."""
     radius = int(np.clip(round(MAJORITY_FRACTION * half_width), *MAJORITY_RADIUS_PX))
-    box = _box(binary, radius + 2)
+    box = bounding_box(binary, radius + 2)
     cross_section = math.pi * (PIECE_RADIUS_FRACTION * half_width) ** 2
     work = _with_small_holes_filled(binary[box], cross_section)
     work = _majority(work, radius)
