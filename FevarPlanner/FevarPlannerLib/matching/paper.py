@@ -44,6 +44,10 @@ __all__ = [
 ETA_S = 1
 ETA_T = 10
 _FORBIDDEN = 1e6
+#: How far (mm of 3D path) a junction inside a trunk chain may slide along its 2D partner
+#: towards the chain's proportional position (:func:`_sliding_trunk_lengths`): the ostia
+#: of the renal arteries move 3-4 mm along the aorta between CT and frame.
+JUNCTION_SLIDE_MM = 5.0
 
 
 @dataclass
@@ -222,6 +226,81 @@ def _assign_by_arc_length(s3: np.ndarray, nodes2: np.ndarray, x2: np.ndarray):
     return inside, nodes2[i], nodes2[i + 1], 1.0 - m_next, m_next
 
 
+def _joined(chains: list) -> np.ndarray:
+    """Node chains that share their end nodes, as one chain."""
+    return np.concatenate([np.asarray(chains[0])] + [np.asarray(c)[1:] for c in chains[1:]])
+
+
+def _trunk_chains(trunk_pairs: list) -> list[list]:
+    """Trunk pairs joined end to end into chains along the aorta.
+
+    Two pairs join when the 3D and the 2D chain of one end where those of the other
+    begin (either pair may be reversed for it). Returns lists of oriented ``(nodes3,
+    nodes2)`` pairs.
+    """
+    chains = [[(np.asarray(n3), np.asarray(n2))] for n3, n2 in trunk_pairs]
+    joined = True
+    while joined:
+        joined = False
+        for a in range(len(chains)):
+            for b in range(len(chains)):
+                if a == b:
+                    continue
+                merged = _join_two(chains[a], chains[b])
+                if merged is not None:
+                    chains[a] = merged
+                    del chains[b]
+                    joined = True
+                    break
+            if joined:
+                break
+    return chains
+
+
+def _join_two(first: list, second: list) -> list | None:
+    """``first`` continued by ``second`` (or by ``second`` reversed, or the other way round),
+    None when they share no end in both graphs."""
+    def reverse(chain):
+        return [(n3[::-1], n2[::-1]) for n3, n2 in chain[::-1]]
+
+    def ends(chain):
+        return (int(chain[0][0][0]), int(chain[0][1][0])), (int(chain[-1][0][-1]), int(chain[-1][1][-1]))
+
+    for head in (first, reverse(first)):
+        for tail in (second, reverse(second)):
+            if ends(head)[1] == ends(tail)[0]:
+                return head + tail
+    return None
+
+
+def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list) -> tuple[np.ndarray, np.ndarray]:
+    """3D nodes of a trunk chain and the 2D path length each is assigned to (eq. 5, with sliding junctions).
+
+    Eq. (5) maps a trunk's 3D path length onto its 2D partner in equal proportion. Applied
+    to each trunk between two junctions it pins every junction to its 2D partner, and the
+    ostia of the renal arteries move a few millimetres along the aorta between CT and
+    frame: the few millimetres of aorta between two close renal junctions are then mapped
+    onto a 2D stretch of another length, which stretches the aorta there by 20 % and more.
+    Here the whole chain is mapped piecewise linearly between knots at its junctions; the
+    two ends are pinned as in eq. (5), and an inner junction's knot lies at its 2D
+    partner's path length moved towards the proportional position of the whole chain by
+    up to :data:`JUNCTION_SLIDE_MM` (scaled by lambda2 / lambda3). A single trunk is eq. (5).
+    """
+    nodes3 = _joined([n3 for n3, _ in segments])
+    s3 = _cumulative_length(g3.positions[nodes3])
+    if s3[-1] <= 0:
+        return nodes3, s3
+    knots3 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g3.positions[n3])[-1] for n3, _ in segments])])
+    knots2 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g2.positions[n2])[-1] for _, n2 in segments])])
+    scale = knots2[-1] / knots3[-1]                     # lambda2 / lambda3 of the whole chain
+    slide = JUNCTION_SLIDE_MM * scale
+    knots = knots2 + np.clip(knots3 * scale - knots2, -slide, slide)
+    knots[[0, -1]] = knots2[[0, -1]]
+    if np.any(np.diff(knots) <= 0) or np.any(np.diff(knots3) <= 0):
+        knots = knots2
+    return nodes3, np.interp(s3, knots3, knots)
+
+
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
                 P: np.ndarray, correspondence: Correspondence) -> SoftAssignment:
     """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
@@ -242,11 +321,9 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         vals.extend([w_lo[fresh], w_hi[fresh]])
         assigned[j] = True
 
-    for nodes3, nodes2 in correspondence.trunk_pairs:
-        # eq. (5): 3D path length scaled by lambda2 / lambda3 (equal proportion of length)
-        s3 = _cumulative_length(g3.positions[nodes3])
-        lam2 = _cumulative_length(g2.positions[nodes2])[-1]
-        add(np.asarray(nodes3), s3 * (lam2 / s3[-1]) if s3[-1] > 0 else s3, np.asarray(nodes2))
+    for segments in _trunk_chains(correspondence.trunk_pairs):
+        nodes3, s2 = _sliding_trunk_lengths(g3, g2, segments)
+        add(nodes3, s2, _joined([n2 for _, n2 in segments]))
     chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
     for i3, nodes2 in chains.items():
         nodes3 = c3.branches[i3].nodes
