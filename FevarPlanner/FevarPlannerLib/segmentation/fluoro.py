@@ -477,8 +477,12 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
         vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
     oriented = small if vessels == "bright" else 1.0 - small
     widest = prior.derived(("widest", small_shape, factor, reach), lambda: _widest_nearby(radius))
-    across = prior.derived(("across", small_shape, factor, reach), lambda: _lines_across(prior, nearest, radius))
-    oriented = _flatten_across(oriented, across)
+    flat, level = _background_is_flat(oriented, where)
+    if flat:
+        oriented = oriented - np.float32(level)         # already flat: only its level goes
+    else:
+        across = prior.derived(("across", small_shape, factor, reach), lambda: _lines_across(prior, nearest, radius))
+        oriented = _flatten_across(oriented, across)
     response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
@@ -639,6 +643,16 @@ LINE_STEPS = ((0, 1), (1, 1), (1, 0), (1, -1))
 LINE_RADII = 2.8
 LINE_PAD_PX = 3.0
 LINE_CLASS_RATIO = 1.25
+#: A frame whose background next to the projected vessels stands less than this fraction of the
+#: vessels' contrast above the background away from them (:func:`_background_is_flat`) is not
+#: flattened: it is already flat (a subtracted frame), and the openings cost ~4 ms at 1024^2.
+#: Between subtracted frames (< 0.12) and the unsubtracted bench frames (>= 0.2; seeds 102,
+#: 201-203, every distractor or the spine alone). And the background's spread away from the
+#: vessels must be under FLAT_SPREAD of their contrast (see :func:`_background_is_flat`).
+FLAT_PEDESTAL = 0.13
+FLAT_SPREAD = 0.1
+FLAT_RING_PERCENTILE = 75.0
+FLAT_RING_GAP_PX = 2.0
 #: The least background transmission a residue is divided by (:func:`_flatten_across`).
 TRANSMISSION_FLOOR = 0.1
 
@@ -731,6 +745,30 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
         target = flat[box][inner]
         np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
     return flat
+
+
+def _background_is_flat(oriented: np.ndarray, where) -> tuple[bool, float]:
+    """Whether the frame's background is already flat (a subtracted frame under an even
+    exposure), and its level (the median outside the prior's band).
+
+    Read on every other pixel of ``oriented`` (vessels bright) and of the prior's band ``where``,
+    both as fractions of the vessels' contrast (the band's 99th percentile above the level):
+    the pedestal, how far the band more than :data:`FLAT_RING_GAP_PX` px off the projected lumen
+    (its :data:`FLAT_RING_PERCENTILE` percentile) stands above the level -- raised by vertebral
+    bodies, the pelvis or a box wall under the vessels (>= 0.2 on unsubtracted bench frames);
+    and the spread (10th-90th percentile) outside the band -- raised by an exposure fall-off or
+    a collimator shutter, under which the ratio residue of :func:`_flatten_across` keeps faint
+    vessels (bench DSA frames 0.26-1.1; an even DSA frame 0.02-0.03).
+    """
+    o, band, distance, radius = (a[::2, ::2] for a in (oriented, where.band, where.distance, where.radius))
+    ring, far = band & (distance > radius + FLAT_RING_GAP_PX), o[~band]
+    if ring.sum() < 10 or far.size < 10:
+        return False, 0.0
+    level = float(np.median(far))
+    vessels = max(float(np.percentile(o[band], 99)) - level, 1e-6)
+    pedestal = (float(np.percentile(o[ring], FLAT_RING_PERCENTILE)) - level) / vessels
+    low, high = np.percentile(far, [10, 90])
+    return pedestal < FLAT_PEDESTAL and float(high - low) / vessels < FLAT_SPREAD, level
 
 
 def _box_around(region: np.ndarray, reach) -> tuple:
