@@ -19,6 +19,11 @@ survive, each an option here (:data:`STRESSORS`):
 ``venous_contrast``
     An enhancing IVC beside the aorta, the left renal vein crossing just in front of it, and
     bowel loops with positive oral contrast near its anterior wall.
+``fading``
+    Late-arterial or slow-flow timing: the lumen's enhancement falls linearly along the aorta
+    from ``fade_top_hu`` at its top to ``fade_bottom_hu`` at the bifurcation; each branch keeps
+    its parent's level at its ostium (the iliacs the bifurcation's). A dissection's false lumen,
+    drawn first, fades with it.
 ``thorax``
     The field of view continues 110 mm above the abdominal aorta (the descending thoracic
     aorta, added to the label) with the heart's enhancing chambers touching it from the front,
@@ -41,13 +46,15 @@ from .ct import _CANCELLOUS_HU, _CORTICAL_HU, _ct_from_lumen_field
 from .params import PhantomParams
 from .raster import Grid, _lumen_field, _tube_field, ct_grid, rasterize_lumen
 
-STRESSORS = ("stent", "dissection", "calcium", "spine_contact", "venous_contrast", "thorax")
+STRESSORS = ("stent", "dissection", "calcium", "spine_contact", "venous_contrast", "thorax", "fading")
 
 METAL_HU, CALCIUM_HU, FLAP_HU, LUNG_HU, MYOCARDIUM_HU = 3000.0, 1200.0, 60.0, -850.0, 110.0
 STENT_RING_PITCH_MM, STENT_AMPLITUDE_MM, STENT_PEAKS = 15.0, 4.0, 6
 THORAX_EXTENSION_MM = 110.0
 #: Voxels this far (mm) outside a lumen get a local frame (nearest centreline point, angle, arc length).
 _FRAME_REACH_MM = 4.0
+#: Soft tissue HU: enhancement is measured above it.
+_SOFT_HU = 40.0
 
 
 @dataclass
@@ -67,6 +74,8 @@ class StressorOptions:
         Enhancement of the IVC and renal veins relative to the arterial lumen.
     oral_contrast_hu : float
         HU of the bowel contents.
+    fade_top_hu, fade_bottom_hu : float
+        Lumen HU at the top of the aorta and at its bifurcation with ``fading``.
     """
 
     names: tuple = ()
@@ -74,6 +83,8 @@ class StressorOptions:
     flap_offset: float = 0.25
     venous_fraction: float = 0.85
     oral_contrast_hu: float = 600.0
+    fade_top_hu: float = 400.0
+    fade_bottom_hu: float = 150.0
 
     def __post_init__(self):
         unknown = sorted(set(self.names) - set(STRESSORS))
@@ -100,11 +111,13 @@ class _Painter:
 
     def after_vessels(self, hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen: np.ndarray) -> None:
         names = self.options.names
-        if not {"stent", "dissection", "calcium"} & set(names):
+        if not {"stent", "dissection", "calcium", "fading"} & set(names):
             return
         frame = _VesselFrame(volume, anatomy)
         if "dissection" in names:
             _paint_dissection(hu, frame, anatomy, self.params, self.options)
+        if "fading" in names:
+            _fade_enhancement(hu, volume, anatomy, lumen, self.params, self.options)
         if "calcium" in names:
             _paint_calcium(hu, frame, self.rng)
         if "stent" in names:
@@ -260,6 +273,42 @@ def _paint_dissection(hu: np.ndarray, frame: _VesselFrame, anatomy: Anatomy, par
     false_hu = 40.0 + options.false_lumen_fraction * (params.lumen_hu - 40.0)
     frame.paint(hu, inside & (offset > 0.5 * flap_mm), false_hu)
     frame.paint(hu, inside & (np.abs(offset) <= 0.5 * flap_mm), FLAP_HU)
+
+
+def enhancement_levels(anatomy: Anatomy, top_hu: float, bottom_hu: float) -> dict:
+    """Lumen HU per centreline point of each vessel with a fade: linear in arc length along the
+    aorta from ``top_hu`` to ``bottom_hu``, a branch at its parent's level at its ostium."""
+    aorta = anatomy.vessels["aorta"]
+    arc = aorta.arc_length()
+    levels = {"aorta": top_hu + (bottom_hu - top_hu) * arc / max(float(arc[-1]), 1e-9)}
+    pending = [n for n in anatomy.vessels if n != "aorta"]
+    while pending:
+        ready = [n for n in pending if anatomy.vessels[n].parent in levels]
+        if not ready:
+            raise ValueError(f"vessels {', '.join(pending)} do not connect to the aorta")
+        for name in ready:
+            vessel = anatomy.vessels[name]
+            parent_level = levels[vessel.parent][min(vessel.parent_index, len(levels[vessel.parent]) - 1)]
+            levels[name] = np.full(len(vessel.points), float(parent_level))
+            pending.remove(name)
+    return levels
+
+
+def _fade_enhancement(hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen: np.ndarray, params: PhantomParams,
+                      options: StressorOptions) -> None:
+    """Scale the enhancement above soft tissue of every voxel in or at a lumen to the level of
+    the nearest centreline point (:func:`enhancement_levels`), weighted by its partial volume."""
+    voxel = float(min(volume.spacing))
+    weight = np.clip(0.5 - lumen / voxel, 0.0, 1.0)
+    index = np.argwhere(weight > 0)
+    levels = enhancement_levels(anatomy, options.fade_top_hu, options.fade_bottom_hu)
+    points = np.vstack([anatomy.vessels[n].points for n in levels])
+    level = np.concatenate([levels[n] for n in levels])
+    _, nearest = cKDTree(points).query(volume.index_to_lps(index.astype(float)))
+    gain = (level[nearest] - _SOFT_HU) / (params.lumen_hu - _SOFT_HU)
+    where = tuple(index.T)
+    w = weight[where]
+    hu[where] = _SOFT_HU + (hu[where] - _SOFT_HU) * (1.0 - w + w * gain)
 
 
 def _paint_calcium(hu: np.ndarray, frame: _VesselFrame, rng: np.random.Generator, n_plaques: int = 40) -> None:

@@ -19,12 +19,19 @@ in :mod:`..phantom.stressors` and tested in ``Testing/test_ct_stressors.py``):
 - metal struts and calcified plaque are above the lumen's HU range (the seed's statistics,
   capped below cortical bone) and stay out of it;
 - a neighbour touching the wall (heart, vein, bowel, bone) makes the cross-section jump in
-  area: it is cut back to the traced disc (:data:`MAX_AREA_JUMP`).
+  area: it is cut back to the traced disc (:data:`MAX_AREA_JUMP`);
+- contrast fades along the aorta (late-arterial or slow-flow timing, a false lumen feeding the
+  abdomen): each trace re-estimates its lumen range from its last cross-sections (a running
+  median and MAD, :func:`_lumen_range_of`, never below :data:`LUMEN_FLOOR_HU`), the branches
+  are thresholded against the traced level at their height (:func:`_lumen_profile`), and a
+  lumen fading below :data:`MIN_LUMEN_HU` is refused (no contrast route separates it from
+  soft tissue).
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -60,6 +67,13 @@ MAX_SEED_TRIES = 5
 #: A traced cross-section more than this many times the area of the one before is a leak into a
 #: neighbour (heart, vein, bowel, bone) and is cut back to the traced disc.
 MAX_AREA_JUMP = 1.25
+#: A lumen whose running median falls below this (HU; soft tissue is 40-80) cannot be told from
+#: soft tissue by its enhancement: the trace stops there and the CT is refused.
+MIN_LUMEN_HU = 100.0
+#: The lumen range's lower bound never drops below this (HU), whatever the lumen's level.
+LUMEN_FLOOR_HU = 0.5 * (MIN_LUMEN_HU + SOFT_TISSUE_HU)
+#: The lumen range of a trace is re-estimated from its last this many traced slices.
+RUNNING_SLICES = 6
 
 
 def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
@@ -246,12 +260,36 @@ def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_
 class _Trace:
     """One vessel followed through the axial slices: centre (j, i) and radius (mm) per slice."""
 
-    def __init__(self, name: str, k: int, centre, radius: float, step: int, min_radius: float):
+    def __init__(self, name: str, k: int, centre, radius: float, step: int, min_radius: float, lumen_hu,
+                 recent=()):
         self.name, self.step, self.min_radius = name, step, min_radius
         self.centres = {k: np.asarray(centre, dtype=float)}
         self.radii = {k: float(radius)}
         self.k, self.centre, self.radius = k, np.asarray(centre, dtype=float), float(radius)
         self.previous = None        # (cross-section mask, its (row, col) offset) in the last slice
+        self.lumen_hu = tuple(lumen_hu)             # the lumen range now, re-estimated as the trace goes
+        self.ranges = {k: self.lumen_hu}            # the range used in each traced slice
+        self.recent = deque(recent, maxlen=RUNNING_SLICES)   # (median, MAD) of the last cross-sections' cores
+        self.faded = None           # (k, lumen HU) where the lumen fell below MIN_LUMEN_HU
+
+    def take_level(self, k: int, hu_slice: np.ndarray, mask: np.ndarray, offset, centre, radius: float,
+                   spacing_ji) -> None:
+        """Add the core of the cross-section just traced in slice ``k`` to the running estimate
+        and re-estimate the lumen range (:func:`_lumen_range_of`); mark the trace faded when
+        the running median falls below :data:`MIN_LUMEN_HU`."""
+        rows, cols = np.nonzero(mask)
+        core = np.hypot((rows + offset[0] - centre[0]) * spacing_ji[0],
+                        (cols + offset[1] - centre[1]) * spacing_ji[1]) <= 0.6 * radius
+        if core.sum() < 3:
+            return
+        values = hu_slice[rows[core] + offset[0], cols[core] + offset[1]].astype(np.float64)
+        median = float(np.median(values))
+        self.recent.append((median, float(np.median(np.abs(values - median)))))
+        level = float(np.median([m for m, _ in self.recent]))
+        spread = 1.4826 * float(np.median([d for _, d in self.recent]))
+        self.lumen_hu = _lumen_range_of(level, spread)
+        if level < MIN_LUMEN_HU and len(self.recent) == RUNNING_SLICES:
+            self.faded = (k, level)
 
 
 def _lumen_in_slice(hu_slice: np.ndarray, centre, radius: float, spacing_ji, lumen_hu, min_radius: float,
@@ -388,20 +426,23 @@ def _split_blobs(candidate, edt, offset, spacing_ji, min_radius: float) -> list:
     return [(np.asarray(p, dtype=float) + offset, float(edt[tuple(p)])) for p in peaks]
 
 
-def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, progress=None) -> list:
+def _follow(trace: _Trace, ct: Volume, out: np.ndarray, label: int, progress=None) -> list:
     """Extend ``trace`` slice by slice until the lumen ends; paint it into ``out``.
 
     Radius continuity (the new radius between 0.6 and ``max_growth`` times the last one,
     smoothed) keeps the trace out of the heart, the arch's far side and side branches. Only
     the downward aorta trace looks for the bifurcation (two separate lumens of similar size):
     going up, two such lumens are the channels of a dissection, never a split.
+    The lumen range is the trace's running estimate (:meth:`_Trace.take_level`); the trace
+    stops where the lumen has faded below :data:`MIN_LUMEN_HU`.
     Returns the blobs the lumen split into where it stopped (for the iliacs), else [].
     """
     spacing_ji = _slice_axes_mm(ct)
     k = trace.k + trace.step
-    while 0 <= k < ct.shape[0]:
+    while 0 <= k < ct.shape[0] and trace.faded is None:
         recent = [trace.radii[j] for j in sorted(trace.radii, key=lambda j: -abs(j - k))[-15:]]
-        found = _lumen_in_slice(np.asarray(ct.array[k]), trace.centre, trace.radius, spacing_ji, lumen_hu,
+        hu_slice = np.asarray(ct.array[k])
+        found = _lumen_in_slice(hu_slice, trace.centre, trace.radius, spacing_ji, trace.lumen_hu,
                                 trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
                                 detect_split=trace.name == "aorta" and trace.step != _superior_step(ct))
         if found is None:
@@ -411,7 +452,8 @@ def _follow(trace: _Trace, ct: Volume, lumen_hu, out: np.ndarray, label: int, pr
             return [(k, c, r) for c, r in split]
         view = out[k, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]]
         view[mask & (view == 0)] = label
-        trace.centres[k], trace.radii[k] = centre, radius
+        trace.centres[k], trace.radii[k], trace.ranges[k] = centre, radius, trace.lumen_hu
+        trace.take_level(k, hu_slice, mask, offset, centre, radius, spacing_ji)
         trace.previous = (mask, offset)
         trace.centre = centre
         trace.radius = 0.7 * trace.radius + 0.3 * radius
@@ -441,8 +483,9 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     labels : numpy.ndarray of uint8
         1 = aorta lumen, 2 = iliac lumen, per slice (no side branches yet).
     traces : list of _Trace
-    lumen_hu : (float, float)
-        The lumen intensity range taken from the seed's statistics.
+    lumen_hu : numpy.ndarray, shape (n_slices, 2)
+        The lumen intensity range per axial slice (:func:`_lumen_profile`): each trace's
+        running estimate where it ran, interpolated between.
     """
     candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm)
     if not candidates:
@@ -462,12 +505,14 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         attempt = _trace_from_seed(ct, k0, centre, radius, radius_mm, counter)
         if attempt is None:
             continue
-        labels, traces, lumen_hu = attempt
+        labels, traces = attempt
         traced = np.nonzero((labels == 1).any(axis=(1, 2)))[0]
         length = float(np.ptp(traced) + 1) * float(ct.spacing[2])
         if length >= needed:
-            traces += _trace_iliacs(ct, traces, lumen_hu, labels, counter)
-            return labels, traces, lumen_hu
+            _refuse_a_faded_lumen(ct, traces, labels)
+            traces += _trace_iliacs(ct, traces, labels, counter)
+            _refuse_a_faded_lumen(ct, traces, labels)
+            return labels, traces, _lumen_profile(ct, traces)
         rejected |= ndi.binary_dilation((labels == 1).any(axis=0), iterations=2)
         longest = max(longest, length)
         shown |= labels == 1
@@ -476,9 +521,33 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
                        QCData(ct=ct, lumen=ct.with_array(shown)))
 
 
+def _refuse_a_faded_lumen(ct: Volume, traces: list, labels: np.ndarray) -> None:
+    """Raise a one-line QualityError if any trace stopped where the lumen faded below :data:`MIN_LUMEN_HU`."""
+    for trace in traces:
+        if trace.faded is not None:
+            k, level = trace.faded
+            z = float(ct.index_to_lps(np.array([k, 0.0, 0.0])[::-1])[2])
+            raise QualityError(f"contrast too faint: the {trace.name} lumen fades to {level:.0f} HU at z = {z:.0f} mm, "
+                               f"below the {MIN_LUMEN_HU:.0f} HU a contrast route can tell from soft tissue "
+                               f"({SOFT_TISSUE_HU:.0f}-80 HU); rescan with arterial timing or segment by hand",
+                               QCData(ct=ct, lumen=ct.with_array(labels > 0)))
+
+
+def _lumen_profile(ct: Volume, traces: list) -> np.ndarray:
+    """The lumen range (lo, hi) per axial slice: the widest of the traces' ranges in each traced
+    slice, linearly interpolated between traced slices and held constant beyond them."""
+    lo, hi = {}, {}
+    for trace in traces:
+        for k, (a, b) in trace.ranges.items():
+            lo[k], hi[k] = min(lo.get(k, a), a), max(hi.get(k, b), b)
+    ks = np.array(sorted(lo))
+    every = np.arange(ct.shape[0])
+    return np.column_stack([np.interp(every, ks, [lo[k] for k in ks]), np.interp(every, ks, [hi[k] for k in ks])])
+
+
 def _trace_from_seed(ct: Volume, k0: int, centre, radius: float, radius_mm, counter):
-    """The aorta traced up and down from one seed cross-section: (labels, [up, down traces],
-    lumen_hu), or None if the seed blob does not hold the lumen intensity taken from it."""
+    """The aorta traced up and down from one seed cross-section: (labels, [up, down traces]),
+    or None if the seed blob does not hold the lumen intensity taken from it."""
     lumen_hu = _lumen_range(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct))
     first = _lumen_in_slice(np.asarray(ct.array[k0]), centre, radius, _slice_axes_mm(ct), lumen_hu, radius_mm[0])
     if first is None or first[0] is None:
@@ -489,25 +558,28 @@ def _trace_from_seed(ct: Volume, k0: int, centre, radius: float, radius_mm, coun
     up = _superior_step(ct)
     traces = []
     for step in (up, -up):
-        trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6)
+        trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6, lumen_hu)
+        trace.take_level(k0, np.asarray(ct.array[k0]), mask, offset, centre, radius, _slice_axes_mm(ct))
         traces.append(trace)
-        _follow(trace, ct, lumen_hu, labels, 1, counter)
-    return labels, traces, lumen_hu
+        _follow(trace, ct, labels, 1, counter)
+    return labels, traces
 
 
-def _trace_iliacs(ct: Volume, traces_of_aorta: list, lumen_hu, labels: np.ndarray, counter) -> list:
+def _trace_iliacs(ct: Volume, traces_of_aorta: list, labels: np.ndarray, counter) -> list:
     """The common iliacs from where the downward aorta trace (the second of ``traces_of_aorta``)
-    splits; the aorta trace is cut there and the crotch filled. Returns the iliac traces."""
+    splits; the aorta trace is cut there and the crotch filled. Returns the iliac traces, which
+    start from the aorta's lumen range at its lower end."""
     down = traces_of_aorta[1]
+    lumen_hu = down.lumen_hu
     seeds = _bifurcation(ct, down, lumen_hu, distal_radius=_distal_radius(traces_of_aorta))
     if seeds:
         _cut_trace_below(down, seeds[0][0], labels)
         _fill_crotch(ct, down, seeds[0][0], lumen_hu, labels)
     iliacs = []
     for k, c, r in seeds:
-        iliac = _Trace("iliac", k - down.step, c, r, down.step, ILIAC_MIN_RADIUS_MM)
+        iliac = _Trace("iliac", k - down.step, c, r, down.step, ILIAC_MIN_RADIUS_MM, lumen_hu, down.recent)
         iliacs.append(iliac)
-        _follow(iliac, ct, lumen_hu, labels, 2, counter)
+        _follow(iliac, ct, labels, 2, counter)
     return iliacs
 
 
@@ -639,13 +711,19 @@ class _SliceCounter:
 
 
 def _lumen_range(hu_slice: np.ndarray, centre, radius: float, spacing_ji) -> tuple[float, float]:
-    """Lumen HU range from the seed disc: from half way to soft tissue up to below bone."""
+    """Lumen HU range from the seed disc (:func:`_lumen_range_of` its median and spread)."""
     rows, cols = np.ogrid[:hu_slice.shape[0], :hu_slice.shape[1]]
     disc = np.hypot((rows - centre[0]) * spacing_ji[0], (cols - centre[1]) * spacing_ji[1]) <= 0.6 * radius
     values = hu_slice[disc].astype(np.float64)
-    mean, std = float(np.median(values)), float(np.std(values))
-    lo = 0.5 * (mean + SOFT_TISSUE_HU)
-    hi = min(mean + max(4.0 * std, 250.0), BONE_HU + 200.0)
+    return _lumen_range_of(float(np.median(values)), float(np.std(values)))
+
+
+def _lumen_range_of(level: float, spread: float) -> tuple[float, float]:
+    """Lumen HU range around a lumen ``level`` with noise ``spread`` (HU): from half way to soft
+    tissue (never below :data:`LUMEN_FLOOR_HU`) up to ``level`` + max(4 ``spread``, 250),
+    capped below bone."""
+    lo = max(0.5 * (level + SOFT_TISSUE_HU), LUMEN_FLOOR_HU)
+    hi = min(level + max(4.0 * spread, 250.0), BONE_HU + 200.0)
     return lo, hi
 
 
@@ -778,7 +856,8 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
 
     On a copy reduced to about ``voxel_mm`` voxels around the trunk, bright tubular voxels
     (:func:`tubularity_3d` over ``sigmas_mm`` above ``min_vesselness`` of the lumen contrast, inside
-    ``lumen_hu``, away from cortical bone) are kept if they connect to the trunk within
+    ``lumen_hu`` (one (lo, hi) pair, or one per axial slice: the traced aorta's level at that
+    height), away from cortical bone) are kept if they connect to the trunk within
     ``reach_mm`` (path length in mm through the candidates, :func:`geodesic_reach`); round blobs (kidneys, heart, bowel)
     respond weakly to the tubular filter and stay out. The result is brought back to the CT
     grid and intersected with the lumen intensity range.
@@ -796,9 +875,13 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     bone = ndi.binary_dilation(_block_reduce(hu > BONE_HU, factor, np.max), iterations=1)
     coarse_mm = np.asarray(ct.spacing, dtype=float)[::-1] * factor
     sigmas = [s / float(coarse_mm.mean()) for s in sigmas_mm]
-    contrast = float(lumen_hu[0] * 2 - SOFT_TISSUE_HU) - SOFT_TISSUE_HU
-    tubular = tubularity_3d(np.clip(coarse, SOFT_TISSUE_HU - 200, lumen_hu[1]), sigmas) > min_vesselness * contrast
-    candidate = tubular & (coarse >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (coarse <= lumen_hu[1]) & ~bone
+    lo, hi = _range_per_slice(ct, lumen_hu, box[0])
+    n_coarse = coarse.shape[0]
+    coarse_lo = lo[:n_coarse * factor[0]].reshape(n_coarse, factor[0]).mean(axis=1)[:, None, None]
+    coarse_hi = hi[:n_coarse * factor[0]].reshape(n_coarse, factor[0]).mean(axis=1)[:, None, None]
+    contrast = 2.0 * (coarse_lo - SOFT_TISSUE_HU)       # the lumen's level above soft tissue at that height
+    tubular = tubularity_3d(np.clip(coarse, SOFT_TISSUE_HU - 200, coarse_hi), sigmas) > min_vesselness * contrast
+    candidate = tubular & (coarse >= 0.5 * (coarse_lo + SOFT_TISSUE_HU)) & (coarse <= coarse_hi) & ~bone
     seeds = ndi.binary_dilation(coarse_trunk, iterations=1) & candidate
     reached = geodesic_reach(seeds, candidate, coarse_mm, reach_mm) & ~coarse_trunk
     full = np.zeros(trunk.shape, dtype=bool)
@@ -808,8 +891,18 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
         region = tuple(slice(b.start, b.start + n) for b, n in zip(box, upsampled.shape))
         smooth = ndi.gaussian_filter(np.asarray(ct.array[region], dtype=np.float32),
                                      0.6 / np.asarray(ct.spacing)[::-1])
-        full[region] = upsampled & (smooth >= lumen_hu[0]) & (smooth <= lumen_hu[1])
+        ks = np.arange(region[0].start, region[0].stop) - box[0].start
+        full[region] = upsampled & (smooth >= lo[ks][:, None, None]) & (smooth <= hi[ks][:, None, None])
     return full & (trunk == 0)
+
+
+def _range_per_slice(ct: Volume, lumen_hu, ks: slice) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) arrays over the slices ``ks`` from one (lo, hi) pair or a per-slice profile (n_slices, 2)."""
+    lumen_hu = np.asarray(lumen_hu, dtype=float)
+    n = ks.stop - ks.start
+    if lumen_hu.ndim == 1:
+        return np.full(n, lumen_hu[0]), np.full(n, lumen_hu[1])
+    return lumen_hu[ks, 0], lumen_hu[ks, 1]
 
 
 def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, branches: bool = True,
@@ -821,7 +914,8 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
     2. :func:`trace_aorta`: follow the first seed whose trace is aorta-long up and down slice
        by slice (overlap with the predicted core, radius continuity, flaps bridged), then the
        two common iliacs below the bifurcation; the lumen range comes from the seed's own
-       statistics.
+       statistics, then from each trace's last cross-sections (contrast may fade along the
+       aorta; a lumen fading below :data:`MIN_LUMEN_HU` is refused).
     3. :func:`grow_branches`: tubular bright voxels connected to the trunk within
        :data:`BRANCH_REACH_MM` along the branch, in mm whatever its course (renals, visceral
        arteries, iliac continuations); heart, kidneys, bowel and bone are not tubes.
