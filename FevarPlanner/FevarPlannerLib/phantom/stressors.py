@@ -296,8 +296,9 @@ def enhancement_levels(anatomy: Anatomy, top_hu: float, bottom_hu: float) -> dic
 
 def _fade_enhancement(hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen: np.ndarray, params: PhantomParams,
                       options: StressorOptions) -> None:
-    """Scale the enhancement above soft tissue of every voxel in or at a lumen to the level of
-    the nearest centreline point (:func:`enhancement_levels`), weighted by its partial volume."""
+    """Bring every voxel in or at a lumen to the level of the nearest centreline point
+    (:func:`enhancement_levels`): inside, its enhancement above soft tissue scaled (a false
+    lumen or flap keeps its fraction); at the wall, its lumen share shifted by its partial volume."""
     voxel = float(min(volume.spacing))
     weight = np.clip(0.5 - lumen / voxel, 0.0, 1.0)
     index = np.argwhere(weight > 0)
@@ -308,7 +309,8 @@ def _fade_enhancement(hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen
     gain = (level[nearest] - _SOFT_HU) / (params.lumen_hu - _SOFT_HU)
     where = tuple(index.T)
     w = weight[where]
-    hu[where] = _SOFT_HU + (hu[where] - _SOFT_HU) * (1.0 - w + w * gain)
+    shifted = hu[where] + w * (level[nearest] - params.lumen_hu)
+    hu[where] = np.where(w >= 1.0, _SOFT_HU + (hu[where] - _SOFT_HU) * gain, shifted)
 
 
 def _paint_calcium(hu: np.ndarray, frame: _VesselFrame, rng: np.random.Generator, n_plaques: int = 40) -> None:
