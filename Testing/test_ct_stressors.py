@@ -1,7 +1,8 @@
 """The classical CT route on phantom CTs with what makes real aortas unusual (phantom.stressors):
 a stent graft, a dissection flap, calcified plaque, a vertebra touching the aorta, contrast in
-the IVC, renal vein and bowel, a thoracic field of view with the heart. Each must give the
-tree with a Dice bound and no leak (precision, aortic length), or a clear one-line refusal."""
+the IVC, renal vein and bowel, a thoracic field of view with the heart, contrast fading along
+the aorta. Each must give the tree with a Dice bound and no leak (precision, aortic length),
+or a clear one-line refusal."""
 
 import functools
 
@@ -12,7 +13,7 @@ from FevarPlannerLib import phantom as ph
 from FevarPlannerLib import segmentation as seg
 from FevarPlannerLib.files import InputError
 from FevarPlannerLib.phantom.stressors import (METAL_HU, STRESSORS, THORAX_EXTENSION_MM, StressorOptions,
-                                               stressed_phantom_ct)
+                                               enhancement_levels, stressed_phantom_ct)
 from FevarPlannerLib.segmentation import classical
 
 SEED, SPACING_MM = 5, 2.0
@@ -67,7 +68,8 @@ def test_stressors_put_what_they_claim_into_the_ct():
 
 # whole-tree Dice bound per stressor on this phantom (measured 0.97-0.99 at seed 5)
 BOUNDS = {(): 0.97, ("stent",): 0.95, ("dissection",): 0.93, ("calcium",): 0.96, ("spine_contact",): 0.97,
-          ("venous_contrast",): 0.96, ("thorax",): 0.96, tuple(STRESSORS): 0.93}
+          ("venous_contrast",): 0.96, ("thorax",): 0.96, ("fading",): 0.97, ("fading", "thorax"): 0.97,
+          ("fading", "dissection"): 0.92, tuple(STRESSORS): 0.93}
 
 
 @pytest.mark.parametrize("names", list(BOUNDS), ids=lambda names: "+".join(names) or "none")
@@ -132,3 +134,64 @@ def test_a_chamber_touching_the_lumen_is_cut_back_to_the_traced_disc(overlap_px)
         previous=previous, reference_radius=10.0)
     assert np.hypot(*(centre - 100.0)) <= 1.0 and radius == pytest.approx(10.0, abs=0.6)
     assert mask.sum() <= 1.15 * aorta.sum()
+
+
+def lumen_core_hu(ct, anatomy, vessel: str, index: int) -> float:
+    """Median HU within 2 mm of centreline point ``index`` of ``vessel``."""
+    centre = ct.lps_to_index(anatomy.vessels[vessel].points[index]).round().astype(int)
+    return float(np.median(np.asarray(ct.array)[tuple(slice(c - 1, c + 2) for c in centre)]))
+
+
+def test_fading_lowers_the_enhancement_down_the_aorta_and_branches_follow_their_ostium():
+    ct, truth, anatomy = stressed_case(("fading",), fade_top_hu=420.0, fade_bottom_hu=140.0)
+    assert lumen_core_hu(ct, anatomy, "aorta", 5) == pytest.approx(420.0, abs=40.0)
+    assert lumen_core_hu(ct, anatomy, "aorta", -5) == pytest.approx(140.0, abs=30.0)
+    levels = enhancement_levels(anatomy, 420.0, 140.0)
+    for vessel in ("renal_left", "iliac_right"):
+        ostium = levels["aorta"][anatomy.vessels[vessel].parent_index]
+        assert levels[vessel][0] == ostium
+        assert lumen_core_hu(ct, anatomy, vessel, 4) == pytest.approx(ostium, abs=45.0)
+    assert 140.0 < levels["renal_left"][0] < 420.0
+
+
+@pytest.mark.parametrize("fade", [(400.0, 150.0), (350.0, 120.0)], ids=["to150", "to120"])
+def test_a_fading_lumen_is_traced_to_the_bifurcation_with_renals_and_iliacs(fade):
+    """The lumen range taken once from a bright seed (half way to soft tissue: about 200 HU)
+    loses the aorta where it has faded below it; the running estimate follows it down."""
+    strengths = {"fade_top_hu": fade[0], "fade_bottom_hu": fade[1]}
+    ct, truth, anatomy = stressed_case(("fading",), **strengths)
+    mask, labels = segmented(("fading",), **strengths)
+    lumen = np.asarray(truth.array) > 0
+    assert 2 * (mask & lumen).sum() / (mask.sum() + lumen.sum()) >= 0.97
+    assert (mask & lumen).sum() / mask.sum() >= 0.98
+    aorta_truth = np.asarray(ph.rasterize_lumen(ph.Anatomy({"aorta": anatomy.vessels["aorta"]}), ct).array) > 0
+    traced, expected = aorta_height_mm(ct, labels == 1), aorta_height_mm(ct, aorta_truth)
+    assert abs(traced - expected) <= 6.0, (traced, expected)
+    for vessel in ("renal_left", "renal_right", "iliac_left", "iliac_right"):
+        assert reached(ct, anatomy, labels, vessel), vessel
+
+
+def test_a_lumen_fading_into_soft_tissue_is_refused_in_one_line():
+    ct, _, _ = stressed_case(("fading",), fade_bottom_hu=80.0)
+    with pytest.raises(InputError, match=r"contrast too faint: the aorta lumen fades to \d+ HU at z = -?\d+ mm") as error:
+        seg.segment_ct_classical(ct)
+    assert "\n" not in str(error.value)
+    assert np.asarray(error.value.qc.lumen.array).any()                # what was traced, for the QC picture
+
+
+def test_the_running_lumen_range_stays_above_soft_tissue_and_below_bone():
+    rows, cols = np.mgrid[0:41, 0:41]
+    disc = np.hypot(rows - 20, cols - 20) <= 8
+    trace = classical._Trace("aorta", 0, (20.0, 20.0), 8.0, 1, 4.0, (200.0, 600.0))
+    noise = np.random.default_rng(0).normal(0.0, 10.0, rows.shape)
+    for k, level in enumerate([300.0, 250.0, 200.0, 160.0, 130.0, 110.0]):
+        trace.take_level(k, level + noise, disc, (0, 0), np.array([20.0, 20.0]), 8.0, (1.0, 1.0))
+        assert trace.faded is None
+    assert trace.lumen_hu[0] == pytest.approx(0.5 * (np.median([300, 250, 200, 160, 130, 110]) + 40.0), abs=5.0)
+    for k in range(6, 12):                                             # soft tissue: floored, then faded
+        trace.take_level(k, 60.0 + noise, disc, (0, 0), np.array([20.0, 20.0]), 8.0, (1.0, 1.0))
+        assert trace.lumen_hu[0] >= classical.LUMEN_FLOOR_HU > 60.0
+    assert trace.faded is not None and trace.faded[1] < classical.MIN_LUMEN_HU
+    bright = classical._Trace("aorta", 0, (20.0, 20.0), 8.0, 1, 4.0, (200.0, 600.0))
+    bright.take_level(0, 2000.0 + noise, disc, (0, 0), np.array([20.0, 20.0]), 8.0, (1.0, 1.0))
+    assert bright.lumen_hu[1] <= classical.BONE_HU + 200.0
