@@ -476,7 +476,8 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     ------
     quality.QualityError
         "no aorta found: ..." (one line, an :class:`InputError`: exit code 2) when no seed
-        qualifies; its QC data show the CT with the rejected traces.
+        qualifies; its QC data show the CT with the rejected traces. "contrast too faint: ..."
+        when the aorta's lumen fades below :data:`MIN_LUMEN_HU` along the trace.
 
     Returns
     -------
@@ -511,7 +512,6 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         if length >= needed:
             _refuse_a_faded_lumen(ct, traces, labels)
             traces += _trace_iliacs(ct, traces, labels, counter)
-            _refuse_a_faded_lumen(ct, traces, labels)
             return labels, traces, _lumen_profile(ct, traces)
         rejected |= ndi.binary_dilation((labels == 1).any(axis=0), iterations=2)
         longest = max(longest, length)
@@ -522,11 +522,12 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
 
 
 def _refuse_a_faded_lumen(ct: Volume, traces: list, labels: np.ndarray) -> None:
-    """Raise a one-line QualityError if any trace stopped where the lumen faded below :data:`MIN_LUMEN_HU`."""
+    """Raise a one-line QualityError if an aorta trace stopped where the lumen faded below
+    :data:`MIN_LUMEN_HU` (an iliac trace fading out just ends there)."""
     for trace in traces:
         if trace.faded is not None:
             k, level = trace.faded
-            z = float(ct.index_to_lps(np.array([k, 0.0, 0.0])[::-1])[2])
+            z = float(ct.index_to_lps(np.array([k, 0.0, 0.0]))[2])
             raise QualityError(f"contrast too faint: the {trace.name} lumen fades to {level:.0f} HU at z = {z:.0f} mm, "
                                f"below the {MIN_LUMEN_HU:.0f} HU a contrast route can tell from soft tissue "
                                f"({SOFT_TISSUE_HU:.0f}-80 HU); rescan with arterial timing or segment by hand",
