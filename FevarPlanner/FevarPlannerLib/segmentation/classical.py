@@ -1,6 +1,6 @@
 """CT without learning: trace the aorta slice by slice, grow the lumen, follow the branches.
 
-One file, about 800 lines, on purpose: the seed search, the aorta trace, the bifurcation, the
+One file, about 900 lines, on purpose: the seed search, the aorta trace, the bifurcation, the
 iliac traces and the branch growing all work on the same in-slice helpers (the disc box around
 a traced centre, the smoothed window, the blob tests against bone, the flap bridging), and
 splitting them would leave each half importing most of the other.
