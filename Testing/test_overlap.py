@@ -137,3 +137,83 @@ def test_renals_running_on_from_one_another_along_the_rays_keep_their_shared_poi
     monkeypatch.setattr(multiview, "PARTED_DETOUR", 0.0)
     flagged = _claimed_in_front_view(renals, legs)
     assert flagged["renal_left"] > 10 and flagged["renal_right"] > 10
+
+
+# ---------------------------------------------------------------------------------------
+# One-to-one legs: each 3D branch of a nearest-point view keeps to its own 2D leg
+# ---------------------------------------------------------------------------------------
+
+def _skeleton2d(legs):
+    """A 2D SkeletonGraph of polylines (u, v) in 1 px steps; a polyline starting on an earlier
+    one's node joins it there (a junction)."""
+    from FevarPlannerLib.graph import SkeletonGraph
+
+    points, edges = [], []
+    for a, b in legs:
+        chain = list(_polyline(a, b))
+        if points:
+            joint = int(np.argmin(np.linalg.norm(np.asarray(points) - chain[0], axis=1)))
+            chain = chain[1:]
+            edges.append((joint, len(points)))
+        first = len(points)
+        points += chain
+        edges += [(first + k, first + k + 1) for k in range(len(chain) - 1)]
+    return SkeletonGraph.from_points(np.asarray(points), np.asarray(edges))
+
+
+@pytest.fixture()
+def iliac_between_legs():
+    """The aorta and a left iliac on their 2D legs; the right iliac's estimate (to (4, 0, -28))
+    lies between the left leg (to u = 193) and its own (to u = 220), nearer the left one."""
+    from types import SimpleNamespace
+
+    preop = _tree({"aorta": ((0, 0, 100), (0, 0, 0), 9.0), "iliac_left": ((0, 0, 0), (-7, 0, -28), 4.0),
+                   "iliac_right": ((0, 0, 0), (4, 0, -28), 4.0)})
+    preop.centre = np.zeros(3)
+    g2 = _skeleton2d([((200, 100), (200, 200)), ((200, 200), (193, 228)), ((200, 200), (220, 228))])
+    view = SimpleNamespace(P=P_FRONT, g2=g2)
+    return preop, view
+
+
+def _targets_by_leg(preop, view, rule):
+    """Per iliac, the number of its nodes whose target lies on the left and on the right 2D leg."""
+    from FevarPlannerLib.projection import project
+
+    nodes = np.arange(len(preop.graph.positions))
+    uv = project(P_FRONT, preop.graph.positions)
+    _, index = rule(view, nodes, preop, uv, np.ones(len(nodes), dtype=bool))
+    pieces = multiview._skeleton_legs(view.g2)
+    piece = pieces[index]
+    left, right = (pieces[np.argmin(np.linalg.norm(view.g2.positions - end, axis=1))] for end in ((193, 228), (220, 228)))
+    labels = np.asarray(preop.classification.node_labels, dtype=object)
+    return {label: (int(np.count_nonzero((labels == label) & (piece == left))),
+                    int(np.count_nonzero((labels == label) & (piece == right))))
+            for label in ("iliac_left", "iliac_right")}
+
+
+def test_the_iliac_between_two_legs_takes_its_own_leg_one_to_one(iliac_between_legs):
+    """Nearest points: both iliacs take the left leg with 28 of their 29 nodes (the first sits on
+    the junction, in no leg). One-to-one (Hungarian on the mean distance: left iliac 0.04 px on
+    the left leg plus right iliac 6.6 px on the right one, against 11.0 + 5.4 px the other way
+    round): each iliac takes all its 29 targets on its own leg (the first node too, now off the
+    junction)."""
+    preop, view = iliac_between_legs
+
+    from scipy.spatial import cKDTree
+
+    def nearest(view, nodes, preop, uv, usable):
+        return cKDTree(view.g2.positions).query(uv)
+
+    plain = _targets_by_leg(preop, view, nearest)
+    assert plain == {"iliac_left": (28, 0), "iliac_right": (28, 0)}
+    assert _targets_by_leg(preop, view, multiview._nearest_on_legs) == {"iliac_left": (29, 0), "iliac_right": (0, 29)}
+
+
+def test_a_branch_further_than_the_cost_cap_from_every_leg_keeps_its_nearest_points(iliac_between_legs,
+                                                                                   monkeypatch):
+    """With the cap below the right iliac's 6.6 px on its own leg it takes no leg (the "no leg"
+    column is cheaper) and falls back to the nearest points, on the left leg."""
+    preop, view = iliac_between_legs
+    monkeypatch.setattr(multiview, "LEG_COST_CAP_MM", 3.0)
+    legs = _targets_by_leg(preop, view, multiview._nearest_on_legs)
+    assert legs == {"iliac_left": (29, 0), "iliac_right": (28, 0)}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse
+from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
@@ -237,19 +238,92 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     return _whole_branches(preop, local, claimed)
 
 
+#: Mean distance (mm at the anatomy's depth) of a branch's projection to a 2D leg above which
+#: :func:`_legs_of_vessels` rather leaves the branch without a leg (its "no leg" cost).
+LEG_COST_CAP_MM = 25.0
+
+
+def _skeleton_legs(g2) -> np.ndarray:
+    """Per 2D skeleton node the leg it lies on, -1 for none: a leg is a chain between a junction
+    (a node of degree three or more, on no leg) and a free end; legs are numbered 0, 1, ...
+    Chains between two junctions (the aorta between the renals and the bifurcation, a piece
+    between two crossings) are no leg."""
+    inner = g2.degrees <= 2
+    edges = g2.edges()
+    edges = edges[inner[edges[:, 0]] & inner[edges[:, 1]]]
+    n = len(g2.positions)
+    adjacency = scipy.sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, component = csgraph.connected_components(adjacency, directed=False)
+    legs = np.unique(component[g2.degrees == 1])
+    return np.where(inner & np.isin(component, legs), np.searchsorted(legs, component), -1)
+
+
+def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarray, usable: np.ndarray,
+                     leg: np.ndarray) -> dict:
+    """One-to-one assignment of the 3D branches (upper aorta, renals, iliacs) to the 2D legs
+    ``leg`` (:func:`_skeleton_legs`) of a view without a classification.
+
+    The cost of a branch on a leg is the mean distance (mm at the anatomy's depth) of its
+    projected usable nodes ``uv`` to the leg's nearest node; each branch may also take no leg
+    at :data:`LEG_COST_CAP_MM`. The Hungarian method (scipy ``linear_sum_assignment``) picks
+    the assignment of least total cost, so that of two iliacs whose nearest points all lie on
+    one 2D leg the one further from it takes the other leg. Returns {branch index: (rows, leg)}
+    with ``rows`` the branch's usable rows in ``nodes``.
+    """
+    count = int(leg.max()) + 1 if len(leg) else 0
+    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    local[nodes] = np.arange(len(nodes))
+    vessels = []
+    for k, branch in enumerate(preop.classification.branches):
+        rows = local[branch.nodes]
+        rows = rows[rows >= 0]
+        rows = rows[usable[rows]]
+        if len(rows) >= 2:
+            vessels.append((k, rows))
+    if not vessels or count == 0:
+        return {}
+    scale = pixels_per_mm(view.P, preop.centre)
+    cost = np.empty((len(vessels), count))
+    for j in range(count):
+        tree = cKDTree(view.g2.positions[leg == j])
+        cost[:, j] = [tree.query(uv[rows])[0].mean() / scale for _, rows in vessels]
+    cost = np.c_[cost, np.full((len(vessels), len(vessels)), LEG_COST_CAP_MM)]       # the "no leg" columns
+    chosen, legs = linear_sum_assignment(cost)
+    return {vessels[i][0]: (vessels[i][1], int(j)) for i, j in zip(chosen, legs) if j < count}
+
+
+def _nearest_on_legs(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarray, usable: np.ndarray):
+    """(distance, index) of each node's nearest 2D skeleton node, where a branch that has a leg
+    (:func:`_legs_of_vessels`) takes it on that leg only.
+
+    Nearest points alone leave a branch between two 2D legs when the other branch's leg is
+    nearer: it loses those targets (:func:`_claimed_by_two_vessels`) but nothing pulls it onto
+    the unclaimed leg. The aorta's nodes and branches without a leg keep the nearest node of
+    the whole skeleton.
+    """
+    distance, index = cKDTree(view.g2.positions).query(uv)
+    leg = _skeleton_legs(view.g2)
+    for rows, own in _legs_of_vessels(view, nodes, preop, uv, usable, leg).values():
+        on_leg = np.flatnonzero(leg == own)
+        distance[rows], found = cKDTree(view.g2.positions[on_leg]).query(uv[rows])
+        index[rows] = on_leg[found]
+    return distance, index
+
+
 def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
     """(targets, weights) of a view without a classification: the nearest 2D skeleton points.
 
     ``estimate`` are the current kept positions; their projections through the view's P
-    find the nearest node of its (smoothed) 2D skeleton; weights as in :func:`_view_data`.
+    find the nearest node of its (smoothed) 2D skeleton, a branch's on the 2D leg assigned to
+    it one-to-one (:func:`_nearest_on_legs`); weights as in :func:`_view_data`.
     A node whose match crosses vessels (:func:`_crosses_vessels`) or whose nearest point another
     vessel, apart from it in the view, claims too (:func:`_claimed_by_two_vessels`) gets no target.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
     uv = project(view.P, positions[nodes])
-    distance, index = cKDTree(view.g2.positions).query(uv)
     usable = view.visible[nodes]
+    distance, index = _nearest_on_legs(view, nodes, preop, uv, usable)
     limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
     has_target = usable & (distance <= limit) & ~_crosses_vessels(view, nodes, preop, positions, uv, index)
     has_target &= ~_claimed_by_two_vessels(view, nodes, preop, positions, uv, index)
