@@ -36,8 +36,9 @@ def crossing_iliacs():
 
 def test_crossing_iliacs_in_a_nearest_point_view_do_not_pull_one_iliac_onto_the_other(crossing_iliacs):
     """Before: both iliacs took the nearest points of one 2D leg in the 70 degree view, and the
-    right iliac was 13.8 mm off in 3D (the case 2.57 mm). Now the shared points give no target:
-    the right iliac within 2 mm (measured 1.3), the case under 1 mm (measured 0.73)."""
+    right iliac was 13.8 mm off in 3D (the case 2.57 mm). Now the shared points give no target
+    and each iliac takes its own 2D leg: the right iliac within 2 mm (measured 0.59; 1.3 with
+    the shared-point rule alone), the case under 1 mm (measured 0.50; 0.73 before the legs)."""
     per_vessel, mean, warnings = crossing_iliacs
     assert any("nearest 2D skeleton points" in w for w in warnings)      # the view is unclassified
     assert per_vessel["iliac_right"] < 2.0
@@ -45,11 +46,18 @@ def test_crossing_iliacs_in_a_nearest_point_view_do_not_pull_one_iliac_onto_the_
     assert mean < 1.0
 
 
-def test_vessels_apart_in_the_view_claiming_one_2d_point_get_no_target(crossing_iliacs, monkeypatch):
-    """The rule off (every nearest point is a target) brings the 13.8 mm back: the test can fail."""
+def test_vessels_apart_in_the_view_claiming_one_2d_point_get_no_target(monkeypatch):
+    """Each of the two rules alone keeps the right iliac within 2 mm: the shared points giving
+    no target (one-to-one legs off: measured 1.3 mm) and the one-to-one legs (shared-point rule
+    off: measured 0.53 mm). Both off (every nearest point is a target) brings the 13.8 mm back:
+    the test can fail."""
+    monkeypatch.setattr(multiview, "_legs_of_vessels", lambda *args: {})
+    assert _registered("two_views", 36, 2)[0]["iliac_right"] < 2.0
     monkeypatch.setattr(multiview, "_claimed_by_two_vessels", lambda view, nodes, *args: np.zeros(len(nodes), bool))
-    per_vessel, _, _ = _registered("two_views", 36, 2)
-    assert per_vessel["iliac_right"] > 8.0
+    assert _registered("two_views", 36, 2)[0]["iliac_right"] > 8.0
+    monkeypatch.undo()
+    monkeypatch.setattr(multiview, "_claimed_by_two_vessels", lambda view, nodes, *args: np.zeros(len(nodes), bool))
+    assert _registered("two_views", 36, 2)[0]["iliac_right"] < 2.0
 
 
 # ---------------------------------------------------------------------------------------
