@@ -9,6 +9,8 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
 
 from ..centerline import Centerline
 from ..preop import Preoperative
@@ -95,7 +97,180 @@ def _attached(option: np.ndarray, base: np.ndarray, vessel: _Vessel) -> np.ndarr
     return option[vessel.nodes] + (base[outer] - option[outer]).mean(axis=0)
 
 
+#: Arc length (mm) of the pieces a vessel is judged in besides as a whole: about the distance
+#: between the aorta's ostia, so that a stretch at one level is seen where it is.
+PIECE_MM = 25.0
+#: Largest relative length change of one piece: a stretch the whole vessel's 5 % hides (a piece
+#: is a fifth of the aorta) but above what a right match of a short bent piece changes.
+LOCAL_LENGTH_TOLERANCE = 0.15
+#: A piece's 2D fit may be this much worse than SV's over the same piece: twice the vessel's
+#: margin, since a short piece averages fewer pixels.
+LOCAL_FIT_TOLERANCE_PX = 2.0 * FIT_TOLERANCE_PX
+#: Pieces (by arc length) that may fail before the vessel is replaced whole rather than repaired.
+MOST_OF_A_VESSEL = 0.5
+
+
+@dataclass
+class _Piece:
+    nodes: np.ndarray          # kept-node indices of this stretch of arc
+    edges: np.ndarray          # the vessel's edges with an end in the piece
+    start_mm: float
+    end_mm: float
+
+
+def _arc_from_root(vessel: _Vessel, points: np.ndarray) -> np.ndarray | None:
+    """Arc length (mm, on ``points``) of each of ``vessel.nodes`` from its root (the junction of
+    a branch, an end of the aorta); None if the vessel is not one connected piece."""
+    if len(vessel.nodes) < 2 or not len(vessel.edges):
+        return None
+    local = np.searchsorted(vessel.nodes, vessel.edges)
+    weights = np.linalg.norm(points[vessel.edges[:, 0]] - points[vessel.edges[:, 1]], axis=1)
+    graph = sparse.coo_matrix((weights + 1e-9, (local[:, 0], local[:, 1])), shape=(len(vessel.nodes),) * 2)
+    degree = np.bincount(local.ravel(), minlength=len(vessel.nodes))
+    roots = np.searchsorted(vessel.nodes, vessel.attachments[:, 0]) if vessel.label != "aorta" else []
+    root = roots[0] if len(roots) else int(np.flatnonzero(degree <= 1)[0]) if np.any(degree <= 1) else 0
+    arc = csgraph.dijkstra(graph, directed=False, indices=root)
+    return arc if np.all(np.isfinite(arc)) else None
+
+
+def _pieces(vessel: _Vessel, points: np.ndarray) -> list:
+    """``vessel`` cut into stretches of about :data:`PIECE_MM` of arc (on ``points``), root first."""
+    arc = _arc_from_root(vessel, points)
+    if arc is None:
+        return []
+    total = float(arc.max())
+    count = max(1, int(round(total / PIECE_MM)))
+    index = np.minimum((arc / total * count).astype(int), count - 1)
+    pieces = []
+    for k in range(count):
+        member = np.zeros(len(points), bool)
+        member[vessel.nodes[index == k]] = True
+        edges = vessel.edges[member[vessel.edges[:, 0]] | member[vessel.edges[:, 1]]]
+        pieces.append(_Piece(vessel.nodes[index == k], edges, k * total / count, (k + 1) * total / count))
+    return pieces
+
+
+def _piece_reason(points, piece: _Piece, preop_points, fit: float, sv_fit: float) -> str | None:
+    """Why ``points`` are implausible over ``piece`` (None if plausible), from its fit and SV's."""
+    rest = _length(preop_points, piece.edges)
+    change = _length(points, piece.edges) / rest - 1.0 if rest > 0 else 0.0
+    if abs(change) > LOCAL_LENGTH_TOLERANCE:
+        return f"length changed by {100 * change:+.1f}%"
+    if fit > sv_fit + LOCAL_FIT_TOLERANCE_PX:
+        return f"2D fit {fit:.1f} px against the undeformed {sv_fit:.1f} px"
+    return None
+
+
+def _boundary(result_len: int, edges: np.ndarray, run: np.ndarray, allowed: np.ndarray) -> tuple:
+    """Edges (inside node, outside node) leaving ``run`` towards a node of ``allowed``."""
+    inside = np.zeros(result_len, bool)
+    inside[run] = True
+    ok = np.zeros(result_len, bool)
+    ok[allowed] = True
+    leaving = edges[inside[edges[:, 0]] != inside[edges[:, 1]]]
+    leaving = np.where(inside[leaving[:, :1]], leaving, leaving[:, ::-1])
+    return leaving[ok[leaving[:, 1]]]
+
+
+def _blended(result: np.ndarray, option: np.ndarray, run: np.ndarray, arc: dict, leaving: np.ndarray,
+             sv: np.ndarray) -> np.ndarray:
+    """``option``'s shape over the nodes ``run`` put in ``result``, bent so that it meets ``result``
+    at the run's ends: the offsets at the ends interpolated along the arc (inverse arc
+    distance, which is linear between two ends)."""
+    offsets = result[leaving[:, 1]] - option[leaving[:, 1]]
+    step = np.linalg.norm(sv[leaving[:, 0]] - sv[leaving[:, 1]], axis=1)
+    along = np.array([[abs(arc[n] - arc[a]) for a in leaving[:, 0]] for n in run]) + step + 1e-6
+    weights = 1.0 / along
+    weights /= weights.sum(axis=1, keepdims=True)
+    repaired = result.copy()
+    repaired[run] = option[run] + weights @ offsets
+    return repaired
+
+
+def _carried(repaired: np.ndarray, result: np.ndarray, centerline: Centerline, vessel: _Vessel,
+             fixed: np.ndarray) -> np.ndarray:
+    """``repaired`` with every subtree hanging off ``vessel`` (branches of the aorta, say) moved
+    rigidly with the node it hangs from, except those holding a node of ``fixed``."""
+    outside = np.ones(len(result), bool)
+    outside[vessel.nodes] = False
+    edges = centerline.edges[outside[centerline.edges[:, 0]] & outside[centerline.edges[:, 1]]]
+    graph = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(len(result),) * 2)
+    _, component = csgraph.connected_components(graph, directed=False)
+    moved = repaired.copy()
+    pinned = set(component[fixed].tolist())
+    for inner, outer in vessel.attachments:
+        shift = repaired[inner] - result[inner]
+        if component[outer] not in pinned and np.any(shift):
+            members = (component == component[outer]) & outside
+            moved[members] = repaired[members] + shift
+            pinned.add(component[outer])
+    return moved
+
+
 SV_NAME = "the undeformed pre-operative shape (SV)"
+
+
+def _runs(indices: list) -> list:
+    """Consecutive ``indices`` grouped as [first, last] runs."""
+    runs = []
+    for i in indices:
+        if runs and runs[-1][1] == i - 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return runs
+
+
+def _best_blend(result, options, vessel, pieces, lo, hi, arc, sv, views, kept, centerline):
+    """The plausible option (best 2D fit over the run) blended into pieces ``lo``..``hi``, as
+    (positions, name), or None."""
+    nodes = np.concatenate([p.nodes for p in pieces[lo:hi + 1]])
+    allowed = vessel.nodes if vessel.label == "aorta" else np.concatenate([vessel.nodes, vessel.attachments[:, 1]])
+    leaving = _boundary(len(result), centerline.edges, nodes, allowed)
+    if not len(leaving):
+        return None
+    judged = pieces[max(lo - 1, 0):hi + 2]          # the run and its neighbours, whose joining edges move
+    sv_fits = _fits_of([(sv, p.nodes) for p in judged], views, kept)
+    best, best_fit = None, np.inf
+    for points, name in options:
+        candidate = _carried(_blended(result, points, nodes, arc, leaving, sv), result, centerline, vessel,
+                             leaving[:, 1])
+        fits = _fits_of([(candidate, p.nodes) for p in judged], views, kept)
+        if all(_piece_reason(candidate, p, sv, f, s) is None for p, f, s in zip(judged, fits, sv_fits)):
+            if np.mean(fits) < best_fit:
+                best, best_fit = (candidate, name), float(np.mean(fits))
+    return best
+
+
+def _repaired_locally(result, vessel, pieces, bad, options, sv, views, kept, centerline):
+    """``result`` with each run of ``bad`` pieces of ``vessel`` replaced by the best plausible option
+    over that run only, bent to stay continuous with its ends (a run that no option repairs
+    grows by a piece on each side). Returns (positions, notes), or None when the runs grow
+    over :data:`MOST_OF_A_VESSEL` of the vessel."""
+    arc = dict(zip(vessel.nodes.tolist(), _arc_from_root(vessel, sv)))
+    total = pieces[-1].end_mm
+    notes = []
+    for lo, hi in _runs(bad):
+        while True:
+            if pieces[hi].end_mm - pieces[lo].start_mm > MOST_OF_A_VESSEL * total:
+                return None
+            found = _best_blend(result, options, vessel, pieces, lo, hi, arc, sv, views, kept, centerline)
+            if found is not None:
+                result = found[0]
+                notes.append(f"{pieces[lo].start_mm:.0f}-{pieces[hi].end_mm:.0f} mm from its root "
+                             f"taken from {found[1]}")
+                break
+            lo, hi = max(lo - 1, 0), min(hi + 1, len(pieces) - 1)
+    return result, notes
+
+
+def _bad_pieces(result, pieces, sv, views, kept) -> list:
+    """(index, reason) of each piece over which ``result`` is implausible."""
+    if len(pieces) < 2:
+        return []
+    fits = _fits_of([(result, p.nodes) for p in pieces] + [(sv, p.nodes) for p in pieces], views, kept)
+    reasons = [_piece_reason(result, p, sv, f, s) for p, f, s in zip(pieces, fits[:len(pieces)], fits[len(pieces):])]
+    return [(i, why) for i, why in enumerate(reasons) if why is not None]
 
 
 def _replaced(result: np.ndarray, option: np.ndarray, vessel: _Vessel) -> np.ndarray:
@@ -133,8 +308,23 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
         if fits is None:
             fits = [None] * k + _fits_px(result, [v.nodes for v in vessels[k:]], views, preop.kept)
         reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept, fits[k])
-        if reason is None:
+        pieces = _pieces(vessel, sv)
+        bad = _bad_pieces(result, pieces, sv, views, preop.kept)
+        if reason is None and not bad:
             continue
+        local_reasons = "; ".join(f"{pieces[i].start_mm:.0f}-{pieces[i].end_mm:.0f} mm from its root: {why}"
+                                  for i, why in bad)
+        if bad:
+            local = _repaired_locally(result, vessel, pieces, [i for i, _ in bad],
+                                      list(alternatives()) + [(sv, SV_NAME)], sv, views, preop.kept,
+                                      preop.centerline)
+            if local is not None and _judge(local[0], vessel, sv, sv_fit, views, preop.kept)[0] is None:
+                result, fits = local[0], None
+                whole = f"{reason}; " if reason else ""
+                warnings.append(f"{vessel.label}: {whole}{local_reasons}; repaired there only: "
+                                f"{'; '.join(local[1])} (continuous at its ends)")
+                continue
+        reason = reason or local_reasons
         options = list(alternatives()) + [(sv, SV_NAME)]
         best, best_fit, best_name = None, np.inf, None
         for points, name in options:
