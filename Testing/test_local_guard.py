@@ -1,0 +1,92 @@
+"""Issue 10: the never-worse-than-SV guard judges a vessel in pieces and repairs a bad piece alone."""
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import pipeline
+from FevarPlannerLib.pipeline import fallback
+from fixtures import drawn_mask, phantom_case_fixtures
+
+case, preop = phantom_case_fixtures("local_guard")
+
+
+@pytest.fixture(scope="module")
+def registered(case, preop):
+    """(positions registered to a drawn frame, the prepared view)."""
+    mask = drawn_mask(preop.centerline, case.P_true, (case.carm.rows, case.carm.cols))
+    view = pipeline._prepare_view(preop, mask, case.P_true, "main", None, "proposed", False, {})
+    return pipeline.register_frame(preop, mask, case.P_true).deformed.points, view
+
+
+def _vessel(preop, label):
+    return next(v for v in fallback._vessels(preop.centerline) if v.label == label)
+
+
+def _middle_piece_without_branches(preop, vessel):
+    """A piece of ``vessel`` (on SV) with no branch junction and not at either end."""
+    pieces = fallback._pieces(vessel, preop.centerline.points)
+    junctions = set(vessel.attachments[:, 0].tolist())
+    return next(p for p in pieces[1:-1] if not junctions & set(p.nodes.tolist()))
+
+
+def _bulged(points, piece, amplitude):
+    """``points`` with ``piece`` bent out sideways by a half-sine bump (ends kept)."""
+    ordered = piece.nodes[np.argsort(np.linalg.norm(points[piece.nodes] - points[piece.nodes[0]], axis=1))]
+    tangent = points[ordered[-1]] - points[ordered[0]]
+    side = np.cross(tangent, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    t = np.linspace(0.0, 1.0, len(ordered) + 2)[1:-1]
+    bulged = points.copy()
+    bulged[ordered] += amplitude * np.sin(np.pi * t)[:, None] * side
+    return bulged
+
+
+def _relative_length_change(points, piece, rest):
+    return fallback._length(points, piece.edges) / fallback._length(rest, piece.edges) - 1.0
+
+
+def test_a_locally_stretched_piece_is_repaired_alone(preop, registered):
+    result, view = registered
+    sv = preop.centerline.points
+    aorta = _vessel(preop, "aorta")
+    piece = _middle_piece_without_branches(preop, aorta)
+    stretched = _bulged(result, piece, 9.0)
+    assert _relative_length_change(stretched, piece, sv) > 0.2          # a +20 % local stretch ...
+    assert abs(fallback._length(stretched, aorta.edges) / fallback._length(sv, aorta.edges) - 1) < 0.05  # ... hidden
+    fixed, warnings = fallback._never_worse_than_sv(stretched, lambda: [], preop, [view])
+    assert len(warnings) == 1 and warnings[0].startswith("aorta: ") and "repaired there only" in warnings[0]
+    assert "(SV)" in warnings[0] and "replaced by" not in warnings[0]
+    others = np.setdiff1d(np.arange(len(result)), piece.nodes)
+    np.testing.assert_array_equal(fixed[others], stretched[others])       # error elsewhere unchanged
+    assert abs(_relative_length_change(fixed, piece, sv)) < fallback.LOCAL_LENGTH_TOLERANCE
+    before = np.linalg.norm(stretched[piece.nodes] - result[piece.nodes], axis=1).mean()
+    after = np.linalg.norm(fixed[piece.nodes] - result[piece.nodes], axis=1).mean()
+    assert before > 4.0 and after < 0.5 * before
+    # never worse than SV: the repaired aorta fits the frame no worse than SV (within the margin)
+    fit, sv_fit = fallback._fits_px(fixed, [aorta.nodes], [view], preop.kept)[0], \
+        fallback._fits_px(sv, [aorta.nodes], [view], preop.kept)[0]
+    assert fit <= sv_fit + fallback.FIT_TOLERANCE_PX
+
+
+def test_a_good_result_is_left_alone(preop, registered):
+    result, view = registered
+    kept, warnings = fallback._never_worse_than_sv(result, lambda: [], preop, [view])
+    assert warnings == [] and np.array_equal(kept, result)
+
+
+def test_a_wholly_bad_vessel_still_falls_back_whole(preop, registered):
+    """The left iliac moved 15 mm sideways: every piece fits worse than SV, so the vessel is
+    replaced whole (SV moved rigidly with its junction), not piece by piece."""
+    result, view = registered
+    sv = preop.centerline.points
+    iliac = _vessel(preop, "iliac_left")
+    assert len(fallback._pieces(iliac, sv)) >= 3
+    moved = result.copy()
+    moved[iliac.nodes] += [15.0, 0.0, 0.0]
+    fixed, warnings = fallback._never_worse_than_sv(moved, lambda: [], preop, [view])
+    assert len(warnings) == 1 and warnings[0].startswith("iliac_left: ") and "replaced by" in warnings[0]
+    assert "repaired there only" not in warnings[0]
+    shift = fixed[iliac.nodes] - sv[iliac.nodes]
+    np.testing.assert_allclose(shift, shift[:1].repeat(len(shift), axis=0), atol=1e-9)   # SV, moved rigidly
+    others = np.setdiff1d(np.arange(len(result)), iliac.nodes)
+    np.testing.assert_array_equal(fixed[others], moved[others])
