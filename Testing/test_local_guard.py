@@ -50,8 +50,8 @@ def test_a_locally_stretched_piece_is_repaired_alone(preop, registered):
     sv = preop.centerline.points
     aorta = _vessel(preop, "aorta")
     piece = _middle_piece_without_branches(preop, aorta)
-    stretched = _bulged(result, piece, 9.0)
-    assert _relative_length_change(stretched, piece, sv) > 0.2          # a +20 % local stretch ...
+    stretched = _bulged(result, piece, 10.0)
+    assert _relative_length_change(stretched, piece, sv) > 0.25         # a +25 % local stretch ...
     assert abs(fallback._length(stretched, aorta.edges) / fallback._length(sv, aorta.edges) - 1) < 0.05  # ... hidden
     fixed, warnings = fallback._never_worse_than_sv(stretched, lambda: [], preop, [view])
     assert len(warnings) == 1 and warnings[0].startswith("aorta: ") and "repaired there only" in warnings[0]
