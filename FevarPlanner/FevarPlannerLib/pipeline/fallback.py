@@ -1,6 +1,9 @@
 """Never worse than SV: a vessel whose deformation changes its length more than the
 vessels do, or fits the frames worse than the undeformed pre-operative shape (SV), is
-replaced by the best alternative, and by SV's own shape at the last.
+replaced by the best alternative, and by SV's own shape at the last. Each vessel is also
+judged in pieces of about 25 mm of arc: a stretched or ill-fitting piece is repaired alone
+(the best alternative over that piece, bent to meet the result at its ends), so that one bad
+level does not throw away the rest of a good vessel, nor hide under a small overall change.
 """
 
 from __future__ import annotations
@@ -292,7 +295,14 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
     than :data:`FIT_TOLERANCE_PX`. It is replaced by the plausible alternative with the best
     2D fit: the same vessel from another registration (``alternatives()`` returns
     ``[(positions, name), ...]``: other candidate correspondences, each view alone), or SV,
-    moved rigidly with its junction; the aorta by a whole alternative or SV. Returns
+    moved rigidly with its junction; the aorta by a whole alternative or SV.
+
+    Each vessel is also cut into pieces (:func:`_pieces`); a piece whose length changed by more
+    than :data:`LOCAL_LENGTH_TOLERANCE` or whose fit is worse than SV's there by more than
+    :data:`LOCAL_FIT_TOLERANCE_PX` is repaired alone (:func:`_repaired_locally`) when the bad
+    pieces cover less than :data:`MOST_OF_A_VESSEL` of it and the repaired vessel passes the
+    whole-vessel checks; otherwise a vessel failing those checks is replaced whole as above, and
+    one passing them is kept. Every change and every kept doubt is a warning. Returns
     (positions, warnings).
     """
     alternatives = functools.cache(alternatives)
