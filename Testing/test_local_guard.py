@@ -90,3 +90,30 @@ def test_a_wholly_bad_vessel_still_falls_back_whole(preop, registered):
     np.testing.assert_allclose(shift, shift[:1].repeat(len(shift), axis=0), atol=1e-9)   # SV, moved rigidly
     others = np.setdiff1d(np.arange(len(result)), iliac.nodes)
     np.testing.assert_array_equal(fixed[others], moved[others])
+
+
+def test_every_vessel_of_the_guarded_result_is_no_worse_than_sv(preop, registered):
+    """Never worse than SV, over bulges and shifts of several sizes on several vessels: every
+    vessel of the output is within the length limit and fits no worse than SV (plus the
+    margin), unless it is SV itself (the last resort); at least one piece is repaired alone."""
+    result, view = registered
+    sv = preop.centerline.points
+    vessels = [v for v in fallback._vessels(preop.centerline) if v.label != "other"]
+    sv_fits = fallback._fits_px(sv, [v.nodes for v in vessels], [view], preop.kept)
+    rng = np.random.default_rng(4)
+    repaired = 0
+    for trial in range(6):
+        changed = result.copy()
+        for vessel in rng.choice(vessels, size=2, replace=False):
+            pieces = fallback._pieces(vessel, sv)
+            piece = pieces[rng.integers(len(pieces))]
+            changed = _bulged(changed, piece, rng.uniform(3.0, 14.0))
+            if trial % 2:
+                changed[vessel.nodes] += rng.normal(0.0, 4.0, 3)
+        fixed, warnings = fallback._never_worse_than_sv(changed, lambda: [(result, "registration")], preop, [view])
+        repaired += sum("repaired there only" in w for w in warnings)
+        for vessel, sv_fit in zip(vessels, sv_fits):
+            why, _ = fallback._judge(fixed, vessel, sv, sv_fit, [view], preop.kept)
+            as_sv = any(w.startswith(f"{vessel.label}: ") and w.endswith(fallback.SV_NAME) for w in warnings)
+            assert why is None or as_sv, (trial, vessel.label, why, warnings)
+    assert repaired >= 2
