@@ -123,18 +123,28 @@ class _Piece:
 
 
 def _arc_from_root(vessel: _Vessel, points: np.ndarray) -> np.ndarray | None:
-    """Arc length (mm, on ``points``) of each of ``vessel.nodes`` from its root (the junction of
-    a branch, an end of the aorta); None if the vessel is not one connected piece."""
+    """Arc length (mm, on ``points``, along the tree) of each of ``vessel.nodes`` from its root
+    (the junction of a branch, an end of the aorta); None if the vessel is not one connected piece."""
     if len(vessel.nodes) < 2 or not len(vessel.edges):
         return None
     local = np.searchsorted(vessel.nodes, vessel.edges)
-    weights = np.linalg.norm(points[vessel.edges[:, 0]] - points[vessel.edges[:, 1]], axis=1)
-    graph = sparse.coo_matrix((weights + 1e-9, (local[:, 0], local[:, 1])), shape=(len(vessel.nodes),) * 2)
-    degree = np.bincount(local.ravel(), minlength=len(vessel.nodes))
-    roots = np.searchsorted(vessel.nodes, vessel.attachments[:, 0]) if vessel.label != "aorta" else []
-    root = roots[0] if len(roots) else int(np.flatnonzero(degree <= 1)[0]) if np.any(degree <= 1) else 0
-    arc = csgraph.dijkstra(graph, directed=False, indices=root)
-    return arc if np.all(np.isfinite(arc)) else None
+    lengths = np.linalg.norm(points[vessel.edges[:, 0]] - points[vessel.edges[:, 1]], axis=1)
+    neighbours = [[] for _ in vessel.nodes]
+    for (a, b), length in zip(local.tolist(), lengths.tolist()):
+        neighbours[a].append((b, length))
+        neighbours[b].append((a, length))
+    ends = [i for i, n in enumerate(neighbours) if len(n) <= 1]
+    roots = np.searchsorted(vessel.nodes, vessel.attachments[:, 0]).tolist() if vessel.label != "aorta" else []
+    root = (roots + ends + [0])[0]
+    arc = [None] * len(vessel.nodes)
+    arc[root], stack = 0.0, [root]
+    while stack:
+        a = stack.pop()
+        for b, length in neighbours[a]:
+            if arc[b] is None:
+                arc[b] = arc[a] + length
+                stack.append(b)
+    return None if None in arc else np.array(arc)
 
 
 def _pieces(vessel: _Vessel, points: np.ndarray) -> list:
@@ -268,13 +278,23 @@ def _repaired_locally(result, vessel, pieces, bad, options, sv, views, kept, cen
     return result, notes
 
 
-def _bad_pieces(result, pieces, sv, views, kept) -> list:
-    """(index, reason) of each piece over which ``result`` is implausible."""
+def _bad_pieces(result, pieces, sv, fits, sv_fits) -> list:
+    """(index, reason) of each piece over which ``result`` (whose pieces fit by ``fits``) is implausible."""
     if len(pieces) < 2:
         return []
-    fits = _fits_of([(result, p.nodes) for p in pieces] + [(sv, p.nodes) for p in pieces], views, kept)
-    reasons = [_piece_reason(result, p, sv, f, s) for p, f, s in zip(pieces, fits[:len(pieces)], fits[len(pieces):])]
+    reasons = [_piece_reason(result, p, sv, f, s) for p, f, s in zip(pieces, fits, sv_fits)]
     return [(i, why) for i, why in enumerate(reasons) if why is not None]
+
+
+def _fits_by_vessel(positions: list, vessels: list, pieces: list, views: list, kept: np.ndarray) -> list:
+    """For each of ``positions``, per vessel: (its fit, its pieces' fits), in one skeleton query per view."""
+    node_sets = [v.nodes for v in vessels] + [p.nodes for cut in pieces for p in cut]
+    fits = iter(_fits_of([(points, nodes) for points in positions for nodes in node_sets], views, kept))
+    measured = []
+    for _ in positions:
+        whole = [next(fits) for _ in vessels]
+        measured.append([(fit, [next(fits) for _ in cut]) for fit, cut in zip(whole, pieces)])
+    return measured
 
 
 def _replaced(result: np.ndarray, option: np.ndarray, vessel: _Vessel) -> np.ndarray:
@@ -311,22 +331,20 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
     vessels = [v for v in _vessels(preop.centerline) if v.label != "other"]
     vessels.sort(key=lambda v: v.label != "aorta")
     result, warnings = result.copy(), []
-    # SV's fits and those of the vessels still to judge on ``result``: one query per view while it stays
-    both = _fits_of([(sv, vessel.nodes) for vessel in vessels] + [(result, vessel.nodes) for vessel in vessels],
-                    views, preop.kept)
-    sv_fits, fits = both[:len(vessels)], both[len(vessels):]
-    for k, (vessel, sv_fit) in enumerate(zip(vessels, sv_fits)):
+    pieces = [_pieces(vessel, sv) for vessel in vessels]
+    # SV's fits and those of the vessels (and pieces) still to judge on ``result``: one query per view while it stays
+    sv_fits, fits = _fits_by_vessel([sv, result], vessels, pieces, views, preop.kept)
+    for k, (vessel, cut, (sv_fit, sv_piece_fits)) in enumerate(zip(vessels, pieces, sv_fits)):
         if fits is None:
-            fits = [None] * k + _fits_px(result, [v.nodes for v in vessels[k:]], views, preop.kept)
-        reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept, fits[k])
-        pieces = _pieces(vessel, sv)
-        bad = _bad_pieces(result, pieces, sv, views, preop.kept)
+            fits = [None] * k + _fits_by_vessel([result], vessels[k:], pieces[k:], views, preop.kept)[0]
+        reason, _ = _judge(result, vessel, sv, sv_fit, views, preop.kept, fits[k][0])
+        bad = _bad_pieces(result, cut, sv, fits[k][1], sv_piece_fits)
         if reason is None and not bad:
             continue
-        local_reasons = "; ".join(f"{pieces[i].start_mm:.0f}-{pieces[i].end_mm:.0f} mm from its root: {why}"
+        local_reasons = "; ".join(f"{cut[i].start_mm:.0f}-{cut[i].end_mm:.0f} mm from its root: {why}"
                                   for i, why in bad)
         if bad:
-            local = _repaired_locally(result, vessel, pieces, [i for i, _ in bad],
+            local = _repaired_locally(result, vessel, cut, [i for i, _ in bad],
                                       list(alternatives()) + [(sv, SV_NAME)], sv, views, preop.kept,
                                       preop.centerline)
             if local is not None and _judge(local[0], vessel, sv, sv_fit, views, preop.kept)[0] is None:
