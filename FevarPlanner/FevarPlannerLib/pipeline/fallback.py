@@ -68,7 +68,8 @@ def _fits_of(sets: list, views: list, kept: np.ndarray) -> list:
     fits = [[] for _ in sets]
     for v in views:
         shown = [(points, nodes[v.visible[kept[nodes]]]) for points, nodes in sets]
-        uv = [project(v.P, points[nodes]) for points, nodes in shown if len(nodes)]
+        projected = {id(points): project(v.P, points) for points, nodes in shown if len(nodes)}  # eq. 1, once a shape
+        uv = [projected[id(points)][nodes] for points, nodes in shown if len(nodes)]
         if not uv:
             continue
         distances = iter(np.split(v.skeleton_index.distances(np.concatenate(uv)), np.cumsum([len(u) for u in uv])[:-1]))
