@@ -125,7 +125,8 @@ class _Piece:
 
 def _arc_from_root(vessel: _Vessel, points: np.ndarray) -> np.ndarray | None:
     """Arc length (mm, on ``points``, along the tree) of each of ``vessel.nodes`` from its root
-    (the junction of a branch, an end of the aorta); None if the vessel is not one connected piece."""
+    (the junction of a branch, an end of the aorta); the parts of a vessel broken in the CT
+    skeleton follow one another, each from one of its ends. None for a vessel without edges."""
     if len(vessel.nodes) < 2 or not len(vessel.edges):
         return None
     local = np.searchsorted(vessel.nodes, vessel.edges)
@@ -136,22 +137,23 @@ def _arc_from_root(vessel: _Vessel, points: np.ndarray) -> np.ndarray | None:
         neighbours[b].append((a, length))
     ends = [i for i, n in enumerate(neighbours) if len(n) <= 1]
     roots = np.searchsorted(vessel.nodes, vessel.attachments[:, 0]).tolist() if vessel.label != "aorta" else []
-    root = (roots + ends + [0])[0]
     arc = [None] * len(vessel.nodes)
-    arc[root], stack = 0.0, [root]
-    while stack:
-        a = stack.pop()
-        for b, length in neighbours[a]:
-            if arc[b] is None:
-                arc[b] = arc[a] + length
-                stack.append(b)
-    return None if None in arc else np.array(arc)
+    for root in roots[:1] + ends + list(range(len(arc))):
+        if arc[root] is None:
+            arc[root], stack = max((a for a in arc if a is not None), default=0.0), [root]
+            while stack:
+                a = stack.pop()
+                for b, length in neighbours[a]:
+                    if arc[b] is None:
+                        arc[b] = arc[a] + length
+                        stack.append(b)
+    return np.array(arc)
 
 
 def _pieces(vessel: _Vessel, points: np.ndarray) -> list:
     """``vessel`` cut into stretches of about :data:`PIECE_MM` of arc (on ``points``), root first."""
     arc = _arc_from_root(vessel, points)
-    if arc is None:
+    if arc is None or not arc.max() > 0:
         return []
     total = float(arc.max())
     count = max(1, int(round(total / PIECE_MM)))
