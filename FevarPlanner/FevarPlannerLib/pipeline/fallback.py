@@ -178,7 +178,7 @@ def _piece_reason(points, piece: _Piece, preop_points, fit: float, sv_fit: float
     return None
 
 
-def _boundary(result_len: int, edges: np.ndarray, run: np.ndarray, allowed: np.ndarray) -> tuple:
+def _boundary(result_len: int, edges: np.ndarray, run: np.ndarray, allowed: np.ndarray) -> np.ndarray:
     """Edges (inside node, outside node) leaving ``run`` towards a node of ``allowed``."""
     inside = np.zeros(result_len, bool)
     inside[run] = True
