@@ -355,8 +355,8 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     mask = np.asarray(mask) > 0
     fraction = float(mask.mean()) if mask.size else 0.0
     if not mask.any():
-        raise QualityError("frame check: no vessel found in the frame (not a usable angiogram: blank, noise or "
-                           "devices only; see segmentation_qc.png)", qc)
+        raise QualityError("frame check: no vessel found in the frame (not a usable angiogram: blank, noise, "
+                           "no contrast, or bones or devices only; see segmentation_qc.png)", qc)
     if fraction > MAX_MASK_FRACTION:
         raise QualityError(f"frame check: the vessel mask covers {100 * fraction:.0f}% of the frame (noise, not an "
                            f"angiogram; see segmentation_qc.png)", qc)
