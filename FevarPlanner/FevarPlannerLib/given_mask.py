@@ -28,7 +28,7 @@ import math
 import numpy as np
 from scipy import ndimage as ndi
 
-from .skeleton import bounding_box
+from .skeleton import as_binary, bounding_box
 
 __all__ = ["condition_given_mask", "dithered_fraction", "vessel_half_width_px", "DITHERED_ABOVE",
            "MAJORITY_FRACTION", "repaired_mask"]
@@ -166,7 +166,7 @@ def condition_given_mask(mask: np.ndarray) -> np.ndarray:
     -------
     numpy.ndarray of bool, same shape.
     """
-    binary = np.asarray(mask) != 0
+    binary = as_binary(mask, "condition_given_mask")
     if binary.ndim != 2:
         raise ValueError(f"condition_given_mask: expected a 2D mask, got shape {binary.shape}")
     if not binary.any():
