@@ -117,3 +117,21 @@ def test_every_vessel_of_the_guarded_result_is_no_worse_than_sv(preop, registere
             as_sv = any(w.startswith(f"{vessel.label}: ") and w.endswith(fallback.SV_NAME) for w in warnings)
             assert why is None or as_sv, (trial, vessel.label, why, warnings)
     assert repaired >= 2
+
+
+def test_a_bad_piece_no_option_may_repair_is_kept_with_a_warning(preop, registered, monkeypatch):
+    """A vessel plausible as a whole whose one bad piece no option may repair (here: repairs
+    limited to a span shorter than a piece) is kept as it is, not replaced whole, and the
+    doubt is named in a warning."""
+    result, view = registered
+    sv = preop.centerline.points
+    aorta = _vessel(preop, "aorta")
+    piece = _middle_piece_without_branches(preop, aorta)
+    stretched = _bulged(result, piece, 10.0)
+    total = fallback._pieces(aorta, sv)[-1].end_mm
+    monkeypatch.setattr(fallback, "MOST_OF_A_VESSEL", 0.5 * (piece.end_mm - piece.start_mm) / total)
+    kept, warnings = fallback._never_worse_than_sv(stretched, lambda: [(result, "registration")], preop, [view])
+    assert len(warnings) == 1 and warnings[0].startswith("aorta: ")
+    assert warnings[0].endswith("no alternative repairs it there, kept")
+    assert f"{piece.start_mm:.0f}-{piece.end_mm:.0f} mm from its root: length changed by +" in warnings[0]
+    np.testing.assert_array_equal(kept, stretched)
