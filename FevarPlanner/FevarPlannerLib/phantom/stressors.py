@@ -28,6 +28,15 @@ survive, each an option here (:data:`STRESSORS`):
     The field of view continues 110 mm above the abdominal aorta (the descending thoracic
     aorta, added to the label) with the heart's enhancing chambers touching it from the front,
     and the lungs.
+``arch``
+    A chest-abdomen-pelvis field of view as FEVAR planning CTAs have: the descending thoracic
+    aorta (:data:`DESCENDING_MM`), the arch turning forwards and to the right and the ascending
+    aorta coming down in front to the aortic root (all added to the label: in the upper chest
+    each axial slice crosses the aorta twice), the heart's chambers around the root and the left
+    atrium in front of the descending aorta, the pulmonary trunk and arteries (one passing under
+    the arch, between the ascending and descending aorta) as bright as the aorta, and the
+    lungs. With ``fading`` and ``fade_start`` the lumen is bright in the chest and fades only
+    below the diaphragm; with ``dissection`` the flap runs the whole length. Not with ``thorax``.
 
 :func:`stressed_phantom_ct` draws a phantom case with any of them and returns the CT and the
 lumen label on its grid.
@@ -46,11 +55,15 @@ from .ct import _CANCELLOUS_HU, _CORTICAL_HU, _ct_from_lumen_field
 from .params import PhantomParams
 from .raster import Grid, _lumen_field, _tube_field, ct_grid, rasterize_lumen
 
-STRESSORS = ("stent", "dissection", "calcium", "spine_contact", "venous_contrast", "thorax", "fading")
+STRESSORS = ("stent", "dissection", "calcium", "spine_contact", "venous_contrast", "thorax", "fading", "arch")
 
 METAL_HU, CALCIUM_HU, FLAP_HU, LUNG_HU, MYOCARDIUM_HU = 3000.0, 1200.0, 60.0, -850.0, 110.0
 STENT_RING_PITCH_MM, STENT_AMPLITUDE_MM, STENT_PEAKS = 15.0, 4.0, 6
 THORAX_EXTENSION_MM = 110.0
+#: ``arch``: height (mm) of the descending thoracic aorta above the abdominal one, the arch's
+#: radius of curvature (mm: the ascending aorta lies twice that in front of the descending one),
+#: its shift to the right (mm) and the ascending aorta's height (mm) from the root to the arch.
+DESCENDING_MM, ARCH_RADIUS_MM, ARCH_RIGHTWARD_MM, ASCENDING_MM = 140.0, 32.0, 20.0, 55.0
 #: Voxels this far (mm) outside a lumen get a local frame (nearest centreline point, angle, arc length).
 _FRAME_REACH_MM = 4.0
 #: Soft tissue HU: enhancement is measured above it.
@@ -76,6 +89,9 @@ class StressorOptions:
         HU of the bowel contents.
     fade_top_hu, fade_bottom_hu : float
         Lumen HU at the top of the aorta and at its bifurcation with ``fading``.
+    fade_start : float
+        Fraction of the aorta's length (from its top) over which the lumen keeps ``fade_top_hu``
+        before it fades (0: it fades from the top; with ``arch``, e.g. the chest's share).
     """
 
     names: tuple = ()
@@ -85,11 +101,16 @@ class StressorOptions:
     oral_contrast_hu: float = 600.0
     fade_top_hu: float = 400.0
     fade_bottom_hu: float = 150.0
+    fade_start: float = 0.0
 
     def __post_init__(self):
         unknown = sorted(set(self.names) - set(STRESSORS))
         if unknown:
             raise ValueError(f"unknown CT stressor(s) {', '.join(unknown)}; use any of {', '.join(STRESSORS)}")
+        if {"arch", "thorax"} <= set(self.names):
+            raise ValueError("CT stressors arch and thorax both continue the aorta upwards; use one")
+        if not 0.0 <= self.fade_start < 1.0:
+            raise ValueError(f"fade_start must lie in [0, 1), got {self.fade_start}")
         self.names = tuple(self.names)
 
 
@@ -104,6 +125,8 @@ class _Painter:
         axes = _Axes(volume)
         if "thorax" in names:
             _paint_thorax(hu, axes, anatomy, self.params)
+        if "arch" in names:
+            _paint_chest(hu, volume, axes, anatomy, self.params)
         if "spine_contact" in names:
             _paint_vertebra_on_the_wall(hu, axes, anatomy)
         if "venous_contrast" in names:
@@ -170,6 +193,44 @@ def _paint_thorax(hu: np.ndarray, axes: _Axes, anatomy: Anatomy, params: Phantom
     hu[_ellipsoid(axes, centre, semi)] = params.lumen_hu * 0.95
     atrium = centre + np.array([20.0, semi[1] - 8.0, 0.0])      # left atrium, just in front of the aorta
     hu[_ellipsoid(axes, atrium, np.array([25.0, 12.0, 25.0]))] = params.lumen_hu * 0.95
+
+
+def _paint_chest(hu: np.ndarray, volume: io.Volume, axes: _Axes, anatomy: Anatomy, params: PhantomParams) -> None:
+    """``arch``: lungs above the diaphragm (10 mm above the abdominal aorta's top), the heart's
+    chambers around the aortic root with the left atrium against the descending aorta, and the
+    pulmonary trunk rising left of the ascending aorta into a left and a right pulmonary artery
+    (the right one under the arch, between the ascending and descending aorta)."""
+    aorta = anatomy.vessels["aorta"]
+    root = aorta.points[0]
+    apex = int(np.argmax(aorta.points[:, 2]))                   # the top of the arch
+    descending = aorta.points[apex]
+    z_diaphragm = float(aorta.points[apex, 2]) - ARCH_RADIUS_MM - DESCENDING_MM + 10.0
+    soft = hu > -200.0
+    chest = axes.z >= z_diaphragm
+    lateral = np.abs(axes.x - 0.5 * (root[0] + descending[0])) > 45.0
+    hu[chest[:, None, None] & lateral[None, None, :] & soft & (hu < 200.0)] = LUNG_HU
+    chambers = params.lumen_hu * 0.95
+    heart = root + np.array([25.0, -30.0, -40.0])
+    semi = np.array([50.0, 45.0, 45.0])
+    hu[_ellipsoid(axes, heart, semi + 6.0)] = MYOCARDIUM_HU
+    hu[_ellipsoid(axes, heart, semi)] = chambers
+    (dx, dy), _, outer = (v[0] for v in _aorta_at_height(aorta, apex, np.array([z_diaphragm + 30.0])))
+    atrium = np.array([dx - 5.0, dy - outer - 1.0 - 12.0, z_diaphragm + 30.0])   # 1 mm in front of the wall
+    hu[_ellipsoid(axes, atrium, np.array([28.0, 12.0, 25.0]))] = chambers
+    trunk = np.array([root + [30.0, -20.0, -5.0], root + [30.0, -10.0, 35.0], root + [25.0, 10.0, 50.0]])
+    fork = trunk[-1]
+    left_pa = np.array([fork, fork + [35.0, 20.0, 0.0], fork + [70.0, 30.0, -10.0]])
+    right_pa = np.array([fork, fork + [-45.0, 15.0, -5.0], fork + [-95.0, 20.0, -15.0]])
+    for tube, radius in ((trunk, 13.0), (left_pa, 9.0), (right_pa, 9.0)):
+        hu[_tube(volume, tube, radius)] = params.lumen_hu * 0.9
+
+
+def _aorta_at_height(aorta: Vessel, first: int, z: np.ndarray):
+    """:func:`_aorta_at` restricted to the aorta's points from ``first`` on (from the top of the
+    arch: the descending aorta has one centre per height)."""
+    return _aorta_at(Anatomy({"aorta": replace(aorta, points=aorta.points[first:], radius=aorta.radius[first:],
+                                               outer_radius=aorta.outer_radius[first:],
+                                               outer_offset=aorta.outer_offset[first:])}), z)
 
 
 def _paint_vertebra_on_the_wall(hu: np.ndarray, axes: _Axes, anatomy: Anatomy, radius: float = 18.0,
@@ -275,12 +336,14 @@ def _paint_dissection(hu: np.ndarray, frame: _VesselFrame, anatomy: Anatomy, par
     frame.paint(hu, inside & (np.abs(offset) <= 0.5 * flap_mm), FLAP_HU)
 
 
-def enhancement_levels(anatomy: Anatomy, top_hu: float, bottom_hu: float) -> dict:
-    """Lumen HU per centreline point of each vessel with a fade: linear in arc length along the
-    aorta from ``top_hu`` to ``bottom_hu``, a branch at its parent's level at its ostium."""
+def enhancement_levels(anatomy: Anatomy, top_hu: float, bottom_hu: float, start: float = 0.0) -> dict:
+    """Lumen HU per centreline point of each vessel with a fade: ``top_hu`` over the first
+    ``start`` of the aorta's arc length, then linear in arc length down to ``bottom_hu`` at its
+    end; a branch at its parent's level at its ostium."""
     aorta = anatomy.vessels["aorta"]
     arc = aorta.arc_length()
-    levels = {"aorta": top_hu + (bottom_hu - top_hu) * arc / max(float(arc[-1]), 1e-9)}
+    fraction = np.clip((arc / max(float(arc[-1]), 1e-9) - start) / (1.0 - start), 0.0, 1.0)
+    levels = {"aorta": top_hu + (bottom_hu - top_hu) * fraction}
     pending = [n for n in anatomy.vessels if n != "aorta"]
     while pending:
         ready = [n for n in pending if anatomy.vessels[n].parent in levels]
@@ -302,7 +365,7 @@ def _fade_enhancement(hu: np.ndarray, volume: io.Volume, anatomy: Anatomy, lumen
     voxel = float(min(volume.spacing))
     weight = np.clip(0.5 - lumen / voxel, 0.0, 1.0)
     index = np.argwhere(weight > 0)
-    levels = enhancement_levels(anatomy, options.fade_top_hu, options.fade_bottom_hu)
+    levels = enhancement_levels(anatomy, options.fade_top_hu, options.fade_bottom_hu, options.fade_start)
     points = np.vstack([anatomy.vessels[n].points for n in levels])
     level = np.concatenate([levels[n] for n in levels])
     _, nearest = cKDTree(points).query(volume.index_to_lps(index.astype(float)))
@@ -353,17 +416,21 @@ def _paint_stent(hu: np.ndarray, volume: io.Volume, frame: _VesselFrame, anatomy
 # ----------------------------------------------------------------------------------------
 
 def stressed_anatomy(anatomy: Anatomy, names) -> Anatomy:
-    """``anatomy`` with the aorta continued :data:`THORAX_EXTENSION_MM` upwards when ``thorax``
-    is among ``names`` (straight, the top radius), else unchanged."""
-    if "thorax" not in names:
+    """``anatomy`` with the aorta continued upwards: :data:`THORAX_EXTENSION_MM` (straight, the
+    top radius) when ``thorax`` is among ``names``, the descending aorta, the arch and the
+    ascending aorta down to the root (:func:`_arch_centreline`) with ``arch``; else unchanged."""
+    if "thorax" not in names and "arch" not in names:
         return anatomy
     aorta = anatomy.vessels["aorta"]
     up = _unit(aorta.points[0] - aorta.points[3])
-    steps = np.arange(int(THORAX_EXTENSION_MM), 0, -1)[:, None]
-    extra = aorta.points[0] + steps * up
+    if "arch" in names:
+        extra, scale = _arch_centreline(aorta.points[0], up)
+    else:
+        steps = np.arange(int(THORAX_EXTENSION_MM), 0, -1)[:, None]
+        extra, scale = aorta.points[0] + steps * up, np.ones(len(steps))
     n = len(extra)
-    extended = Vessel("aorta", np.vstack([extra, aorta.points]), np.concatenate([np.full(n, aorta.radius[0]), aorta.radius]),
-                      np.concatenate([np.full(n, aorta.outer_radius[0]), aorta.outer_radius]),
+    extended = Vessel("aorta", np.vstack([extra, aorta.points]), np.concatenate([scale * aorta.radius[0], aorta.radius]),
+                      np.concatenate([scale * aorta.outer_radius[0], aorta.outer_radius]),
                       np.vstack([np.repeat(aorta.outer_offset[:1], n, 0), aorta.outer_offset]))
     vessels = {"aorta": extended}
     for name, vessel in anatomy.vessels.items():
@@ -372,12 +439,45 @@ def stressed_anatomy(anatomy: Anatomy, names) -> Anatomy:
     return Anatomy(vessels)
 
 
-def _grid_with_room_in_front(anatomy: Anatomy, params: PhantomParams, front_mm: float) -> Grid:
-    """:func:`ct_grid`, extended ``front_mm`` anteriorly (for the heart and the bowel)."""
+def _arch_centreline(top: np.ndarray, up: np.ndarray, step_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The thoracic aorta above the abdominal aorta's ``top``, ordered from the aortic root:
+    the ascending aorta (:data:`ASCENDING_MM`, rising), the arch (a half turn of radius
+    :data:`ARCH_RADIUS_MM` from front to back, drifting :data:`ARCH_RIGHTWARD_MM` to the right
+    on the way to the front) and the descending aorta (:data:`DESCENDING_MM` along ``up``);
+    with each point's radius relative to the abdominal aorta's top (1.3 at the root, 1.1 at
+    the arch's far end, 1 at ``top``).
+
+    Returns
+    -------
+    points : numpy.ndarray, shape (n, 3)
+        LPS mm, one every ``step_mm``; ``top`` itself is not among them.
+    scale : numpy.ndarray, shape (n,)
+    """
+    arch_start = top + DESCENDING_MM * up                             # the descending aorta's top
+    centre = arch_start + np.array([0.0, -ARCH_RADIUS_MM, 0.0])       # anterior is -y in LPS
+    turn = np.linspace(np.pi, 0.0, int(np.pi * ARCH_RADIUS_MM / step_mm) + 1)      # front to back
+    arch = np.column_stack([centre[0] - ARCH_RIGHTWARD_MM * turn / np.pi, centre[1] + ARCH_RADIUS_MM * np.cos(turn),
+                            centre[2] + ARCH_RADIUS_MM * np.sin(turn)])
+    rise = np.arange(int(ASCENDING_MM / step_mm), 0, -1)[:, None] * step_mm
+    ascending = arch[0] + np.array([6.0, 0.0, 0.0]) * rise / ASCENDING_MM - np.array([0.0, 0.0, 1.0]) * rise
+    fall = np.arange(int(DESCENDING_MM / step_mm), 0, -1)[:, None] * step_mm
+    descending = top + fall * up
+    points = np.vstack([ascending, arch[:-1], descending])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    arch_end = len(ascending) + len(arch) - 1
+    scale = np.interp(arc, [0.0, arc[arch_end], arc[-1]], [1.3, 1.1, 1.0])
+    return points, scale
+
+
+def _grid_with_room_in_front(anatomy: Anatomy, params: PhantomParams, front_mm: float, side_mm: float = 0.0) -> Grid:
+    """:func:`ct_grid`, extended ``front_mm`` anteriorly (for the heart and the bowel) and
+    ``side_mm`` to either side (for the lungs and the pulmonary arteries)."""
     grid = ct_grid(anatomy, params.ct_spacing_mm, params.ct_margin_mm)
     extra = int(np.ceil(front_mm / params.ct_spacing_mm))
-    origin = (grid.origin[0], round(grid.origin[1] - extra * params.ct_spacing_mm, 3), grid.origin[2])
-    return Grid((grid.shape[0], grid.shape[1] + extra, grid.shape[2]), grid.spacing, origin)
+    side = int(np.ceil(side_mm / params.ct_spacing_mm))
+    origin = (round(grid.origin[0] - side * params.ct_spacing_mm, 3), round(grid.origin[1] - extra * params.ct_spacing_mm, 3),
+              grid.origin[2])
+    return Grid((grid.shape[0], grid.shape[1] + extra, grid.shape[2] + 2 * side), grid.spacing, origin)
 
 
 def stressed_phantom_ct(params: PhantomParams, options: StressorOptions, rng: np.random.Generator):
@@ -395,8 +495,9 @@ def stressed_phantom_ct(params: PhantomParams, options: StressorOptions, rng: np
     from .anatomy import build_preop_anatomy
 
     anatomy = stressed_anatomy(build_preop_anatomy(params), options.names)
-    front = 60.0 if {"thorax", "venous_contrast"} & set(options.names) else 0.0
-    volume = _grid_with_room_in_front(anatomy, params, front).volume(dtype=np.int16)
+    front = 60.0 if {"thorax", "venous_contrast", "arch"} & set(options.names) else 0.0
+    side = 60.0 if "arch" in options.names else 0.0
+    volume = _grid_with_room_in_front(anatomy, params, front, side).volume(dtype=np.int16)
     lumen = _lumen_field(anatomy, volume)
     ct = _ct_from_lumen_field(anatomy, params, rng, volume, lumen, stressors=_Painter(options, params, rng))
     return ct, rasterize_lumen(anatomy, ct), anatomy
