@@ -196,7 +196,8 @@ def _paint_thorax(hu: np.ndarray, axes: _Axes, anatomy: Anatomy, params: Phantom
 
 
 def _paint_chest(hu: np.ndarray, volume: io.Volume, axes: _Axes, anatomy: Anatomy, params: PhantomParams) -> None:
-    """``arch``: lungs above the diaphragm (10 mm above the abdominal aorta's top), the heart's
+    """``arch``: lungs above the diaphragm (10 mm above the abdominal aorta's top, 45-95 mm to
+    either side of the mediastinum, inside the chest wall), the heart's
     chambers around the aortic root with the left atrium against the descending aorta, and the
     pulmonary trunk rising left of the ascending aorta into a left and a right pulmonary artery
     (the right one under the arch, between the ascending and descending aorta)."""
@@ -205,10 +206,11 @@ def _paint_chest(hu: np.ndarray, volume: io.Volume, axes: _Axes, anatomy: Anatom
     apex = int(np.argmax(aorta.points[:, 2]))                   # the top of the arch
     descending = aorta.points[apex]
     z_diaphragm = float(aorta.points[apex, 2]) - ARCH_RADIUS_MM - DESCENDING_MM + 10.0
-    soft = hu > -200.0
+    soft = (hu > -50.0) & (hu < 200.0)                         # inside the subcutaneous fat: the chest wall
     chest = axes.z >= z_diaphragm
-    lateral = np.abs(axes.x - 0.5 * (root[0] + descending[0])) > 45.0
-    hu[chest[:, None, None] & lateral[None, None, :] & soft & (hu < 200.0)] = LUNG_HU
+    lateral = np.abs(np.abs(axes.x - 0.5 * (root[0] + descending[0])) - 70.0) < 25.0
+    ribs = axes.y <= axes.y[-1] - 15.0                           # the back's wall stays in the field of view
+    hu[chest[:, None, None] & ribs[None, :, None] & lateral[None, None, :] & soft] = LUNG_HU
     chambers = params.lumen_hu * 0.95
     heart = root + np.array([25.0, -30.0, -40.0])
     semi = np.array([50.0, 45.0, 45.0])

@@ -57,6 +57,9 @@ BRANCH_SIGMAS_MM = (1.5, 2.5, 4.0)
 BRANCH_REACH_MM = 70.0
 #: Thin dark lines inside a lumen (a dissection flap) up to about twice this width (mm) are bridged.
 FLAP_BRIDGE_MM = 1.5
+#: A bridged flap pixel is at least this dense (HU): a thin flap sampled by a coarse grid and
+#: smoothed with noise dips below soft tissue, but not down to fat (the gap to a neighbour).
+FLAP_MIN_HU = 0.0
 #: A traced aorta shorter than this (mm along z, or half the scan's height if that is less) is not
 #: the aorta (a vertebral body between two discs, a bowel loop): the next seed is tried.
 MIN_AORTA_TRACE_MM = 60.0
@@ -74,6 +77,17 @@ MIN_LUMEN_HU = 100.0
 LUMEN_FLOOR_HU = 0.5 * (MIN_LUMEN_HU + SOFT_TISSUE_HU)
 #: The lumen range of a trace is re-estimated from its last this many traced slices.
 RUNNING_SLICES = 6
+#: Over this much height (mm), an upward aorta trace whose centre moves further sideways than
+#: :data:`MAX_TURN_SLOPE` times that height has entered the arch (the descending aorta is close
+#: to vertical; the arch turns forwards and back down into the ascending aorta): it stops there.
+TURN_WINDOW_MM, MAX_TURN_SLOPE = 20.0, 1.0
+#: An axial slice whose lungs (air enclosed by the body) cover at least this fraction of the
+#: body's cross-section is in the chest: the heart and pulmonary vessels lie there, FEVAR's
+#: region (coeliac trunk to iliacs) does not. Seeds there come last; no side branch is grown there.
+CHEST_LUNG_FRACTION = 0.15
+#: A downward aorta trace that ends this far (mm) above the scan's lower end without the
+#: iliac bifurcation has lost the aorta in the abdomen: the CT is refused, naming where.
+MAX_UNTRACED_BELOW_MM = 40.0
 
 
 def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
@@ -94,6 +108,26 @@ def _posterior_sign_j(ct: Volume) -> float:
 def _left_sign_i(ct: Volume) -> float:
     """+1 when increasing i goes to the patient's left (towards +x in LPS), else -1 (or 0 if oblique)."""
     return float(np.sign(ct.direction[0, 0]))
+
+
+def chest_slices(ct: Volume, lung_fraction: float = CHEST_LUNG_FRACTION, step_mm: float = 4.0) -> np.ndarray:
+    """Boolean per axial slice: True where the lungs cover at least ``lung_fraction`` of the
+    body's cross-section (the chest above the diaphragm).
+
+    The body is what is denser than -500 HU with its enclosed holes filled; the lungs are the
+    air inside it. Computed on slices subsampled to about ``step_mm`` in plane (the lungs are
+    large), every slice.
+    """
+    spacing_ji = _slice_axes_mm(ct)
+    stride = tuple(max(1, int(round(step_mm / s))) for s in spacing_ji)
+    chest = np.zeros(ct.shape[0], dtype=bool)
+    for k in range(ct.shape[0]):
+        hu = np.asarray(ct.array[k, ::stride[0], ::stride[1]])
+        body = ndi.binary_fill_holes(hu > -500.0)
+        area = int(body.sum())
+        lungs = int((body & (hu <= -500.0)).sum())
+        chest[k] = area > 0 and lungs >= lung_fraction * area
+    return chest
 
 
 def _spine_to_the_left_mm(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, posterior: float,
@@ -230,10 +264,13 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
 
 
 def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
-                          step_mm: float = 5.0) -> list:
+                          step_mm: float = 5.0, chest: np.ndarray | None = None) -> list:
     """Every aorta-like cross-section of :func:`find_aorta_in_slices`, best circle score first,
-    those with the spine more than :data:`IVC_SPINE_OFFSET_MM` to their left (the IVC's
-    place, :func:`_spine_to_the_left_mm`) after all others.
+    those in the chest (:func:`chest_slices`: the heart, the pulmonary trunk, the ascending
+    aorta and the arch are as round and bright, and a dissected or late-phase aorta is brightest
+    there) after those below the diaphragm, and those with the spine more than
+    :data:`IVC_SPINE_OFFSET_MM` to their left (the IVC's place, :func:`_spine_to_the_left_mm`)
+    after all others.
 
     Returns
     -------
@@ -253,7 +290,8 @@ def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_
             spine_left = _spine_to_the_left_mm(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior, left)
             found.append((k, blob["centre"], blob["radius"], blob["score"]))
             right_of_spine.append(spine_left > IVC_SPINE_OFFSET_MM)
-    order = sorted(range(len(found)), key=lambda n: (right_of_spine[n], -found[n][3]))
+    in_chest = chest_slices(ct) if chest is None else chest
+    order = sorted(range(len(found)), key=lambda n: (right_of_spine[n], bool(in_chest[found[n][0]]), -found[n][3]))
     return [found[n] for n in order]
 
 
@@ -271,6 +309,7 @@ class _Trace:
         self.ranges = {k: self.lumen_hu}            # the range used in each traced slice
         self.recent = deque(recent, maxlen=RUNNING_SLICES)   # (median, MAD) of the last cross-sections' cores
         self.faded = None           # (k, lumen HU) where the lumen fell below MIN_LUMEN_HU
+        self.turned = None          # the slice where an upward aorta trace entered the arch
 
     def take_level(self, k: int, hu_slice: np.ndarray, mask: np.ndarray, offset, centre, radius: float,
                    spacing_ji) -> None:
@@ -353,12 +392,12 @@ def _lumen_cross_section(hu_slice: np.ndarray, centre, radius: float, spacing_ji
     local = centre - lo_ji
     dist = np.hypot((rows - local[0]) * spacing_ji[0], (cols - local[1]) * spacing_ji[1])
     if bridge:      # a flap inside the traced lumen joins the two channels; gaps to neighbours at the wall stay open
-        zone = dist <= 0.85 * radius
+        zone = dist <= 0.85 * max(radius, reference_radius or 0.0)     # the trace's typical width: a channel
         if previous is not None:        # the last cross-section less its rim (the wall): both channels
             before = _paste(previous[0], previous[1] - lo_ji, window.shape)
             zone |= ndi.binary_erosion(before, structure=_disc_element(FLAP_BRIDGE_MM, spacing_ji))
         dimmer = (smooth >= 0.5 * (lumen_hu[0] + SOFT_TISSUE_HU)) & (smooth <= lumen_hu[1])   # a false lumen
-        inside |= _bridge_thin_gaps(dimmer, spacing_ji) & zone & (smooth >= SOFT_TISSUE_HU)
+        inside |= _bridge_thin_gaps(dimmer, spacing_ji) & zone & (smooth >= FLAP_MIN_HU)     # a flap: soft tissue, not fat
     labels, _ = ndi.label(inside)
     core = dist <= 0.6 * radius
     if previous is not None:        # overlap with the last cross-section counts as well
@@ -426,7 +465,7 @@ def _split_blobs(candidate, edt, offset, spacing_ji, min_radius: float) -> list:
     return [(np.asarray(p, dtype=float) + offset, float(edt[tuple(p)])) for p in peaks]
 
 
-def _follow(trace: _Trace, ct: Volume, out: np.ndarray, label: int, progress=None) -> list:
+def _follow(trace: _Trace, ct: Volume, out: np.ndarray, label: int, progress=None, check_turn: bool = False) -> list:
     """Extend ``trace`` slice by slice until the lumen ends; paint it into ``out``.
 
     Radius continuity (the new radius between 0.6 and ``max_growth`` times the last one,
@@ -434,7 +473,10 @@ def _follow(trace: _Trace, ct: Volume, out: np.ndarray, label: int, progress=Non
     the downward aorta trace looks for the bifurcation (two separate lumens of similar size):
     going up, two such lumens are the channels of a dissection, never a split.
     The lumen range is the trace's running estimate (:meth:`_Trace.take_level`); the trace
-    stops where the lumen has faded below :data:`MIN_LUMEN_HU`.
+    stops where the lumen has faded below :data:`MIN_LUMEN_HU`. With ``check_turn`` (the
+    upward aorta trace) it stops where the aorta turns into the arch (:func:`_turning`), cut
+    back to where the turn began (``trace.turned``): a slice-by-slice trace must not run
+    along the arch, nor down the ascending aorta into the heart.
     Returns the blobs the lumen split into where it stopped (for the iliacs), else [].
     """
     spacing_ji = _slice_axes_mm(ct)
@@ -460,11 +502,33 @@ def _follow(trace: _Trace, ct: Volume, out: np.ndarray, label: int, progress=Non
         trace.k = k
         if progress is not None:
             progress()
+        if check_turn and _turning(trace, ct):
+            trace.turned = k - trace.step * _slices_in(ct, TURN_WINDOW_MM)
+            _cut_trace_below(trace, trace.turned, out)
+            return []
         k += trace.step
     return []
 
 
-def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, progress=None):
+def _slices_in(ct: Volume, height_mm: float) -> int:
+    """How many axial slices span ``height_mm`` (at least one)."""
+    return max(1, int(round(height_mm / float(ct.spacing[2]))))
+
+
+def _turning(trace: _Trace, ct: Volume) -> bool:
+    """True when the trace's centre moved sideways more than :data:`MAX_TURN_SLOPE` times the
+    height it climbed over the last :data:`TURN_WINDOW_MM` (the arch, where the aorta turns
+    forwards: a slice-by-slice trace there runs along the arch in the axial plane)."""
+    n = _slices_in(ct, TURN_WINDOW_MM)
+    earlier = trace.k - trace.step * n
+    if earlier not in trace.centres:
+        return False
+    moved = (trace.centres[trace.k] - trace.centres[earlier]) * np.asarray(_slice_axes_mm(ct))
+    return float(np.hypot(*moved)) > MAX_TURN_SLOPE * n * float(ct.spacing[2])
+
+
+def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, progress=None,
+                chest: np.ndarray | None = None):
     """Find the aorta and follow it up and down the CT, then the common iliacs below it.
 
     The seeds of :func:`aorta_seed_candidates` are tried best first (at most
@@ -477,7 +541,9 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
     quality.QualityError
         "no aorta found: ..." (one line, an :class:`InputError`: exit code 2) when no seed
         qualifies; its QC data show the CT with the rejected traces. "contrast too faint: ..."
-        when the aorta's lumen fades below :data:`MIN_LUMEN_HU` along the trace.
+        when the aorta's lumen fades below :data:`MIN_LUMEN_HU` along the trace. "aorta lost in
+        the abdomen: ..." when the downward trace ends without the bifurcation more than
+        :data:`MAX_UNTRACED_BELOW_MM` above the scan's lower end.
 
     Returns
     -------
@@ -488,7 +554,8 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         The lumen intensity range per axial slice (:func:`_lumen_profile`): each trace's
         running estimate where it ran, interpolated between.
     """
-    candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm)
+    chest = chest_slices(ct) if chest is None else chest
+    candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm, chest=chest)
     if not candidates:
         raise QualityError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
                            f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice",
@@ -511,8 +578,10 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         length = float(np.ptp(traced) + 1) * float(ct.spacing[2])
         if length >= needed:
             _refuse_a_faded_lumen(ct, traces, labels)
-            traces += _trace_iliacs(ct, traces, labels, counter)
-            return labels, traces, _lumen_profile(ct, traces)
+            iliacs = _trace_iliacs(ct, traces, labels, counter)
+            if not iliacs:
+                _refuse_an_aorta_lost_above_the_scan_end(ct, traces[1], labels)
+            return labels, traces + iliacs, _lumen_profile(ct, traces + iliacs)
         rejected |= ndi.binary_dilation((labels == 1).any(axis=0), iterations=2)
         longest = max(longest, length)
         shown |= labels == 1
@@ -532,6 +601,21 @@ def _refuse_a_faded_lumen(ct: Volume, traces: list, labels: np.ndarray) -> None:
                                f"below the {MIN_LUMEN_HU:.0f} HU a contrast route can tell from soft tissue "
                                f"({SOFT_TISSUE_HU:.0f}-80 HU); rescan with arterial timing or segment by hand",
                                QCData(ct=ct, lumen=ct.with_array(labels > 0)))
+
+
+def _refuse_an_aorta_lost_above_the_scan_end(ct: Volume, down: _Trace, labels: np.ndarray) -> None:
+    """Raise a one-line QualityError if the downward aorta trace ended, without the iliac
+    bifurcation, more than :data:`MAX_UNTRACED_BELOW_MM` above the scan's lower end: the aorta
+    was lost in the abdomen (FEVAR's region), not cut by the field of view."""
+    k_end = min(down.centres, key=lambda k: -k * down.step)
+    k_scan_end = ct.shape[0] - 1 if down.step > 0 else 0
+    untraced = abs(k_scan_end - k_end) * float(ct.spacing[2])
+    if untraced > MAX_UNTRACED_BELOW_MM:
+        z = float(ct.index_to_lps(np.array([k_end, 0.0, 0.0]))[2])
+        raise QualityError(f"aorta lost in the abdomen: the trace stops at z = {z:.0f} mm, {untraced:.0f} mm above the "
+                           f"scan's lower end, without reaching the iliac bifurcation (lumen "
+                           f"{down.lumen_hu[0]:.0f}-{down.lumen_hu[1]:.0f} HU there); segment by hand",
+                           QCData(ct=ct, lumen=ct.with_array(labels > 0)))
 
 
 def _lumen_profile(ct: Volume, traces: list) -> np.ndarray:
@@ -562,7 +646,7 @@ def _trace_from_seed(ct: Volume, k0: int, centre, radius: float, radius_mm, coun
         trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6, lumen_hu)
         trace.take_level(k0, np.asarray(ct.array[k0]), mask, offset, centre, radius, _slice_axes_mm(ct))
         traces.append(trace)
-        _follow(trace, ct, labels, 1, counter)
+        _follow(trace, ct, labels, 1, counter, check_turn=step == up)
     return labels, traces
 
 
@@ -852,7 +936,8 @@ def _half_neighbourhood() -> list:
 
 
 def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_SIGMAS_MM,
-                  reach_mm: float = BRANCH_REACH_MM, voxel_mm: float = 1.5, min_vesselness: float = 0.04):
+                  reach_mm: float = BRANCH_REACH_MM, voxel_mm: float = 1.5, min_vesselness: float = 0.04,
+                  excluded_slices: np.ndarray | None = None):
     """Side branches (renal, visceral, iliac continuations) connected to the traced trunk.
 
     On a copy reduced to about ``voxel_mm`` voxels around the trunk, bright tubular voxels
@@ -860,8 +945,10 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     ``lumen_hu`` (one (lo, hi) pair, or one per axial slice: the traced aorta's level at that
     height), away from cortical bone) are kept if they connect to the trunk within
     ``reach_mm`` (path length in mm through the candidates, :func:`geodesic_reach`); round blobs (kidneys, heart, bowel)
-    respond weakly to the tubular filter and stay out. The result is brought back to the CT
-    grid and intersected with the lumen intensity range.
+    respond weakly to the tubular filter and stay out. No branch is grown in the axial slices
+    flagged in ``excluded_slices`` (the chest: the arch, ascending aorta and pulmonary arteries
+    are tubes too). The result is brought back to the CT grid and intersected with the lumen
+    intensity range.
 
     Returns
     -------
@@ -883,6 +970,9 @@ def grow_branches(ct: Volume, trunk: np.ndarray, lumen_hu, *, sigmas_mm=BRANCH_S
     contrast = 2.0 * (coarse_lo - SOFT_TISSUE_HU)       # the lumen's level above soft tissue at that height
     tubular = tubularity_3d(np.clip(coarse, SOFT_TISSUE_HU - 200, coarse_hi), sigmas) > min_vesselness * contrast
     candidate = tubular & (coarse >= 0.5 * (coarse_lo + SOFT_TISSUE_HU)) & (coarse <= coarse_hi) & ~bone
+    if excluded_slices is not None:
+        excluded = np.asarray(excluded_slices, dtype=bool)[box[0]][:n_coarse * factor[0]]
+        candidate &= ~excluded.reshape(n_coarse, factor[0]).any(axis=1)[:, None, None]
     seeds = ndi.binary_dilation(coarse_trunk, iterations=1) & candidate
     reached = geodesic_reach(seeds, candidate, coarse_mm, reach_mm) & ~coarse_trunk
     full = np.zeros(trunk.shape, dtype=bool)
@@ -936,9 +1026,10 @@ def segment_ct_classical(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
         Boolean lumen mask on the CT grid.
     """
     _check_ct(ct)
-    labels, _, lumen_hu = trace_aorta(ct, hu_window=hu_window, radius_mm=radius_mm, progress=progress)
+    chest = chest_slices(ct)
+    labels, _, lumen_hu = trace_aorta(ct, hu_window=hu_window, radius_mm=radius_mm, progress=progress, chest=chest)
     if branches:
-        labels[grow_branches(ct, labels, lumen_hu)] = 3
+        labels[grow_branches(ct, labels, lumen_hu, excluded_slices=chest)] = 3
     mask = ct.with_array(labels > 0)
     if postprocess:
         mask = postprocess_mask(mask)
