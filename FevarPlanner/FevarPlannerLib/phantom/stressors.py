@@ -200,7 +200,8 @@ def _paint_chest(hu: np.ndarray, volume: io.Volume, axes: _Axes, anatomy: Anatom
     either side of the mediastinum, inside the chest wall), the heart's
     chambers around the aortic root with the left atrium against the descending aorta, and the
     pulmonary trunk rising left of the ascending aorta into a left and a right pulmonary artery
-    (the right one under the arch, between the ascending and descending aorta)."""
+    (the right one under the arch, between the ascending and descending aorta), the superior
+    vena cava right of the ascending aorta (brighter than it: the contrast arrives through it)."""
     aorta = anatomy.vessels["aorta"]
     root = aorta.points[0]
     apex = int(np.argmax(aorta.points[:, 2]))                   # the top of the arch
@@ -225,6 +226,9 @@ def _paint_chest(hu: np.ndarray, volume: io.Volume, axes: _Axes, anatomy: Anatom
     right_pa = np.array([fork, fork + [-45.0, 15.0, -5.0], fork + [-95.0, 20.0, -15.0]])
     for tube, radius in ((trunk, 13.0), (left_pa, 9.0), (right_pa, 9.0)):
         hu[_tube(volume, tube, radius)] = params.lumen_hu * 0.9
+    apex_point = aorta.points[apex]
+    svc = np.array([root + [-35.0, 0.0, -20.0], root + [-35.0, 5.0, 60.0], apex_point + [-50.0, -10.0, 60.0]])
+    hu[_tube(volume, svc, 9.0)] = params.lumen_hu * 1.5                 # the injected contrast arriving
 
 
 def _aorta_at_height(aorta: Vessel, first: int, z: np.ndarray):
@@ -438,7 +442,25 @@ def stressed_anatomy(anatomy: Anatomy, names) -> Anatomy:
     for name, vessel in anatomy.vessels.items():
         if name != "aorta":
             vessels[name] = replace(vessel, parent_index=vessel.parent_index + (n if vessel.parent == "aorta" else 0))
+    if "arch" in names:
+        vessels.update(_supra_aortic_branches(extended))
     return Anatomy(vessels)
+
+
+def _supra_aortic_branches(aorta: Vessel, length_mm: float = 80.0) -> dict:
+    """The brachiocephalic trunk, left common carotid and left subclavian artery: straight up
+    (and outwards) from the top of the arch, front to back, ``length_mm`` long (label ``other``)."""
+    apex_z = float(aorta.points[:, 2].max())
+    on_top = np.nonzero(aorta.points[:, 2] >= apex_z - 6.0)[0]
+    on_top = on_top[np.argsort(aorta.points[on_top, 1])]              # front to back
+    branches = {}
+    for name, fraction, radius, sideways in (("brachiocephalic", 0.15, 6.0, -15.0), ("carotid_left", 0.5, 4.0, 3.0),
+                                             ("subclavian_left", 0.85, 5.0, 15.0)):
+        index = int(on_top[int(fraction * (len(on_top) - 1))])
+        base = aorta.points[index]
+        points = base + np.linspace(0.0, 1.0, int(length_mm) + 1)[:, None] * np.array([sideways, 0.0, length_mm])
+        branches[name] = Vessel("other", points, radius, radius + 1.0, np.zeros(3), parent="aorta", parent_index=index)
+    return branches
 
 
 def _arch_centreline(top: np.ndarray, up: np.ndarray, step_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -499,7 +521,11 @@ def stressed_phantom_ct(params: PhantomParams, options: StressorOptions, rng: np
     anatomy = stressed_anatomy(build_preop_anatomy(params), options.names)
     front = 60.0 if {"thorax", "venous_contrast", "arch"} & set(options.names) else 0.0
     side = 60.0 if "arch" in options.names else 0.0
-    volume = _grid_with_room_in_front(anatomy, params, front, side).volume(dtype=np.int16)
+    grid = _grid_with_room_in_front(anatomy, params, front, side)
+    if "arch" in options.names:                                         # the neck's arteries leave the field at its top
+        grid = Grid((grid.shape[0] + int(np.ceil(40.0 / params.ct_spacing_mm)),) + tuple(grid.shape[1:]), grid.spacing,
+                    grid.origin)
+    volume = grid.volume(dtype=np.int16)
     lumen = _lumen_field(anatomy, volume)
     ct = _ct_from_lumen_field(anatomy, params, rng, volume, lumen, stressors=_Painter(options, params, rng))
     return ct, rasterize_lumen(anatomy, ct), anatomy

@@ -25,7 +25,19 @@ in :mod:`..phantom.stressors` and tested in ``Testing/test_ct_stressors.py``):
   median and MAD, :func:`_lumen_range_of`, never below :data:`LUMEN_FLOOR_HU`), the branches
   are thresholded against the traced level at their height (:func:`_lumen_profile`), and a
   lumen fading below :data:`MIN_LUMEN_HU` is refused (no contrast route separates it from
-  soft tissue).
+  soft tissue);
+- a chest-abdomen-pelvis field of view (the ascending aorta, the arch, the heart, the pulmonary
+  arteries, the neck's arteries, a bright superior vena cava): seeds below the diaphragm come
+  first (:func:`chest_slices`: lungs in the slice), the upward trace stops where the aorta
+  turns into the arch (:data:`TURN_WINDOW_MM`, :data:`MAX_TURN_SLOPE`; a slice-by-slice trace
+  that ran on would follow the arch sideways and the ascending aorta down into the heart), and
+  no side branch is grown in the chest (there, the branch growing took the arch, the neck's
+  arteries and the pulmonary arteries: a mask whose centreline ran for metres). FEVAR's region,
+  the coeliac trunk to the iliacs, is what the route delivers;
+- a thin flap sampled by a coarse grid and smoothed with noise dips below soft tissue: it is
+  bridged down to :data:`FLAP_MIN_HU` (fat, the gap to a neighbour, stays open);
+- an aorta lost in the abdomen (the downward trace ends without the bifurcation well above
+  the scan's lower end, :data:`MAX_UNTRACED_BELOW_MM`) is refused in one line naming where.
 """
 
 from __future__ import annotations
