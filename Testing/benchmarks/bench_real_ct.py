@@ -32,7 +32,9 @@ on: the contrast CT of the totalsegmentator 2.18.0 sdist's aorta-report test
 (``tests/reference_files/aorta_report``; a dissected, stented thoraco-abdominal aorta) with
 TotalSegmentator's own result as the label (``bench_real_ct_totalseg-aorta-report.*``). It was
 run once before the CT stressors (phantom.stressors) were built and once after; the failure
-classes were found on the stressors, not on this scan.
+classes were found on the stressors, not on this scan. It was run once more after the ``arch``
+stressor (a chest-abdomen-pelvis field of view, a dissection along the whole aorta, contrast
+bright in the chest and faint in the abdomen) and the route's answers to it, again never tuned on.
 
 ``--dataset totalseg-example-sm`` (``--data`` = the sdist's ``tests/reference_files``): its
 small upper-abdomen CT ``example_ct_sm.nii.gz`` (122 x 101 x 30, 3 mm isotropic) with
