@@ -300,3 +300,19 @@ def test_an_aorta_lost_in_the_abdomen_is_refused_in_one_line_naming_where():
         seg.segment_ct_classical(ct)
     assert "\n" not in str(error.value)
     assert np.asarray(error.value.qc.lumen.array).any()
+
+
+def test_the_chest_is_the_run_of_lung_slices_from_the_top_not_gas_in_the_bowel():
+    from FevarPlannerLib import io
+
+    shape = (60, 80, 80)
+    k, j, i = np.mgrid[0:shape[0], 0:shape[1], 0:shape[2]]
+    hu = np.where(np.hypot(j - 40, i - 40) <= 35, 40.0, -1000.0)
+    hu[(k >= 40) & (np.abs(np.abs(i - 40) - 16) <= 8) & (np.abs(j - 40) <= 15)] = -850.0     # lungs, top third
+    hu[(k >= 5) & (k < 15) & (np.hypot(j - 40, i - 40) <= 18)] = -1000.0                      # a gas-filled loop
+    for up, array in ((1, hu), (-1, hu[::-1])):
+        direction = np.diag([1.0, 1.0, float(up)])
+        ct = io.Volume(array.astype(np.int16), (4.0, 4.0, 4.0), (0.0, 0.0, 0.0), direction)
+        chest = classical.chest_slices(ct)
+        superior = chest if up > 0 else chest[::-1]
+        assert superior[40:].all() and not superior[:40].any()

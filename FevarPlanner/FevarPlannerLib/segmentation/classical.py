@@ -128,7 +128,9 @@ def chest_slices(ct: Volume, lung_fraction: float = CHEST_LUNG_FRACTION, step_mm
 
     The body is what is denser than -500 HU with its enclosed holes filled; the lungs are the
     air inside it. Computed on slices subsampled to about ``step_mm`` in plane (the lungs are
-    large), every slice.
+    large), every slice. Only the run of such slices that begins with the most superior one
+    is the chest (the lungs run down from the top to the diaphragm): gas-filled bowel lower
+    down, enclosed by the body too, is not.
     """
     spacing_ji = _slice_axes_mm(ct)
     stride = tuple(max(1, int(round(step_mm / s))) for s in spacing_ji)
@@ -139,7 +141,20 @@ def chest_slices(ct: Volume, lung_fraction: float = CHEST_LUNG_FRACTION, step_mm
         area = int(body.sum())
         lungs = int((body & (hu <= -500.0)).sum())
         chest[k] = area > 0 and lungs >= lung_fraction * area
-    return chest
+    return _run_from_the_top(chest, _superior_step(ct))
+
+
+def _run_from_the_top(flags: np.ndarray, up: int) -> np.ndarray:
+    """``flags`` kept only in the run of consecutive True slices that holds the most superior
+    True slice (``up``: +1 when increasing k goes superior)."""
+    ordered = flags[::-1] if up > 0 else flags           # from the top down
+    if not ordered.any():
+        return np.zeros_like(flags)
+    first = int(np.argmax(ordered))
+    end = first + int(np.argmin(np.append(ordered[first:], False)))
+    kept = np.zeros_like(ordered)
+    kept[first:end] = True
+    return kept[::-1] if up > 0 else kept
 
 
 def _spine_to_the_left_mm(hu_slice: np.ndarray, centre_ji, radius_mm: float, spacing_ji, posterior: float,
