@@ -31,9 +31,11 @@ in :mod:`..phantom.stressors` and tested in ``Testing/test_ct_stressors.py``):
   first (:func:`chest_slices`: lungs in the slice), the upward trace stops where the aorta
   turns into the arch (:data:`TURN_WINDOW_MM`, :data:`MAX_TURN_SLOPE`; a slice-by-slice trace
   that ran on would follow the arch sideways and the ascending aorta down into the heart), and
-  no side branch is grown in the chest (there, the branch growing took the arch, the neck's
-  arteries and the pulmonary arteries: a mask whose centreline ran for metres). FEVAR's region,
-  the coeliac trunk to the iliacs, is what the route delivers;
+  no side branch is grown in the chest (there the branch growing took the arch and the neck's
+  arteries on the phantoms; on a real dissected chest CT such a mask, spread in the thorax,
+  gave the 3D gate an aorta 1449 mm long). The aorta is then one cross-section per slice with
+  a slope below :data:`MAX_TURN_SLOPE`: its length is bounded by the scan's height. FEVAR's
+  region, the coeliac trunk to the iliacs, is what the route delivers;
 - a thin flap sampled by a coarse grid and smoothed with noise dips below soft tissue: it is
   bridged down to :data:`FLAP_MIN_HU` (fat, the gap to a neighbour, stays open);
 - an aorta lost in the abdomen (the downward trace ends without the bifurcation well above
