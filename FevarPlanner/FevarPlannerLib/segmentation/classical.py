@@ -33,8 +33,8 @@ in :mod:`..phantom.stressors` and tested in ``Testing/test_ct_stressors.py``):
   that ran on would follow the arch sideways and the ascending aorta down into the heart), and
   no side branch is grown in the chest (there the branch growing took the arch and the neck's
   arteries on the phantoms; on a real dissected chest CT such a mask, spread in the thorax,
-  gave the 3D gate an aorta 1449 mm long). The aorta is then one cross-section per slice with
-  a slope below :data:`MAX_TURN_SLOPE`: its length is bounded by the scan's height. FEVAR's
+  gave the 3D gate an aorta 1449 mm long). The traced aorta is one cross-section per slice,
+  and above the seed its slope stays below :data:`MAX_TURN_SLOPE`: it cannot loop. FEVAR's
   region, the coeliac trunk to the iliacs, is what the route delivers;
 - a thin flap sampled by a coarse grid and smoothed with noise dips below soft tissue: it is
   bridged down to :data:`FLAP_MIN_HU` (fat, the gap to a neighbour, stays open);
