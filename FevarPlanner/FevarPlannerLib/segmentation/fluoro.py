@@ -752,14 +752,14 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
     flat = np.zeros_like(oriented)
     boxes = {key: _box_around(chosen, 2 * (int(math.ceil(key[1])) + 2) * np.abs(LINE_STEPS[key[0]]))
              for key, chosen in across.where.items()}
-    squares = _diagonal_squares(oriented, boxes) if SQUARE_ON_DIAGONALS else {}
+    squares = _diagonal_squares(oriented, across) if SQUARE_ON_DIAGONALS else {}
     for (k, length), chosen in across.where.items():
         step = LINE_STEPS[k]
         box, inner = boxes[(k, length)]
         part = oriented[box]
         background = _line_opening(part, step, length)
         if (k, length) in squares:
-            np.maximum(background, squares[(k, length)], out=background)
+            np.maximum(background[inner], squares[(k, length)], out=background[inner])
         residue = (part - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
         target = flat[box][inner]
         np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
@@ -773,21 +773,25 @@ def _square_opening(image: np.ndarray, side: float) -> np.ndarray:
     return _line_extreme(_line_extreme(eroded, (0, -1), n, np.maximum, -np.inf), (-1, 0), n, np.maximum, -np.inf)
 
 
-def _diagonal_squares(oriented: np.ndarray, boxes: dict) -> dict:
-    """Per diagonal line ``(step index, length)`` of ``boxes`` (its box and inner slices), the
-    square opening (:func:`_square_opening`, side ``length``) of ``oriented`` on its box; computed
-    once per length, on the union of the boxes of both diagonals' lines of that length."""
+def _diagonal_squares(oriented: np.ndarray, across: LinesAcross) -> dict:
+    """Per diagonal line ``(step index, length)`` of ``across``, the square opening
+    (:func:`_square_opening`, side ``length``) of ``oriented`` on the bounding box of the pixels
+    it serves; computed once per length, on the union of those boxes widened by the side (all
+    a square through them can reach)."""
     squares = {}
-    for length in {key[1] for key in boxes if all(LINE_STEPS[key[0]])}:
-        keys = [key for key in boxes if key[1] == length and all(LINE_STEPS[key[0]])]
-        r0 = min(boxes[key][0][0].start for key in keys)
-        r1 = max(boxes[key][0][0].stop for key in keys)
-        c0 = min(boxes[key][0][1].start for key in keys)
-        c1 = max(boxes[key][0][1].stop for key in keys)
+    diagonal = {key: chosen for key, chosen in across.where.items() if all(LINE_STEPS[key[0]])}
+    for length in {key[1] for key in diagonal}:
+        reach = int(math.ceil(length))
+        boxes = {key: _box_around(chosen, (reach, reach)) for key, chosen in diagonal.items() if key[1] == length}
+        r0 = min(box[0].start for box, _ in boxes.values())
+        r1 = max(box[0].stop for box, _ in boxes.values())
+        c0 = min(box[1].start for box, _ in boxes.values())
+        c1 = max(box[1].stop for box, _ in boxes.values())
         opened = _square_opening(oriented[r0:r1, c0:c1], length)
-        for key in keys:
-            rows, cols = boxes[key][0]
-            squares[key] = opened[rows.start - r0:rows.stop - r0, cols.start - c0:cols.stop - c0]
+        for key, (box, inner) in boxes.items():
+            rows = slice(box[0].start + inner[0].start - r0, box[0].start + inner[0].stop - r0)
+            cols = slice(box[1].start + inner[1].start - c0, box[1].start + inner[1].stop - c0)
+            squares[key] = opened[rows, cols]
     return squares
 
 
