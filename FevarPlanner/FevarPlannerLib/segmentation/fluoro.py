@@ -695,10 +695,12 @@ def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -
     direction is also allowed within its vessel's radius around where it is nearest, with the
     longest length met there: near a junction (a renal ostium, the bifurcation) a pixel of the
     wider vessel may lie nearest to a branch's first nodes."""
-    angle = _node_directions(prior)[nearest] + 0.5 * np.pi
-    step_index = np.round(angle / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
-    needed = LINE_RADII * radius + LINE_PAD_PX
-    classes = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
+    node_step = np.round((_node_directions(prior) + 0.5 * np.pi) / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
+    node_radius = np.zeros(len(prior.uv), dtype=radius.dtype)
+    node_radius[nearest] = radius                       # per node: one radius on the grid
+    needed = LINE_RADII * node_radius + LINE_PAD_PX
+    node_class = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
+    step_index, classes = node_step[nearest], node_class.astype(np.float32)[nearest]
     where = {}
     for k in range(len(LINE_STEPS)):
         own = step_index == k
@@ -706,10 +708,12 @@ def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -
             continue
         reach = max(1, int(math.ceil(float(radius[own].max()))))
         box, _ = _box_around(own, (reach, reach))
-        length = ndi.maximum_filter(np.where(own[box], classes[box], 0.0).astype(np.float32), size=2 * reach + 1)
-        for value in np.unique(length[length > 0]):
-            where[(k, float(value))] = np.zeros(own.shape, dtype=bool)
-            where[(k, float(value))][box] = length == value
+        length = ndi.maximum_filter(np.where(own[box], classes[box], np.float32(0.0)), size=2 * reach + 1)
+        for value in np.unique(node_class.astype(np.float32)[node_step == k]):    # its nodes' classes
+            found = length == value
+            if found.any():
+                where[(k, float(value))] = np.zeros(own.shape, dtype=bool)
+                where[(k, float(value))][box] = found
     return LinesAcross(where)
 
 
