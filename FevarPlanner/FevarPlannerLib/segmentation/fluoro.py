@@ -144,16 +144,21 @@ def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("b
 
 
 def _grey_frame(image: np.ndarray, photometric: str | None) -> np.ndarray:
-    """The frame as a float32 grey image (RGB averaged), MONOCHROME1 turned to MONOCHROME2."""
+    """The frame as a grey image (RGB averaged), MONOCHROME1 turned to MONOCHROME2: float32, or
+    an integer frame as it is (always finite; :func:`_downsample` turns what is used to float32,
+    sparing a float copy of the whole frame)."""
     image = np.asarray(image)
     if image.ndim == 3 and image.shape[-1] in (3, 4):
         image = image[..., :3].mean(axis=-1)
     if image.ndim != 2 or min(image.shape) < 1:
         raise InputError(f"fluoroscopy frame must be 2D (or RGB), got shape {image.shape}")
+    monochrome1 = photometric is not None and photometric.upper() == "MONOCHROME1"
+    if (np.issubdtype(image.dtype, np.integer) or image.dtype == bool) and not monochrome1:
+        return image
     image = image.astype(np.float32, copy=False)
     if not np.isfinite(image).all():
         raise InputError("fluoroscopy frame contains NaN or infinite values")
-    if photometric is not None and photometric.upper() == "MONOCHROME1":
+    if monochrome1:
         image = -image
     return image
 
@@ -656,6 +661,10 @@ FLAT_RING_PERCENTILE = 75.0
 FLAT_RING_GAP_PX = 2.0
 #: The least background transmission a residue is divided by (:func:`_flatten_across`).
 TRANSMISSION_FLOOR = 0.1
+#: A diagonal line across a vessel does not fit in the corners of an upright block (a vertebral
+#: body by a renal or an iliac), which would stay as bright triangles; a square as wide as the
+#: line is long fits there and not in the vessel (:func:`_flatten_across`).
+SQUARE_ON_DIAGONALS = True
 
 
 @dataclass(frozen=True)
@@ -686,19 +695,25 @@ def _lines_across(prior: FluoroPrior, nearest: np.ndarray, radius: np.ndarray) -
     direction is also allowed within its vessel's radius around where it is nearest, with the
     longest length met there: near a junction (a renal ostium, the bifurcation) a pixel of the
     wider vessel may lie nearest to a branch's first nodes."""
-    angle = _node_directions(prior)[nearest] + 0.5 * np.pi
-    step_index = np.round(angle / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
-    needed = LINE_RADII * radius + LINE_PAD_PX
-    classes = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
+    node_step = np.round((_node_directions(prior) + 0.5 * np.pi) / (0.25 * np.pi)).astype(int) % len(LINE_STEPS)
+    node_radius = np.zeros(len(prior.uv), dtype=radius.dtype)
+    node_radius[nearest] = radius                       # per node: one radius on the grid
+    needed = LINE_RADII * node_radius + LINE_PAD_PX
+    node_class = LINE_PAD_PX * LINE_CLASS_RATIO ** np.ceil(np.log(needed / LINE_PAD_PX) / np.log(LINE_CLASS_RATIO))
+    step_index, classes = node_step[nearest], node_class.astype(np.float32)[nearest]
     where = {}
     for k in range(len(LINE_STEPS)):
         own = step_index == k
         if not own.any():
             continue
         reach = max(1, int(math.ceil(float(radius[own].max()))))
-        length = ndi.maximum_filter(np.where(own, classes, 0.0).astype(np.float32), size=2 * reach + 1)
-        for value in np.unique(length[length > 0]):
-            where[(k, float(value))] = length == value
+        box, _ = _box_around(own, (reach, reach))
+        length = ndi.maximum_filter(np.where(own[box], classes[box], np.float32(0.0)), size=2 * reach + 1)
+        for value in np.unique(node_class.astype(np.float32)[node_step == k]):    # its nodes' classes
+            found = length == value
+            if found.any():
+                where[(k, float(value))] = np.zeros(own.shape, dtype=bool)
+                where[(k, float(value))][box] = found
     return LinesAcross(where)
 
 
@@ -735,17 +750,53 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
     """``oriented`` (vessels bright) less its background: per pixel, the largest residue of the
     openings :class:`LinesAcross` allows there. A line across a vessel does not fit in its lumen,
     so the vessel stays; it fits in what is wider than the vessel across it (vertebral bodies,
-    the pelvis, a step at a table or box edge, the exposure's slope), so that goes."""
+    the pelvis, a step at a table or box edge, the exposure's slope), so that goes. On diagonal
+    lines the opening by a square as wide as the line is long joins the background
+    (:data:`SQUARE_ON_DIAGONALS`)."""
     flat = np.zeros_like(oriented)
+    boxes = {key: _box_around(chosen, 2 * (int(math.ceil(key[1])) + 2) * np.abs(LINE_STEPS[key[0]]))
+             for key, chosen in across.where.items()}
+    squares = _diagonal_squares(oriented, across) if SQUARE_ON_DIAGONALS else {}
     for (k, length), chosen in across.where.items():
         step = LINE_STEPS[k]
-        box, inner = _box_around(chosen, 2 * (int(math.ceil(length)) + 2) * np.abs(step))
+        box, inner = boxes[(k, length)]
         part = oriented[box]
         background = _line_opening(part, step, length)
+        if (k, length) in squares:
+            np.maximum(background[inner], squares[(k, length)], out=background[inner])
         residue = (part - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
         target = flat[box][inner]
         np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
     return flat
+
+
+def _square_opening(image: np.ndarray, side: float) -> np.ndarray:
+    """Grey opening of ``image`` by a square of ``side`` px (rows and columns separably)."""
+    n = max(2, int(round(side)))
+    eroded = _line_extreme(_line_extreme(image, (0, 1), n, np.minimum, np.inf), (1, 0), n, np.minimum, np.inf)
+    return _line_extreme(_line_extreme(eroded, (0, -1), n, np.maximum, -np.inf), (-1, 0), n, np.maximum, -np.inf)
+
+
+def _diagonal_squares(oriented: np.ndarray, across: LinesAcross) -> dict:
+    """Per diagonal line ``(step index, length)`` of ``across``, the square opening
+    (:func:`_square_opening`, side ``length``) of ``oriented`` on the bounding box of the pixels
+    it serves; computed once per length, on the union of those boxes widened by the side (all
+    a square through them can reach)."""
+    squares = {}
+    diagonal = {key: chosen for key, chosen in across.where.items() if all(LINE_STEPS[key[0]])}
+    for length in {key[1] for key in diagonal}:
+        reach = int(math.ceil(length))
+        boxes = {key: _box_around(chosen, (reach, reach)) for key, chosen in diagonal.items() if key[1] == length}
+        r0 = min(box[0].start for box, _ in boxes.values())
+        r1 = max(box[0].stop for box, _ in boxes.values())
+        c0 = min(box[1].start for box, _ in boxes.values())
+        c1 = max(box[1].stop for box, _ in boxes.values())
+        opened = _square_opening(oriented[r0:r1, c0:c1], length)
+        for key, (box, inner) in boxes.items():
+            rows = slice(box[0].start + inner[0].start - r0, box[0].start + inner[0].stop - r0)
+            cols = slice(box[1].start + inner[1].start - c0, box[1].start + inner[1].stop - c0)
+            squares[key] = opened[rows, cols]
+    return squares
 
 
 def _background_is_flat(oriented: np.ndarray, where) -> tuple[bool, float]:

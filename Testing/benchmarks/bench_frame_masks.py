@@ -1,0 +1,217 @@
+"""Frame masks on bench frames: Dice per distractor kind, polarity and seed, and end to end (issue 11).
+
+Each seed's phantom case (:func:`phantom.distractors.bench_case`) is rendered as bench frames
+(:func:`phantom.distractors.render_bench_frame`, random choices from ``default_rng(seed)``):
+
+- ``every``: every distractor, unsubtracted; ``every_dsa``: every distractor, subtracted;
+- one frame per distractor alone (``spine``, ``pelvis``, ... ``exposure``), unsubtracted;
+
+each with the vessels dark and bright. The frame is segmented as the pipeline does it
+(:func:`segmentation.segment_fluoro` with the pre-operative tree projected through the given
+P, ``P_given``) and scored by Dice against the projected lumen. With ``--reference REV`` the
+``segmentation/fluoro.py`` of git revision REV is loaded beside the working tree's and run on
+the same frames, interleaved, so that Dice and CPU times compare within one run.
+
+With ``--end-to-end`` each seed's case is also written as a case folder whose frame is the
+``every`` bench frame (unsubtracted, vessels dark) and planned by the routes of
+``bench_image_only.py`` (masks given, image only, frame segmented, CT segmented): the 3D
+error of an image-only plan against the same case given as masks (issue 11: within 0.5 mm).
+
+Develop on seeds 211-216; report on 201-203 and 221-223.
+
+    OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame_masks.py --out OUT \\
+        --seeds 221 222 223 [--reference main] [--end-to-end] [--pngs] [--cache DIR]
+
+Writes ``bench_frame_masks.json`` and ``bench_frame_masks.png`` into ``--out`` (with ``--pngs``
+also one overlay per frame: true positives white, false negatives red, false positives blue).
+"""
+
+from __future__ import annotations
+
+import common
+
+common.single_threaded_blas()
+
+import importlib.util  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from FevarPlannerLib import quality  # noqa: E402
+from FevarPlannerLib import segmentation as seg  # noqa: E402
+from FevarPlannerLib.phantom import distractors  # noqa: E402
+
+#: (kind, render keyword arguments) of the frames rendered per seed and polarity.
+KINDS = (("every", {}), ("every_dsa", {"subtracted": True})) + tuple(
+    (name, {"distractors": (name,)}) for name in distractors.DISTRACTORS)
+POLARITIES = ("dark", "bright")
+REPO = Path(__file__).resolve().parents[2]
+FLUORO_PATH = "FevarPlanner/FevarPlannerLib/segmentation/fluoro.py"
+
+
+def reference_segmenter(revision: str):
+    """``segment_fluoro`` of ``segmentation/fluoro.py`` at git ``revision``, loaded as a sibling module
+    of the working tree's (its relative imports resolve in the same package)."""
+    source = subprocess.run(["git", "-C", str(REPO), "show", f"{revision}:{FLUORO_PATH}"], check=True,
+                            capture_output=True, text=True).stdout
+    path = Path(tempfile.mkdtemp()) / "fluoro_reference.py"
+    path.write_text(source)
+    name = "FevarPlannerLib.segmentation._fluoro_reference"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module.segment_fluoro
+
+
+def bench_frames(seed: int, kinds, cache: Path | None):
+    """(case, prior, [(kind, polarity, BenchFrame), ...]) of one seed; frames read from / written to ``cache``."""
+    case = distractors.bench_case(seed)
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    frames = []
+    for kind, kwargs in KINDS:
+        if kind not in kinds:
+            continue
+        for polarity in POLARITIES:
+            stored = None if cache is None else cache / f"{seed}_{kind}_{polarity}.npz"
+            if stored is not None and stored.exists():
+                data = np.load(stored)
+                frame = distractors.BenchFrame(data["frame"], data["mask"], {})
+            else:
+                frame = distractors.render_bench_frame(case, np.random.default_rng(seed), polarity=polarity, **kwargs)
+                if stored is not None:
+                    np.savez_compressed(stored, frame=frame.frame, mask=frame.mask)
+            frames.append((kind, polarity, frame))
+    return case, prior, frames
+
+
+def _cpu_ms(function, *args) -> tuple:
+    start = time.process_time()
+    value = function(*args)
+    return value, 1e3 * (time.process_time() - start)
+
+
+def overlay(mask: np.ndarray, truth: np.ndarray, frame: np.ndarray, path: Path) -> None:
+    """The frame (dimmed) with true positives white, false negatives red, false positives blue."""
+    from PIL import Image
+
+    grey = frame.astype(np.float32)
+    grey = 0.5 * (grey - grey.min()) / max(float(np.ptp(grey)), 1.0)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    rgb[mask & truth] = 1.0
+    rgb[truth & ~mask] = (1.0, 0.0, 0.0)
+    rgb[mask & ~truth] = (0.0, 0.4, 1.0)
+    Image.fromarray((255 * rgb).astype(np.uint8)).save(path)
+
+
+def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[dict]:
+    """One row per bench frame of ``seed``: Dice, false-negative and false-positive shares, CPU ms."""
+    _, prior, frames = bench_frames(seed, kinds, cache)
+    rows = []
+    for kind, polarity, frame in frames:
+        seg.segment_fluoro(frame.frame, prior)          # warm the prior's derived maps
+        mask, ms = _cpu_ms(seg.segment_fluoro, frame.frame, prior)
+        truth = frame.mask
+        row = {"seed": seed, "kind": kind, "polarity": polarity, "dice": seg.dice(mask, truth),
+               "missed": float((truth & ~mask).sum() / max(truth.sum(), 1)),
+               "extra": float((mask & ~truth).sum() / max(truth.sum(), 1)), "cpu_ms": ms}
+        if reference is not None:
+            reference(frame.frame, prior)
+            old, old_ms = _cpu_ms(reference, frame.frame, prior)
+            row |= {"reference_dice": seg.dice(old, truth), "reference_cpu_ms": old_ms}
+        if pngs is not None:
+            overlay(mask, truth, frame.frame, pngs / f"{seed}_{kind}_{polarity}.png")
+        print({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}, flush=True)
+        rows.append(row)
+    return rows
+
+
+def end_to_end(seed: int, work: Path) -> dict:
+    """The seed's case planned from its ``every`` bench frame (unsubtracted, dark) by every route of
+    ``bench_image_only.py``."""
+    from bench_image_only import evaluate_case
+
+    from FevarPlannerLib import io
+    from FevarPlannerLib.phantom import write_case
+
+    case = distractors.bench_case(seed)
+    folder = write_case(case, work / "cases" / f"bench_{seed}")
+    frame = distractors.render_bench_frame(case, np.random.default_rng(seed))
+    io.write_fluoro_dicom(folder / "fluoro.dcm", frame.frame, case.carm, patient_name=f"Phantom^{case.name}",
+                          patient_id=case.name)
+    io.write_mask_png(folder / "fluoro_mask.png", frame.mask)
+    row = evaluate_case(folder, work / "routes")
+    print(row, flush=True)
+    return row
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Mean Dice (and reference Dice, CPU ms) per kind and polarity, over the seeds."""
+    out = {}
+    for kind in dict.fromkeys(r["kind"] for r in rows):
+        for polarity in POLARITIES:
+            chosen = [r for r in rows if r["kind"] == kind and r["polarity"] == polarity]
+            if chosen:
+                out[f"{kind}/{polarity}"] = {key: float(np.mean([r[key] for r in chosen]))
+                                             for key in ("dice", "reference_dice", "cpu_ms", "reference_cpu_ms")
+                                             if key in chosen[0]}
+    return out
+
+
+def plot(summary: dict, path: Path) -> None:
+    plt = common.pyplot()
+    fig, ax = plt.subplots(figsize=(14, 4.5))
+    names = list(summary)
+    x = np.arange(len(names))
+    has_reference = "reference_dice" in summary[names[0]]
+    if has_reference:
+        ax.bar(x - 0.2, [summary[n]["reference_dice"] for n in names], 0.4, label="reference", color="tab:gray")
+    ax.bar(x + (0.2 if has_reference else 0.0), [summary[n]["dice"] for n in names], 0.4, label="this tree")
+    ax.axhline(0.9, color="k", ls="--", lw=1)
+    ax.set_xticks(x, names, rotation=60, ha="right", fontsize=8)
+    ax.set(ylim=(0.5, 1.0), ylabel="mean Dice over seeds", title="frame mask on bench frames (dashed: 0.90)")
+    ax.legend(fontsize=8)
+    common.save_figure(fig, path)
+
+
+def main() -> None:
+    parser = common.argument_parser(__doc__)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[211, 212, 213, 214, 215, 216])
+    parser.add_argument("--kinds", nargs="+", default=[k for k, _ in KINDS], choices=[k for k, _ in KINDS])
+    parser.add_argument("--reference", default=None, help="git revision whose segment_fluoro runs beside")
+    parser.add_argument("--cache", type=Path, default=None, help="folder of rendered frames (npz), reused")
+    parser.add_argument("--pngs", action="store_true", help="an overlay PNG per frame")
+    parser.add_argument("--end-to-end", action="store_true", help="plan each seed's 'every' frame by every route")
+    parser.add_argument("--no-masks", action="store_true", help="skip the per-frame Dice (with --end-to-end)")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.cache is not None:
+        args.cache.mkdir(parents=True, exist_ok=True)
+    pngs = args.out / "overlays" if args.pngs else None
+    if pngs is not None:
+        pngs.mkdir(exist_ok=True)
+    reference = None if args.reference is None else reference_segmenter(args.reference)
+    rows = [] if args.no_masks else [r for s in args.seeds for r in score_seed(s, args.kinds, args.cache, reference, pngs)]
+    payload = {"seeds": args.seeds, "reference": args.reference, "frames": rows}
+    if rows:
+        payload["by_kind"] = summarise(rows)
+        unsubtracted = [r for r in rows if r["kind"] != "every_dsa"]
+        payload["mean_dice_unsubtracted"] = float(np.mean([r["dice"] for r in unsubtracted]))
+        payload["mean_cpu_ms"] = float(np.mean([r["cpu_ms"] for r in rows]))
+        if reference is not None:
+            payload["mean_reference_dice_unsubtracted"] = float(np.mean([r["reference_dice"] for r in unsubtracted]))
+            payload["mean_reference_cpu_ms"] = float(np.mean([r["reference_cpu_ms"] for r in rows]))
+    if args.end_to_end:
+        with tempfile.TemporaryDirectory() as tmp:
+            payload["end_to_end"] = [end_to_end(s, Path(tmp)) for s in args.seeds]
+    common.write_report(args.out, "bench_frame_masks", payload)
+    if rows:
+        plot(payload["by_kind"], args.out / "bench_frame_masks.png")
+
+
+if __name__ == "__main__":
+    main()
