@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -222,10 +221,17 @@ def register_views(preop: Preoperative, frames, *, names=None, images=None, meth
                    refine_pose="auto", alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
     """Register the pre-operative skeleton to several frames of the same anatomy at once.
 
-    Each view gets its own 2D skeleton graph, classification, candidate correspondences and
-    soft assignment (eqs. 3-5) to the same 3D nodes; one deformation (eq. 6) minimises the
-    length and smoothness terms with the data term averaged over the views, so that views
-    at different C-arm angles fix the depth that one view leaves open. A node gets no data
+    Each view gets its own 2D skeleton graph and classification (Algorithm 1). The first
+    view that Algorithm 1 classifies is the anchor: its candidate correspondences and soft
+    assignment (eqs. 3-5) give the first deformation alone. Every other view follows from
+    that estimate: passes of nearest-point targets on its 2D skeleton, each 3D branch on the
+    2D leg assigned to it one-to-one (``multiview._closest_point_data``), beside the anchor's
+    targets re-taken on its matched chains, with one deformation (eq. 6) and the data term
+    averaged over the views, so that views at different C-arm angles fix the depth that one
+    view leaves open. A second view's own labels are not used: they are found without the
+    first view, and where its legs cross or overlap below the bifurcation (50-70 degrees) its
+    2D junction is where they part in the image, which pinned the aorta's end there and
+    stretched it (seed 42: 7.3 mm on the iliacs after the fallback to the first view alone). A node gets no data
     term in a view that does not show it (outside the frame, in a collimated band, beyond a
     border the vessel runs out of: :func:`frame_visibility`). Each vessel of the result is
     then checked against the undeformed start (:func:`_never_worse_than_sv`). A view whose
@@ -312,16 +318,15 @@ def _alternatives(preop, views, trials, best, alpha, beta) -> list:
     return found
 
 
-def _full_combination(views, combo) -> tuple:
-    """A combination over the classified views, with None for each unclassified one."""
-    chosen = iter(combo)
-    return tuple(None if v.c2 is None else next(chosen) for v in views)
+def _full_combination(views, anchor, combo) -> tuple:
+    """The anchor's correspondence ``combo`` (a 1-tuple) spread over the views, None for every other."""
+    return tuple(combo[0] if v is anchor else None for v in views)
 
 
-def _with_unclassified_views(preop, views, combo, deformed, alpha, beta):
-    """Add the views without a classification: passes of nearest-point targets (from the last
-    result) beside the classified views' assignments, until the nodes settle."""
-    full = _full_combination(views, combo)
+def _with_followers(preop, views, anchor, combo, deformed, alpha, beta):
+    """Add the views that follow the anchor: passes of nearest-point targets (from the last
+    result) beside the anchor's assignment, until the nodes settle (:func:`register_views`)."""
+    full = _full_combination(views, anchor, combo)
     energy = None
     for _ in range(CLOSEST_POINT_PASSES):
         previous = deformed
@@ -358,19 +363,18 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
         if not classified:
             raise ValueError(views[0].unclassified if len(views) == 1 else
                              f"no view could be classified (view {views[0].name}: {views[0].unclassified})")
+        anchor = classified[0]
         with _timed(timings, "matching"):
-            for view in views:
-                if not view.candidates:         # not already found by the pose check under this P
-                    view.candidates = [None] if view.c2 is None else matching.candidate_correspondences(
-                        preop.graph, preop.classification, view.g2, view.c2, view.P)
-        combinations = list(itertools.islice(itertools.product(*[v.candidates for v in classified]),
-                                             MAX_CANDIDATE_COMBINATIONS))
+            if not anchor.candidates:         # not already found by the pose check under this P
+                anchor.candidates = matching.candidate_correspondences(preop.graph, preop.classification, anchor.g2,
+                                                                       anchor.c2, anchor.P)
         with _timed(timings, "deformation"):
-            trials = [(_deform_with(preop, classified, combo, alpha, beta), combo) for combo in combinations]
+            trials = [(_deform_with(preop, [anchor], (c,), alpha, beta), (c,))
+                      for c in anchor.candidates[:MAX_CANDIDATE_COMBINATIONS]]
             (deformed, energy, _), best = min(trials, key=lambda t: t[0][2])
-            if len(classified) < len(views):
-                deformed, energy, best = _with_unclassified_views(preop, views, best, deformed, alpha, beta)
-                trials = [(result, _full_combination(views, combo)) for result, combo in trials]
+            if len(views) > 1:
+                deformed, energy, best = _with_followers(preop, views, anchor, best, deformed, alpha, beta)
+                trials = [(result, _full_combination(views, anchor, combo)) for result, combo in trials]
                 warnings += [f"view {v.name}: no anatomical classification ({v.unclassified}); registered to "
                              f"its nearest 2D skeleton points" for v in views if v.c2 is None]
         with _timed(timings, "plausibility"):

@@ -1,6 +1,5 @@
-"""Deformation over several views: each view's targets (its soft assignment, or nearest
-points for a view without its own classification), pieces a view does not show carried
-rigidly, and the combinations of per-view candidate correspondences.
+"""Deformation over several views: each view's targets (the anchor's soft assignment, nearest
+points for the views that follow it), pieces a view does not show carried rigidly.
 """
 
 from __future__ import annotations
@@ -16,7 +15,7 @@ from ..preop import Preoperative, _induced_edges
 from ..projection import pixels_per_mm, project
 
 
-#: Most combinations of per-view candidate correspondences deformed (the first in order).
+#: Most candidate correspondences of the anchor view deformed (the first in order).
 MAX_CANDIDATE_COMBINATIONS = 16
 #: Length (mm) of the seen vessel next to an unseen piece whose direction that piece keeps.
 TANGENT_MM = 15.0
@@ -294,20 +293,72 @@ def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
 
 def _nearest_on_legs(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarray, usable: np.ndarray):
     """(distance, index) of each node's nearest 2D skeleton node, where a branch that has a leg
-    (:func:`_legs_of_vessels`) takes it on that leg only.
+    (:func:`_legs_of_vessels`) takes it on that leg only (:func:`_matches_on_legs`)."""
+    distance, index, _, _ = _matches_on_legs(view, nodes, preop, uv, usable)
+    return distance, index
+
+
+def _matches_on_legs(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarray, usable: np.ndarray):
+    """(distance, index, legs, past): each node's nearest 2D skeleton node, the one-to-one legs
+    {branch index: (rows, leg)} of :func:`_legs_of_vessels`, and the nodes of a branch with a
+    leg that lie past an end of it (:func:`_past_leg_ends`).
 
     Nearest points alone leave a branch between two 2D legs when the other branch's leg is
     nearer: it loses those targets (:func:`_claimed_by_two_vessels`) but nothing pulls it onto
-    the unclaimed leg. The aorta's nodes and branches without a leg keep the nearest node of
-    the whole skeleton.
+    the unclaimed leg. A branch with a leg takes its nearest node on that leg only; the aorta's
+    nodes and branches without a leg keep the nearest node of the whole skeleton.
     """
     distance, index = cKDTree(view.g2.positions).query(uv)
     leg = _skeleton_legs(view.g2)
-    for rows, own in _legs_of_vessels(view, nodes, preop, uv, usable, leg).values():
+    legs = _legs_of_vessels(view, nodes, preop, uv, usable, leg)
+    past = np.zeros(len(nodes), dtype=bool)
+    for rows, own in legs.values():
         on_leg = np.flatnonzero(leg == own)
         distance[rows], found = cKDTree(view.g2.positions[on_leg]).query(uv[rows])
         index[rows] = on_leg[found]
-    return distance, index
+        past[rows] = _past_leg_ends(view.g2, leg, index[rows], uv[rows])
+    return distance, index, legs, past
+
+
+def _past_leg_ends(g2, leg: np.ndarray, index: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Points ``uv`` whose nearest leg node ``index`` is an end of its leg and that lie beyond it.
+
+    Beyond the free end the 2D vessel stops before the 3D one (a tip the frame does not show);
+    beyond the junction end the vessel runs on inside a wider silhouette where the view merged
+    it with others (iliacs overlapping below the bifurcation at 50-70 degrees: the 2D junction
+    is where they part in the image, not the anatomical one). There the leg's end node is no
+    target: it would pull the node along its own vessel, against the other views.
+    """
+    edges = g2.edges()
+    edges = edges[(leg[edges[:, 0]] >= 0) & (leg[edges[:, 0]] == leg[edges[:, 1]])]
+    both = np.r_[edges, edges[:, ::-1]]                       # (node, its neighbour on the leg)
+    count = np.bincount(both[:, 0], minlength=len(leg))
+    neighbour = np.full(len(leg), -1, dtype=np.int64)
+    ends = both[count[both[:, 0]] == 1]
+    neighbour[ends[:, 0]] = ends[:, 1]
+    inward = neighbour[index]
+    at_end = inward >= 0
+    outward = g2.positions[index[at_end]] - g2.positions[inward[at_end]]
+    past = np.zeros(len(index), dtype=bool)
+    past[at_end] = ((uv[at_end] - g2.positions[index[at_end]]) * outward).sum(axis=1) > 0
+    return past
+
+
+def _outlier_limits(distance: np.ndarray, usable: np.ndarray, legs: dict) -> np.ndarray:
+    """Per node the nearest-point distance (px) beyond which it gives no target.
+
+    :data:`CLOSEST_POINT_OUTLIER` times the view's median distance (at least 1 px): another
+    vessel, a part the 2D skeleton lacks. A branch assigned its own leg one-to-one
+    (:func:`_legs_of_vessels`) is measured against its own median instead where that is
+    larger: the whole branch lies off its leg (the first estimate put it at the wrong depth,
+    which a view at another angle shows as an offset), and the view-wide limit would take
+    every target that could move it there, leaving it where it is.
+    """
+    view_median = float(np.median(distance[usable])) if usable.any() else 0.0
+    limit = np.full(len(distance), CLOSEST_POINT_OUTLIER * max(view_median, 1.0))
+    for rows, _ in legs.values():
+        limit[rows] = np.maximum(limit[rows], CLOSEST_POINT_OUTLIER * float(np.median(distance[rows])))
+    return limit
 
 
 def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray):
@@ -315,17 +366,18 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 
     ``estimate`` are the current kept positions; their projections through the view's P
     find the nearest node of its (smoothed) 2D skeleton, a branch's on the 2D leg assigned to
-    it one-to-one (:func:`_nearest_on_legs`); weights as in :func:`_view_data`.
-    A node whose match crosses vessels (:func:`_crosses_vessels`) or whose nearest point another
-    vessel, apart from it in the view, claims too (:func:`_claimed_by_two_vessels`) gets no target.
+    it one-to-one (:func:`_matches_on_legs`); weights as in :func:`_view_data`.
+    A node further from its point than its limit (:func:`_outlier_limits`), whose match
+    crosses vessels (:func:`_crosses_vessels`) or whose nearest point another vessel, apart
+    from it in the view, claims too (:func:`_claimed_by_two_vessels`) gets no target.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
     uv = project(view.P, positions[nodes])
     usable = view.visible[nodes]
-    distance, index = _nearest_on_legs(view, nodes, preop, uv, usable)
-    limit = CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])) if usable.any() else 0.0, 1.0)
-    has_target = usable & (distance <= limit) & ~_crosses_vessels(view, nodes, preop, positions, uv, index)
+    distance, index, legs, past = _matches_on_legs(view, nodes, preop, uv, usable)
+    has_target = usable & ~past & (distance <= _outlier_limits(distance, usable, legs))
+    has_target &= ~_crosses_vessels(view, nodes, preop, positions, uv, index)
     has_target &= ~_claimed_by_two_vessels(view, nodes, preop, positions, uv, index)
     return np.where(has_target[:, None], view.g2.positions[index], uv), _data_weights(has_target)
 
@@ -485,6 +537,9 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     nodes = np.flatnonzero(np.logical_or.reduce(has_target))
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
+    if estimate is not None:        # later passes: the classified views' targets slide with the estimate too
+        data = [_chain_closest_data(v, c, nodes, preop, estimate, d) if c is not None else d
+                for v, c, d in zip(views, correspondences, data)]
     edges = _induced_edges(g3, nodes)
     result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
