@@ -20,7 +20,8 @@ from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
 from .fallback import _never_worse_than_sv
-from .multiview import CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with
+from .multiview import (CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with,
+                        outside_silhouette_warnings)
 from .results import FrameResult, METHODS, ViewFrame
 from .visibility import Visibility, frame_visibility
 
@@ -381,6 +382,8 @@ def _register_views(preop, frames, names, images, method, refine_pose, alpha, be
             deformed, doubts = _never_worse_than_sv(
                 deformed, lambda: _alternatives(preop, views, trials, best, alpha, beta), preop, views)
         warnings += doubts
+        if len(views) > 1:
+            warnings += outside_silhouette_warnings(preop, views, deformed)
         source = "; ".join(f"{c.source} ({len(v.candidates)} candidate(s))" if c is not None else "nearest points"
                            for v, c in zip(views, best))
     timings["intraop"] = sum(timings.values())
