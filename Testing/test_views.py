@@ -174,18 +174,21 @@ def test_a_lateral_view_without_classification_still_gives_depth(case, preop):
 
 
 def test_chain_refinement_lets_the_views_agree(case, preop, frames, monkeypatch):
-    """After the first deformation each view re-assigns its nodes to the nearest point of the
-    matched 2D chain (ICP-like): the bent sac's first targets slid along the vessel where it
-    turned out of a view's plane (measured: 0.47 / 0.34 / 0.44 mm without, 0.30 / 0.21 /
-    0.23 mm with, AP + LAO 30 / 45 / 60)."""
+    """After the first deformation (AP alone) the AP view's nodes take the nearest point of their
+    matched 2D chain from the current estimate (ICP-like) while the second view follows by
+    nearest points: the bent sac's first targets slid along the vessel where it turned out of
+    the view's plane (measured: 0.48 / 0.40 / 0.38 mm without, 0.43 / 0.37 / 0.31 mm with,
+    AP + LAO 30 / 45 / 60). Before the second view followed the first (it used its own labels
+    and soft assignment) this phantom gave 0.32 / 0.23 / 0.24 mm; the scenario two-view sets
+    gain more the other way (multiview, README)."""
     from FevarPlannerLib.pipeline import multiview
     for other in (45, 60):
         pair = [frames[0], frames[other]]
         refined = error_3d(pipeline.register_views(preop, pair, names=["ap", "lao"]), case)
-        monkeypatch.setattr(multiview, "CHAIN_REFINEMENT_PASSES", 0)
+        monkeypatch.setattr(multiview, "_chain_closest_data", lambda view, c, nodes, preop, estimate, first: first)
         first = error_3d(pipeline.register_views(preop, pair, names=["ap", "lao"]), case)
         monkeypatch.undo()
-        assert refined < 0.3 and refined < 0.75 * first
+        assert refined < 0.45 and refined < 0.95 * first
 
 
 def test_nearest_point_on_a_polyline_and_past_its_ends():
