@@ -226,17 +226,20 @@ def register_views(preop: Preoperative, frames, *, names=None, images=None, meth
     view that Algorithm 1 classifies is the anchor: its candidate correspondences and soft
     assignment (eqs. 3-5) give the first deformation alone. Every other view follows from
     that estimate: passes of nearest-point targets on its 2D skeleton, each 3D branch on the
-    2D leg assigned to it one-to-one (``multiview._closest_point_data``), beside the anchor's
-    targets re-taken on its matched chains, with one deformation (eq. 6) and the data term
-    averaged over the views, so that views at different C-arm angles fix the depth that one
-    view leaves open. A second view's own labels are not used: they are found without the
-    first view, and where its legs cross or overlap below the bifurcation (50-70 degrees) its
-    2D junction is where they part in the image, which pinned the aorta's end there and
-    stretched it (seed 42: 7.3 mm on the iliacs after the fallback to the first view alone). A node gets no data
-    term in a view that does not show it (outside the frame, in a collimated band, beyond a
-    border the vessel runs out of: :func:`frame_visibility`). Each vessel of the result is
-    then checked against the undeformed start (:func:`_never_worse_than_sv`). A view whose
-    2D skeleton cannot be classified is left out with a warning while another one remains.
+    2D leg assigned to it one-to-one (``multiview._closest_point_data``), beside the
+    anchor's targets re-taken on its matched chains, with one deformation (eq. 6) and the
+    data term averaged over the views, so that views at different C-arm angles fix the
+    depth that one view leaves open. A second view's own labels are not used: they are
+    found without the first view, and where its legs overlap below the bifurcation (50-70
+    degrees) its 2D junction is where they part in the image, 20-30 mm below the
+    anatomical one, which stretched the aorta to it. A node gets no data term in a view
+    that does not show it (outside the frame, in a collimated band, beyond a border the
+    vessel runs out of: :func:`frame_visibility`). Each vessel of the result is then
+    checked against the undeformed start (:func:`_never_worse_than_sv`), and a main vessel
+    lying outside a view's silhouette is flagged
+    (``multiview.outside_silhouette_warnings``). A view whose 2D skeleton cannot be read is
+    left out with a warning while another one remains; one Algorithm 1 cannot classify
+    follows like any other (a warning says so).
 
     Parameters
     ----------

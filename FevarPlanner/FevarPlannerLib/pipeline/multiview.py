@@ -570,8 +570,11 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
 
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
     term averaged over the views moves them; the TPS fills the rest (row 16). A view whose
-    correspondence is None (no classification) takes the nearest 2D skeleton points of the
-    kept positions ``estimate`` as targets instead. With several views,
+    correspondence is None (one that follows the anchor) takes the nearest 2D skeleton
+    points of the kept positions ``estimate`` as targets instead (:func:`_closest_point_data`),
+    and with an ``estimate`` the other views' first targets are already the nearest points of
+    their matched chains to it (:func:`_chain_closest_data`): they slide along the vessel with
+    the passes instead of pulling back to the first assignment's spacing. With several views,
     CHAIN_REFINEMENT_PASSES passes then re-assign each classified view's nodes to the nearest
     point of their matched 2D chain (:func:`_chain_closest_data`) and continue the
     minimisation from the last displacements. The score (matching.candidate_score) picks
