@@ -16,11 +16,10 @@ import numpy as np
 from .. import evaluation, io, planning, plausibility, quality, skeleton
 from ..centerline import Centerline
 from ..files import InputError, InputWarning, check_inside, display_path
-from ..given_mask import condition_given_mask
 from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
-from .frame import register_views
+from .frame import ViewSource, _source_mask, prepare_views, register_prepared
 from .outputs import _write_failure_qc, check_output_folder, write_outputs
 from .results import PlanResult, ViewFrame
 
@@ -52,11 +51,9 @@ def _vessel_mask(frame, progress=None, prior=None) -> np.ndarray:
     """The given vessel mask of a case or view (its JPEG / binarisation damage repaired), or the
     frame segmented."""
     if frame.fluoro_mask is not None:
-        return condition_given_mask(frame.fluoro_mask)
-    from .. import segmentation
-
+        return _source_mask(ViewSource("", None, given_mask=frame.fluoro_mask))
     _report(progress, 0.4, "segmenting vessels in the frame")
-    return segmentation.segment_fluoro(frame.fluoro.image, prior)
+    return _source_mask(ViewSource("", None, frame.fluoro.image, prior=prior))
 
 
 def _case_views(case: Case) -> list[View]:
@@ -126,26 +123,25 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     qc = quality.QCData(case.ct, lumen, views[0].fluoro.image, None, priors[0])
     with _blamed_on(case.paths.get(case.stage_3d)):
         quality.check_preop_tree(preop.centerline, lumen, qc)     # before registering: both sides
-    masks = []
-    with _timed(timings, "segmentation2d"):
-        for view, prior in zip(views, priors):
+    if any(view.fluoro_mask is None for view in views):
+        _report(progress, 0.4, "segmenting vessels in the frame")
+    # every view's 2D side at once (the second of each pair in the worker process); its
+    # errors are raised below in the serial order: every mask, every frame check, the registration
+    outcomes = prepare_views(preop, [_view_source(view, prior) for view, prior in zip(views, priors)],
+                             method=method, refine_pose=refine_pose)
+    for stage in ("segmentation2d", "frame_check"):
+        timings[stage] = sum(outcome.timings.get(stage, 0.0) for outcome in outcomes)
+    for view, outcome in zip(views, outcomes):
+        if outcome.mask_error is not None:
             with _blamed_on(_view_frame_path(view)):
-                masks.append(_vessel_mask(view, progress, prior))
-    qc.mask2d = masks[0]
-    for view, mask, prior in zip(views, masks, priors):
-        try:
-            with _blamed_on(_view_frame_path(view)):
-                quality.check_frame_mask(mask, prior, qc, frame=view.fluoro.image if view.has_frame else None)
-        except quality.QualityError as exc:
-            if view is views[0]:
-                raise
-            raise quality.QualityError(f"view {view.name}: {exc}", qc) from None
+                raise outcome.mask_error
+    qc.mask2d = outcomes[0].mask
+    for view, outcome in zip(views, outcomes):
+        if outcome.check_error is not None:
+            _raise_check_error(outcome.check_error, view, view is views[0], qc)
     _report(progress, 0.5, f"registering ({method}, {len(views)} view(s))")
     with _blamed_on(_view_frame_path(views[0])):
-        frame = register_views(preop, [(mask, view.P) for mask, view in zip(masks, views)],
-                               names=[view.name for view in views],
-                               images=[view.fluoro.image if view.has_frame else None for view in views],
-                               method=method, refine_pose=refine_pose, alpha=alpha, beta=beta)
+        frame = register_prepared(preop, outcomes, method=method, alpha=alpha, beta=beta)
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
     _report(progress, 0.85, "planning the catheter path")
@@ -171,6 +167,27 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
                       {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
                       qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings),
                       view_frames=list(frame.views))
+
+
+def _view_source(view: View, prior) -> ViewSource:
+    """What the view's 2D side starts from: its given mask (to be repaired) or its frame (to be
+    segmented with the projected ``prior``), the frame check included."""
+    return ViewSource(view.name, view.P, view.fluoro.image, given_mask=view.fluoro_mask, prior=prior, check=True,
+                      real_frame=view.has_frame)
+
+
+def _raise_check_error(error: Exception, view: View, first: bool, qc) -> None:
+    """Raise a view's frame check failure as the check raises it, named after the view's file
+    (and, but for the first view, after the view), with the case's QC data."""
+    try:
+        with _blamed_on(_view_frame_path(view)):
+            if isinstance(error, quality.QualityError):
+                error.qc = qc
+            raise error
+    except quality.QualityError as exc:
+        if first:
+            raise
+        raise quality.QualityError(f"view {view.name}: {exc}", qc) from None
 
 
 def _view_frame_path(view: View):

@@ -267,9 +267,139 @@ def register_views(preop: Preoperative, frames, *, names=None, images=None, meth
     images = list(images) if images is not None else [None] * len(frames)
     if len(names) != len(frames) or len(images) != len(frames) or len(set(names)) != len(names):
         raise ValueError("register_views: need one distinct name (and one image or None) per view")
+    sources = [ViewSource(name, P, image, mask=mask2d) for (mask2d, P), name, image in zip(frames, names, images)]
+    return register_prepared(preop, prepare_views(preop, sources, method=method, refine_pose=refine_pose),
+                             method=method, alpha=alpha, beta=beta)
+
+
+def register_prepared(preop: Preoperative, outcomes, *, method: str = "proposed", alpha: float = 500.0,
+                      beta: float = 10.0) -> FrameResult:
+    """:func:`register_views` on views whose 2D side :func:`prepare_views` has done (same ``method``)."""
     # small matrices: BLAS threads only cost time here (10x in L-BFGS on 2 cores)
     with _threadpools().limit(limits=1, user_api="blas"):
-        return _register_views(preop, frames, names, images, method, refine_pose, alpha, beta)
+        return _register_views(preop, outcomes, method, alpha, beta)
+
+
+@dataclass
+class ViewSource:
+    """What one view's 2D work starts from (:func:`prepare_views`).
+
+    Attributes
+    ----------
+    name : str
+    P : (3, 4) array
+    image : (rows, cols) array or None
+        The frame: segmented when no mask is given and, when ``real_frame``, used for the
+        collimator detection and the frame check's contrast.
+    mask : (rows, cols) bool array or None
+        The vessel mask as it is to be used; None: ``given_mask`` repaired
+        (:func:`given_mask.condition_given_mask`), else ``image`` segmented with ``prior``.
+    given_mask : (rows, cols) array or None
+        A mask read from the case, to be repaired first.
+    prior : quality.FluoroPrior or None
+        The projected pre-operative tree: the segmentation's prior and the frame check's.
+    check : bool
+        Run the frame check (:func:`quality.check_frame_mask`) on the mask.
+    real_frame : bool
+        ``image`` is a real frame (not a stand-in drawn from the mask).
+    """
+
+    name: str
+    P: np.ndarray
+    image: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    given_mask: np.ndarray | None = None
+    prior: object | None = None
+    check: bool = False
+    real_frame: bool = True
+
+    @property
+    def frame(self) -> np.ndarray | None:
+        """The real frame, or None."""
+        return self.image if self.real_frame else None
+
+
+@dataclass
+class ViewOutcome:
+    """One view's 2D side as :func:`prepare_views` left it: each step's result or its error.
+
+    The errors are kept, not raised, so that the caller raises them in the order of the
+    serial work (every view's mask, then every view's frame check, then the registration).
+    """
+
+    name: str
+    mask: np.ndarray | None = None
+    view: _ViewState | None = None
+    mask_error: Exception | None = None
+    check_error: Exception | None = None
+    view_error: Exception | None = None
+    timings: dict = field(default_factory=dict)
+
+
+def _source_mask(source: ViewSource) -> np.ndarray:
+    if source.mask is not None:
+        return source.mask
+    if source.given_mask is not None:
+        from ..given_mask import condition_given_mask
+
+        return condition_given_mask(source.given_mask)
+    from .. import segmentation
+
+    return segmentation.segment_fluoro(source.image, source.prior)
+
+
+def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pose) -> ViewOutcome:
+    """One view's whole 2D side: mask, frame check, then :func:`_prepare_view`; errors kept."""
+    outcome = ViewOutcome(source.name)
+    try:
+        with _timed(outcome.timings, "segmentation2d"):
+            outcome.mask = _source_mask(source)
+    except Exception as exc:        # noqa: BLE001  (raised by the caller, in the serial order)
+        outcome.mask_error = exc
+        return outcome
+    if source.check:
+        from .. import quality
+
+        try:
+            with _timed(outcome.timings, "frame_check"):
+                quality.check_frame_mask(outcome.mask, source.prior, None, frame=source.frame)
+        except Exception as exc:    # noqa: BLE001
+            outcome.check_error = exc
+    try:
+        with _threadpools().limit(limits=1, user_api="blas"):
+            outcome.view = _prepare_view(preop, outcome.mask, source.P, source.name, source.frame, method,
+                                         refine_pose, outcome.timings)
+    except Exception as exc:        # noqa: BLE001
+        outcome.view_error = exc
+    return outcome
+
+
+def _rekeyed(outcome: ViewOutcome) -> ViewOutcome:
+    """An outcome from the worker with its view's assignments keyed by the ids of the unpickled
+    correspondences (the cache key of :meth:`_ViewState.assignment`)."""
+    if outcome.view is not None:
+        outcome.view.assignments = {id(c): (c, a) for c, a in outcome.view.assignments.values()}
+    return outcome
+
+
+def prepare_views(preop: Preoperative, sources, *, method: str = "proposed", refine_pose="auto") -> list[ViewOutcome]:
+    """The 2D side of every view (:func:`_view_stage`), in pairs: the second of each in the worker.
+
+    With several views, the worker process (:mod:`workers`) does the second view of each
+    pair while this process does the first; when the worker is off, not started yet or
+    fails, both run here. The outcomes are the same either way, in the order of ``sources``.
+    """
+    from . import workers
+
+    sources = list(sources)
+    outcomes = []
+    for first in range(0, len(sources), 2):
+        job = (workers.submit(_view_stage, preop, sources[first + 1], method, refine_pose)
+               if first + 1 < len(sources) else None)
+        outcomes.append(_view_stage(preop, sources[first], method, refine_pose))
+        if job is not None:
+            outcomes.append(_rekeyed(job.result()) if job.remote else job.result())
+    return outcomes
 
 
 def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -> _ViewState:
@@ -340,18 +470,24 @@ def _with_followers(preop, views, anchor, combo, deformed, alpha, beta):
     return deformed, energy, full
 
 
-def _register_views(preop, frames, names, images, method, refine_pose, alpha, beta) -> FrameResult:
+def _register_views(preop, outcomes, method, alpha, beta) -> FrameResult:
     timings = {}
     views, warnings, failures = [], [], []
-    for (mask2d, P), name, image in zip(frames, names, images):
-        try:
-            views.append(_prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings))
-        except ValueError as exc:
+    for outcome in outcomes:
+        for stage in ("skeleton2d", "graph2d", "pose_refinement"):
+            if stage in outcome.timings:
+                timings[stage] = timings.get(stage, 0.0) + outcome.timings[stage]
+        error = outcome.mask_error or outcome.view_error
+        if error is not None and not isinstance(error, ValueError):
+            raise error
+        if error is None:
+            views.append(outcome.view)
+        else:
             # one unreadable view (vessels overlapping at a steep angle) must not sink the others
-            failures.append(exc)
-            warnings.append(f"view {name} not used: {exc}")
+            failures.append(error)
+            warnings.append(f"view {outcome.name} not used: {error}")
     if not views:
-        raise ValueError(f"view {names[0]}: {failures[0]}" if len(frames) > 1 else str(failures[0])) from failures[0]
+        raise ValueError(f"view {outcomes[0].name}: {failures[0]}" if len(outcomes) > 1 else str(failures[0])) from failures[0]
     warnings += [w for w in map(_pose_warning, views) if w]
     points = preop.centerline.points
     energy, source = None, method

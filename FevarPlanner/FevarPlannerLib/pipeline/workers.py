@@ -1,0 +1,222 @@
+"""A persistent worker process for the per-view 2D work of a multi-view frame (issue 10).
+
+Two views on two cores: the second view's vessel mask, 2D skeleton, graph, Algorithm 1 and
+pose check (:func:`frame._view_stage`) run in a worker process while this process does
+the first view's; threads cannot do it (the work holds the GIL). The worker is one child
+process, started on first use and kept for the frames that follow.
+Nothing ever waits for it to start: a job is given to it only once it has reported ready
+(imports done); before that, and whenever it cannot start or fails, the work runs here,
+serially, with the same result (the same code on the same data; the tests compare the two).
+It ends when its pipe closes: when this process exits (however it ends) or :func:`shutdown`.
+
+The pre-operative model is sent once and kept by the worker for the frames that follow.
+``FEVARPLANNER_VIEW_WORKER=0`` (or :func:`set_enabled`) turns the worker off.
+"""
+
+from __future__ import annotations
+
+import atexit
+import itertools
+import os
+import subprocess
+import sys
+import weakref
+from multiprocessing.connection import Connection
+
+#: The environment switch: "0" keeps all per-view work in this process.
+ENV_SWITCH = "FEVARPLANNER_VIEW_WORKER"
+#: How many workers may fail (die, or not start) before no new one is started.
+MAX_FAILURES = 2
+
+_state = {"enabled": None, "worker": None, "failures": 0, "in_worker": False}
+_tokens = itertools.count(1)
+
+
+def set_enabled(enabled: bool | None) -> None:
+    """Use the worker (True), never (False), or as ``FEVARPLANNER_VIEW_WORKER`` says (None, the default).
+
+    A running worker stays (idle) while it is off; :func:`shutdown` ends it.
+    """
+    _state["enabled"] = enabled
+
+
+def enabled() -> bool:
+    """Whether per-view work may go to the worker process here."""
+    if _state["in_worker"]:
+        return False            # the worker never starts a worker of its own
+    if _state["enabled"] is not None:
+        return bool(_state["enabled"])
+    return os.environ.get(ENV_SWITCH, "1").strip() not in ("0", "false", "no", "off") and _can_spawn()
+
+
+def _can_spawn() -> bool:
+    """A spawned child runs ``sys.executable``: only a Python interpreter (not an application
+    embedding Python, such as Slicer's main executable, which would open a second window)."""
+    return os.path.basename(sys.executable or "").lower().startswith("python")
+
+
+@atexit.register
+def shutdown() -> None:
+    """End the worker process, if one runs."""
+    worker = _state["worker"]
+    _state["worker"] = None
+    if worker is not None:
+        worker.close()
+
+
+def wait_until_ready(timeout: float = 60.0) -> bool:
+    """Start the worker if needed and wait until it takes work (for tests and benchmarks)."""
+    worker = _worker()
+    return worker is not None and worker.ready(timeout)
+
+
+def submit(function, preop, *args) -> "Pending":
+    """Run ``function(preop, *args)`` in the worker if it is ready, else here when asked for the result.
+
+    ``function`` must be importable by name (a module-level function); its arguments and
+    result are pickled. The worker is started here when it does not run yet.
+    """
+    worker = _worker()
+    if worker is not None and worker.ready():
+        try:
+            worker.send(preop, function, args)
+            return Pending(function, preop, args, worker)
+        except (OSError, ValueError, EOFError):
+            _discard(worker)
+    return Pending(function, preop, args, None)
+
+
+class Pending:
+    """A job given to the worker (or kept here): :meth:`result` gives its value either way."""
+
+    def __init__(self, function, preop, args, worker):
+        self._call = (function, preop, args)
+        self._worker = worker
+
+    @property
+    def remote(self) -> bool:
+        """Whether the worker does the job."""
+        return self._worker is not None
+
+    def result(self):
+        """The job's value; computed here when it was not sent or the worker failed."""
+        function, preop, args = self._call
+        if self._worker is not None:
+            try:
+                return self._worker.receive()
+            except Exception:       # the worker died or its answer did not unpickle: do it here
+                _discard(self._worker)
+        return function(preop, *args)
+
+
+def _discard(worker) -> None:
+    """Drop a worker that failed."""
+    _state["failures"] += 1
+    if _state["worker"] is worker:
+        _state["worker"] = None
+    worker.close()
+
+
+def _worker():
+    """The running worker, started when there is none (None: not to be used here)."""
+    if not enabled():
+        return None
+    worker = _state["worker"]
+    if worker is not None and not worker.alive():
+        _discard(worker)
+        worker = None
+    if worker is None and _state["failures"] < MAX_FAILURES:
+        try:
+            worker = _state["worker"] = _Worker()
+        except (OSError, subprocess.SubprocessError):
+            _state["failures"] += 1
+            worker = None
+    return worker
+
+
+class _Worker:
+    """One child process serving jobs over a pair of pipes, in the order they were sent.
+
+    The child is this interpreter started on :func:`_serve` directly (not by
+    :mod:`multiprocessing`, whose ``spawn`` would first run the caller's main script again),
+    with this process's ``sys.path``; the pipes carry pickled messages
+    (:class:`multiprocessing.connection.Connection`).
+    """
+
+    def __init__(self):
+        child_reads, parent_writes = os.pipe()
+        parent_reads, child_writes = os.pipe()
+        code = (f"import sys; sys.path[:] = {list(sys.path)!r}; "
+                f"from {__package__}.workers import _serve; _serve({child_reads}, {child_writes})")
+        try:
+            self._process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(child_reads, child_writes),
+                                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        except BaseException:
+            os.close(parent_writes)
+            os.close(parent_reads)
+            raise
+        finally:
+            os.close(child_reads)
+            os.close(child_writes)
+        self._send = Connection(parent_writes, readable=False)
+        self._receive = Connection(parent_reads, writable=False)
+        self._ready = False
+        self._preop = (None, 0)         # (weak reference to the model the worker holds, its token)
+
+    def alive(self) -> bool:
+        return self._process.poll() is None
+
+    def ready(self, timeout: float = 0.0) -> bool:
+        """Whether the worker has reported ready (waits up to ``timeout`` s for it)."""
+        if not self._ready and self.alive() and self._receive.poll(timeout):
+            try:
+                self._ready = self._receive.recv() == "ready"
+            except (EOFError, OSError):
+                return False
+        return self._ready
+
+    def send(self, preop, function, args) -> None:
+        held, token = self._preop
+        if held is None or held() is not preop:
+            token = next(_tokens)
+            self._send.send((token, preop, function, args))
+            self._preop = (weakref.ref(preop), token)
+        else:
+            self._send.send((token, None, function, args))
+
+    def receive(self):
+        status, value = self._receive.recv()
+        if status != "ok":
+            raise RuntimeError(f"view worker: {value}")
+        return value
+
+    def close(self) -> None:
+        """Close the pipes (the worker then ends) and wait for it briefly, else end it."""
+        for conn in (self._send, self._receive):
+            conn.close()
+        try:
+            self._process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+
+
+def _serve(receive_fd: int, send_fd: int) -> None:
+    """The worker's loop: import the pipeline, report ready, then run jobs until the pipe closes."""
+    _state["in_worker"] = True
+    from .. import pipeline, segmentation  # noqa: F401  (the imports, before reporting ready)
+
+    jobs, answers = Connection(receive_fd, writable=False), Connection(send_fd, readable=False)
+    answers.send("ready")
+    models = {}
+    while True:
+        try:
+            token, preop, function, args = jobs.recv()
+        except (EOFError, OSError):
+            return
+        if preop is not None:
+            models = {token: preop}
+        try:
+            answers.send(("ok", function(models[token], *args)))
+        except Exception as exc:     # noqa: BLE001  (reported to the caller, which then works alone)
+            answers.send(("error", f"{type(exc).__name__}: {exc}"))
