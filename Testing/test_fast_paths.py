@@ -6,6 +6,7 @@ test, on small generated masks and graphs, to the bit.
 """
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 from scipy import ndimage as ndi
 from scipy.linalg import cholesky_banded
@@ -195,3 +196,85 @@ def test_skeleton_graph_from_the_skeleton_box_equals_the_full_grid_graph():
         for part in ("indptr", "indices", "data"):
             np.testing.assert_array_equal(getattr(fast.adjacency, part), getattr(plain.adjacency, part))
         assert skeleton_graph_2d(mask).radii is None
+
+
+def _two_raw_views():
+    """A phantom's pre-operative model and its intra-operative anatomy rendered as raw frames
+    seen AP and LAO 30 (:func:`phantom.render_fluoro`), with each view's projected prior."""
+    from dataclasses import replace
+
+    from FevarPlannerLib import phantom
+    from FevarPlannerLib.pipeline import frame
+    from FevarPlannerLib.projection import projection_matrix_from_carm
+    from FevarPlannerLib.quality import FluoroPrior
+
+    case = phantom_case("worker", seed=11)
+    preop = preop_model(case)
+    sources = []
+    for name, angle in (("ap", 0.0), ("lao30", 30.0)):
+        params = replace(case.params, primary_angle_deg=angle)
+        isocentre = case.grid.center_lps()
+        geometry = phantom.fit_detector(case.intraop, params, isocentre)
+        P = projection_matrix_from_carm(geometry, isocentre)
+        image, _ = phantom.render_fluoro(case.intraop, P, geometry, params, np.random.default_rng(5))
+        sources.append(frame.ViewSource(name, P, image, prior=FluoroPrior.from_centerline(preop.centerline, P),
+                                           check=True))
+    return preop, sources
+
+
+def _same_outcome(remote, local):
+    np.testing.assert_array_equal(remote.mask, local.mask)
+    assert (remote.mask_error, remote.check_error, remote.view_error) == (None, None, None)
+    assert (local.mask_error, local.check_error, local.view_error) == (None, None, None)
+    for part in ("P", "visible"):
+        np.testing.assert_array_equal(getattr(remote.view, part), getattr(local.view, part))
+    np.testing.assert_array_equal(remote.view.g2.positions, local.view.g2.positions)
+    assert [b.label for b in remote.view.c2.branches] == [b.label for b in local.view.c2.branches]
+    assert len(remote.view.candidates) == len(local.view.candidates) >= 1
+
+
+@pytest.fixture
+def view_worker():
+    """The view worker module, switched on for the test and back to its default after it."""
+    from FevarPlannerLib.pipeline import workers
+
+    workers.set_enabled(True)
+    yield workers
+    workers.set_enabled(None)
+
+
+def test_the_view_worker_prepares_and_registers_a_second_view_as_this_process_does(view_worker, monkeypatch):
+    """Issue 10: the second view's 2D side in the worker process (mask from the raw frame, frame
+    check, skeleton, Algorithm 1, pose check) and the registration after it, to the bit."""
+    from FevarPlannerLib.pipeline import frame
+
+    workers = view_worker
+    preop, sources = _two_raw_views()
+    assert workers.wait_until_ready(120.0)
+    sent = []
+    submit = workers.submit
+    monkeypatch.setattr(workers, "submit", lambda *args: sent.append(submit(*args)) or sent[-1])
+    outcomes = frame.prepare_views(preop, sources)
+    assert [job.remote for job in sent] == [True]
+    workers.set_enabled(False)
+    serial = frame.prepare_views(preop, sources)
+    assert [job.remote for job in sent] == [True, False]
+    for remote, local in zip(outcomes, serial):
+        _same_outcome(remote, local)
+    parallel, alone = (frame.register_prepared(preop, found) for found in (outcomes, serial))
+    np.testing.assert_array_equal(parallel.deformed.points, alone.deformed.points)
+    assert (parallel.correspondence, parallel.warnings, parallel.energy) == (alone.correspondence, alone.warnings,
+                                                                             alone.energy)
+
+
+def test_the_view_worker_ends_with_shutdown_and_stays_off_when_switched_off(view_worker, monkeypatch):
+    workers = view_worker
+    assert workers.wait_until_ready(120.0)
+    process = workers._state["worker"]._process
+    assert process.poll() is None
+    workers.shutdown()
+    assert process.poll() is not None and workers._state["worker"] is None
+    workers.set_enabled(None)
+    monkeypatch.setenv(workers.ENV_SWITCH, "0")
+    assert not workers.enabled()
+    assert not workers.submit(len, [1, 2]).remote and workers._state["worker"] is None

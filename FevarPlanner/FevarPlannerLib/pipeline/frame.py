@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -334,6 +335,8 @@ class ViewOutcome:
     check_error: Exception | None = None
     view_error: Exception | None = None
     timings: dict = field(default_factory=dict)
+    cpu_seconds: float = 0.0        # CPU time of the process that did the work, for the benchmarks
+    in_worker: bool = False         # done by the worker process
 
 
 def _source_mask(source: ViewSource) -> np.ndarray:
@@ -351,12 +354,22 @@ def _source_mask(source: ViewSource) -> np.ndarray:
 def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pose) -> ViewOutcome:
     """One view's whole 2D side: mask, frame check, then :func:`_prepare_view`; errors kept."""
     outcome = ViewOutcome(source.name)
+    start = time.process_time()
+    try:
+        _view_steps(preop, source, method, refine_pose, outcome)
+    finally:
+        outcome.cpu_seconds = time.process_time() - start
+    return outcome
+
+
+def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pose, outcome: ViewOutcome) -> None:
+    """The steps of :func:`_view_stage`, each result or error written into ``outcome``."""
     try:
         with _timed(outcome.timings, "segmentation2d"):
             outcome.mask = _source_mask(source)
     except Exception as exc:        # noqa: BLE001  (raised by the caller, in the serial order)
         outcome.mask_error = exc
-        return outcome
+        return
     if source.check:
         from .. import quality
 
@@ -371,7 +384,6 @@ def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pos
                                          refine_pose, outcome.timings)
     except Exception as exc:        # noqa: BLE001
         outcome.view_error = exc
-    return outcome
 
 
 def _rekeyed(outcome: ViewOutcome) -> ViewOutcome:
@@ -379,6 +391,7 @@ def _rekeyed(outcome: ViewOutcome) -> ViewOutcome:
     correspondences (the cache key of :meth:`_ViewState.assignment`)."""
     if outcome.view is not None:
         outcome.view.assignments = {id(c): (c, a) for c, a in outcome.view.assignments.values()}
+    outcome.in_worker = True
     return outcome
 
 
