@@ -409,7 +409,12 @@ def prepare_views(preop: Preoperative, sources, *, method: str = "proposed", ref
     for first in range(0, len(sources), 2):
         job = (workers.submit(_view_stage, preop, sources[first + 1], method, refine_pose)
                if first + 1 < len(sources) else None)
-        outcomes.append(_view_stage(preop, sources[first], method, refine_pose))
+        try:
+            outcomes.append(_view_stage(preop, sources[first], method, refine_pose))
+        except BaseException:       # interrupted: the worker's answer must not be left in its pipe
+            if job is not None and job.remote:
+                job.result()
+            raise
         if job is not None:
             outcomes.append(_rekeyed(job.result()) if job.remote else job.result())
     return outcomes

@@ -20,6 +20,7 @@ import itertools
 import os
 import subprocess
 import sys
+import threading
 import weakref
 from multiprocessing.connection import Connection
 
@@ -57,10 +58,10 @@ def _can_spawn() -> bool:
 
 @atexit.register
 def shutdown() -> None:
-    """End the worker process, if one runs."""
+    """End the worker process, if one runs (and was started by this process)."""
     worker = _state["worker"]
     _state["worker"] = None
-    if worker is not None:
+    if worker is not None and worker.owner == os.getpid():
         worker.close()
 
 
@@ -77,11 +78,12 @@ def submit(function, preop, *args) -> "Pending":
     result are pickled. The worker is started here when it does not run yet.
     """
     worker = _worker()
-    if worker is not None and worker.ready():
+    if worker is not None and worker.ready() and worker.lock.acquire(blocking=False):   # one job at a time
         try:
             worker.send(preop, function, args)
             return Pending(function, preop, args, worker)
-        except (OSError, ValueError, EOFError):
+        except Exception:       # noqa: BLE001  (not picklable, or the pipe broke: done here instead)
+            worker.lock.release()
             _discard(worker)
     return Pending(function, preop, args, None)
 
@@ -99,13 +101,19 @@ class Pending:
         return self._worker is not None
 
     def result(self):
-        """The job's value; computed here when it was not sent or the worker failed."""
+        """The job's value; computed here when it was not sent or the worker failed.
+
+        A job given to the worker must be collected (its answer would otherwise wait in the pipe).
+        """
         function, preop, args = self._call
-        if self._worker is not None:
+        worker, self._worker = self._worker, None
+        if worker is not None:
             try:
-                return self._worker.receive()
-            except Exception:       # the worker died or its answer did not unpickle: do it here
-                _discard(self._worker)
+                return worker.receive()
+            except Exception:       # noqa: BLE001  (the worker died or its answer did not unpickle: do it here)
+                _discard(worker)
+            finally:
+                worker.lock.release()
         return function(preop, *args)
 
 
@@ -122,6 +130,8 @@ def _worker():
     if not enabled():
         return None
     worker = _state["worker"]
+    if worker is not None and worker.owner != os.getpid():
+        worker = _state["worker"] = None     # a forked copy of the process: the worker is the parent's
     if worker is not None and not worker.alive():
         _discard(worker)
         worker = None
@@ -162,6 +172,8 @@ class _Worker:
         self._receive = Connection(parent_reads, writable=False)
         self._ready = False
         self._preop = (None, 0)         # (weak reference to the model the worker holds, its token)
+        self.owner = os.getpid()
+        self.lock = threading.Lock()    # held from sending a job until its answer is read
 
     def alive(self) -> bool:
         return self._process.poll() is None
