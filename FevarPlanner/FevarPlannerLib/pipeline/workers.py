@@ -94,11 +94,7 @@ class Pending:
     def __init__(self, function, preop, args, worker):
         self._call = (function, preop, args)
         self._worker = worker
-
-    @property
-    def remote(self) -> bool:
-        """Whether the worker does the job."""
-        return self._worker is not None
+        self.remote = worker is not None        # the worker does the job
 
     def result(self):
         """The job's value; computed here when it was not sent or the worker failed.
