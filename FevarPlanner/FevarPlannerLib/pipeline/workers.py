@@ -18,6 +18,7 @@ from __future__ import annotations
 import atexit
 import itertools
 import os
+import pickle
 import subprocess
 import sys
 import threading
@@ -170,6 +171,9 @@ class _Worker:
         self._preop = (None, 0)         # (weak reference to the model the worker holds, its token)
         self.owner = os.getpid()
         self.lock = threading.Lock()    # held from sending a job until its answer is read
+        self._sending = None            # the thread writing the last job
+        for fd in (parent_writes, parent_reads):
+            _widen_pipe(fd)
 
     def alive(self) -> bool:
         return self._process.poll() is None
@@ -184,15 +188,28 @@ class _Worker:
         return self._ready
 
     def send(self, preop, function, args) -> None:
+        """Pickle the job here and write it from a thread: a frame is megabytes, and writing
+        them waits for the worker to read, which this process need not do."""
         held, token = self._preop
-        if held is None or held() is not preop:
+        fresh = held is None or held() is not preop
+        if fresh:
             token = next(_tokens)
-            self._send.send((token, preop, function, args))
+        data = pickle.dumps((token, preop if fresh else None, function, args), protocol=pickle.HIGHEST_PROTOCOL)
+        if fresh:
             self._preop = (weakref.ref(preop), token)
-        else:
-            self._send.send((token, None, function, args))
+        self._sending = threading.Thread(target=self._write, args=(data,), daemon=True, name="FevarPlanner job writer")
+        self._sending.start()
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self._send.send_bytes(data)
+        except OSError:             # the worker is gone: receive() finds its pipe closed
+            self._preop = (None, 0)
 
     def receive(self):
+        if self._sending is not None:
+            self._sending.join()
+            self._sending = None
         status, value = self._receive.recv()
         if status != "ok":
             raise RuntimeError(f"view worker: {value}")
@@ -207,6 +224,20 @@ class _Worker:
         except subprocess.TimeoutExpired:
             self._process.kill()
             self._process.wait()
+
+
+#: Pipe buffer asked for (bytes): fewer hand-overs of a frame between the two processes.
+PIPE_BYTES = 1 << 20
+
+
+def _widen_pipe(fd: int) -> None:
+    """Ask for a :data:`PIPE_BYTES` pipe buffer (Linux; elsewhere, or when refused, the default stays)."""
+    try:
+        import fcntl
+
+        fcntl.fcntl(fd, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
+    except (ImportError, AttributeError, OSError):
+        pass
 
 
 def _serve(receive_fd: int, send_fd: int) -> None:
