@@ -52,9 +52,10 @@ def enabled() -> bool:
 
 
 def _can_spawn() -> bool:
-    """A spawned child runs ``sys.executable``: only a Python interpreter (not an application
-    embedding Python, such as Slicer's main executable, which would open a second window)."""
-    return os.path.basename(sys.executable or "").lower().startswith("python")
+    """The worker runs ``sys.executable`` with inherited pipes: POSIX only, and only a Python
+    interpreter (not an application embedding Python, such as Slicer's main executable,
+    which would open a second window)."""
+    return os.name == "posix" and os.path.basename(sys.executable or "").lower().startswith("python")
 
 
 @atexit.register
@@ -216,9 +217,12 @@ class _Worker:
         return value
 
     def close(self) -> None:
-        """Close the pipes (the worker then ends) and wait for it briefly, else end it."""
+        """Close the pipes (the worker then ends) and wait for it briefly, else end it; a worker
+        still starting is ended at once (it would read its pipe only after its imports)."""
         for conn in (self._send, self._receive):
             conn.close()
+        if not self._ready:
+            self._process.kill()
         try:
             self._process.wait(timeout=2.0)
         except subprocess.TimeoutExpired:
