@@ -278,3 +278,17 @@ def test_the_view_worker_ends_with_shutdown_and_stays_off_when_switched_off(view
     monkeypatch.setenv(workers.ENV_SWITCH, "0")
     assert not workers.enabled()
     assert not workers.submit(len, [1, 2]).remote and workers._state["worker"] is None
+
+
+def test_a_job_whose_worker_died_is_done_here(view_worker):
+    """The worker killed in the middle of a job: the job runs in this process instead."""
+    workers = view_worker
+    assert workers.wait_until_ready(120.0)
+    worker = workers._state["worker"]
+    matrix = np.random.default_rng(3).normal(size=(500, 500))
+    job = workers.submit(np.linalg.svd, matrix, False, False)     # singular values, killed while at it
+    assert job.remote
+    worker._process.kill()
+    np.testing.assert_array_equal(job.result(), np.linalg.svd(matrix, False, False))
+    assert workers._state["worker"] is not worker and not worker.alive()
+    assert workers.submit(np.add, np.arange(3), 1).result().tolist() == [1, 2, 3]

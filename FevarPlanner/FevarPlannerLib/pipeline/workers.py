@@ -84,9 +84,8 @@ def submit(function, preop, *args) -> "Pending":
         try:
             worker.send(preop, function, args)
             return Pending(function, preop, args, worker)
-        except Exception:       # noqa: BLE001  (not picklable, or the pipe broke: done here instead)
+        except (pickle.PicklingError, TypeError, AttributeError):      # not picklable: done here instead
             worker.lock.release()
-            _discard(worker)
     return Pending(function, preop, args, None)
 
 
@@ -192,7 +191,7 @@ class _Worker:
         """Pickle the job here and write it from a thread: a frame is megabytes, and writing
         them waits for the worker to read, which this process need not do."""
         held, token = self._preop
-        fresh = held is None or held() is not preop
+        fresh = held is None or held() is not preop     # the model goes along with the first job only
         if fresh:
             token = next(_tokens)
         data = pickle.dumps((token, preop if fresh else None, function, args), protocol=pickle.HIGHEST_PROTOCOL)
