@@ -340,6 +340,7 @@ class ViewOutcome:
 
 
 def _source_mask(source: ViewSource) -> np.ndarray:
+    """The view's vessel mask: as given, a given one repaired, or the frame segmented."""
     if source.mask is not None:
         return source.mask
     if source.given_mask is not None:
