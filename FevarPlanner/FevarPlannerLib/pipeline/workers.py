@@ -147,20 +147,25 @@ class _Worker:
     The child is this interpreter started on :func:`_serve` directly (not by
     :mod:`multiprocessing`, whose ``spawn`` would first run the caller's main script again),
     with this process's ``sys.path``; the pipes carry pickled messages
-    (:class:`multiprocessing.connection.Connection`).
+    (:class:`multiprocessing.connection.Connection`), a shared file in memory the large
+    arrays of a job (:func:`_packed`).
     """
 
     def __init__(self):
         child_reads, parent_writes = os.pipe()
         parent_reads, child_writes = os.pipe()
+        self._arrays = _shared_file()
+        shared = -1 if self._arrays is None else self._arrays
         code = (f"import sys; sys.path[:] = {list(sys.path)!r}; "
-                f"from {__package__}.workers import _serve; _serve({child_reads}, {child_writes})")
+                f"from {__package__}.workers import _serve; _serve({child_reads}, {child_writes}, {shared})")
         try:
-            self._process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(child_reads, child_writes),
+            self._process = subprocess.Popen([sys.executable, "-c", code],
+                                             pass_fds=tuple(fd for fd in (child_reads, child_writes, shared) if fd >= 0),
                                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         except BaseException:
-            os.close(parent_writes)
-            os.close(parent_reads)
+            for fd in (parent_writes, parent_reads, shared):
+                if fd >= 0:
+                    os.close(fd)
             raise
         finally:
             os.close(child_reads)
@@ -171,7 +176,6 @@ class _Worker:
         self._preop = (None, 0)         # (weak reference to the model the worker holds, its token)
         self.owner = os.getpid()
         self.lock = threading.Lock()    # held from sending a job until its answer is read
-        self._sending = None            # the thread writing the last job
         for fd in (parent_writes, parent_reads):
             _widen_pipe(fd)
 
@@ -188,28 +192,18 @@ class _Worker:
         return self._ready
 
     def send(self, preop, function, args) -> None:
-        """Pickle the job here and write it from a thread: a frame is megabytes, and writing
-        them waits for the worker to read, which this process need not do."""
+        """Send a job: its large arrays (a frame is megabytes) through the shared file, the rest
+        pickled through the pipe, which then holds a few kilobytes and never waits for the worker."""
         held, token = self._preop
         fresh = held is None or held() is not preop     # the model goes along with the first job only
         if fresh:
             token = next(_tokens)
-        data = pickle.dumps((token, preop if fresh else None, function, args), protocol=pickle.HIGHEST_PROTOCOL)
+        job = (token, preop if fresh else None, function, args)
+        self._send.send(_packed(job, self._arrays))
         if fresh:
             self._preop = (weakref.ref(preop), token)
-        self._sending = threading.Thread(target=self._write, args=(data,), daemon=True, name="FevarPlanner job writer")
-        self._sending.start()
-
-    def _write(self, data: bytes) -> None:
-        try:
-            self._send.send_bytes(data)
-        except OSError:             # the worker is gone: receive() finds its pipe closed
-            self._preop = (None, 0)
 
     def receive(self):
-        if self._sending is not None:
-            self._sending.join()
-            self._sending = None
         status, value = self._receive.recv()
         if status != "ok":
             raise RuntimeError(f"view worker: {value}")
@@ -220,6 +214,9 @@ class _Worker:
         still starting is ended at once (it would read its pipe only after its imports)."""
         for conn in (self._send, self._receive):
             conn.close()
+        if self._arrays is not None:
+            os.close(self._arrays)
+            self._arrays = None
         if not self._ready:
             self._process.kill()
         try:
@@ -229,7 +226,7 @@ class _Worker:
             self._process.wait()
 
 
-#: Pipe buffer asked for (bytes): fewer hand-overs of a frame between the two processes.
+#: Pipe buffer asked for (bytes): an answer (a mask, a 2D graph) in one hand-over.
 PIPE_BYTES = 1 << 20
 
 
@@ -243,17 +240,72 @@ def _widen_pipe(fd: int) -> None:
         pass
 
 
-def _serve(receive_fd: int, send_fd: int) -> None:
+#: Arrays smaller than this (bytes) go through the pipe with the rest of a job.
+SHARED_ABOVE_BYTES = 64 * 1024
+
+
+def _shared_file() -> int | None:
+    """A file in memory (Linux ``memfd``) for the arrays of the jobs; None where there is none."""
+    try:
+        return os.memfd_create("FevarPlanner-view-worker")
+    except (AttributeError, OSError):
+        return None
+
+
+def _packed(job, shared: int | None) -> tuple:
+    """``job`` as (pickle, [(offset, length) of each out-of-band buffer]) with the large buffers
+    (pickle protocol 5: contiguous NumPy arrays) written into the ``shared`` file, one after the
+    other; without a shared file, everything in the pickle."""
+    if shared is None:
+        return pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL), None
+    buffers = []
+    data = pickle.dumps(job, protocol=5, buffer_callback=lambda b: _kept_in_band(b, buffers))
+    places, offset = [], 0
+    for buffer in buffers:
+        view = buffer.raw()
+        places.append((offset, view.nbytes))
+        offset += view.nbytes
+    if os.fstat(shared).st_size < offset:
+        os.ftruncate(shared, offset)
+    for buffer, (start, _) in zip(buffers, places):
+        os.pwrite(shared, buffer.raw(), start)
+    return data, places
+
+
+def _kept_in_band(buffer: pickle.PickleBuffer, out_of_band: list) -> bool:
+    """``buffer_callback`` of :func:`_packed`: False (out of band) for the large buffers."""
+    if buffer.raw().nbytes < SHARED_ABOVE_BYTES:
+        return True
+    out_of_band.append(buffer)
+    return False
+
+
+def _unpacked(message, shared: int | None):
+    """The job of a :func:`_packed` message (its arrays copied out of the shared file: writable)."""
+    data, places = message
+    if places is None:
+        return pickle.loads(data)
+    buffers = []
+    for offset, length in places:
+        buffer = bytearray(length)
+        if os.preadv(shared, [buffer], offset) != length:
+            raise EOFError("view worker: the shared file is shorter than a job says")
+        buffers.append(buffer)
+    return pickle.loads(data, buffers=buffers)
+
+
+def _serve(receive_fd: int, send_fd: int, shared_fd: int = -1) -> None:
     """The worker's loop: import the pipeline, report ready, then run jobs until the pipe closes."""
     _state["in_worker"] = True
     from .. import pipeline, segmentation  # noqa: F401  (the imports, before reporting ready)
 
     jobs, answers = Connection(receive_fd, writable=False), Connection(send_fd, readable=False)
+    shared = shared_fd if shared_fd >= 0 else None
     answers.send("ready")
     models = {}
     while True:
         try:
-            token, preop, function, args = jobs.recv()
+            token, preop, function, args = _unpacked(jobs.recv(), shared)
         except (EOFError, OSError):
             return
         if preop is not None:
