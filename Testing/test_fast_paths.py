@@ -292,3 +292,29 @@ def test_a_job_whose_worker_died_is_done_here(view_worker):
     np.testing.assert_array_equal(job.result(), np.linalg.svd(matrix, False, False))
     assert workers._state["worker"] is not worker and not worker.alive()
     assert workers.submit(np.add, np.arange(3), 1).result().tolist() == [1, 2, 3]
+
+
+def test_a_job_packed_with_its_arrays_in_the_shared_file_unpacks_to_the_same_job():
+    import os
+
+    from FevarPlannerLib.pipeline import workers
+
+    rng = np.random.default_rng(4)
+    frame = rng.integers(0, 4096, (300, 400), dtype=np.uint16)
+    job = (7, {"frame": frame, "mask": frame > 2000, "small": np.arange(5.0), "fortran": np.asfortranarray(
+        rng.normal(size=(200, 90)))}, "name")
+    shared = workers._shared_file()
+    try:
+        for target in ([shared] if shared is not None else []) + [None]:
+            data, places = workers._packed(job, target)
+            assert (places is None) == (target is None)
+            if target is not None:
+                assert len(places) == 3 and len(data) < 10_000       # the three large arrays outside the pickle
+            token, arrays, name = workers._unpacked((data, places), target)
+            assert (token, name, sorted(arrays)) == (7, "name", sorted(job[1]))
+            for key, value in job[1].items():
+                np.testing.assert_array_equal(arrays[key], value)
+                assert arrays[key].dtype == value.dtype and arrays[key].flags.writeable
+    finally:
+        if shared is not None:
+            os.close(shared)
