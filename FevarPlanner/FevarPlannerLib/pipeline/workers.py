@@ -19,6 +19,7 @@ import atexit
 import itertools
 import os
 import pickle
+import signal
 import subprocess
 import sys
 import threading
@@ -146,7 +147,9 @@ class _Worker:
 
     The child is this interpreter started on :func:`_serve` directly (not by
     :mod:`multiprocessing`, whose ``spawn`` would first run the caller's main script again),
-    with this process's ``sys.path``; the pipes carry pickled messages
+    with this process's ``sys.path``, in a session of its own (a terminal's Ctrl-C goes to the
+    caller, which ends the worker by closing its pipe; and where the system shares the
+    processor between sessions, the worker does not halve the caller's share); the pipes carry pickled messages
     (:class:`multiprocessing.connection.Connection`), a shared file in memory the large
     arrays of a job (:func:`_packed`).
     """
@@ -161,7 +164,8 @@ class _Worker:
         try:
             self._process = subprocess.Popen([sys.executable, "-c", code],
                                              pass_fds=tuple(fd for fd in (child_reads, child_writes, shared) if fd >= 0),
-                                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+                                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                             start_new_session=True)
         except BaseException:
             for fd in (parent_writes, parent_reads, shared):
                 if fd >= 0:
@@ -297,6 +301,7 @@ def _unpacked(message, shared: int | None):
 def _serve(receive_fd: int, send_fd: int, shared_fd: int = -1) -> None:
     """The worker's loop: import the pipeline, report ready, then run jobs until the pipe closes."""
     _state["in_worker"] = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)     # the caller's Ctrl-C is the caller's; the pipe ends this
     from .. import pipeline, segmentation  # noqa: F401  (the imports, before reporting ready)
 
     jobs, answers = Connection(receive_fd, writable=False), Connection(send_fd, readable=False)
