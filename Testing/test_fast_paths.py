@@ -255,10 +255,10 @@ def test_the_view_worker_prepares_and_registers_a_second_view_as_this_process_do
     submit = workers.submit
     monkeypatch.setattr(workers, "submit", lambda *args: sent.append(submit(*args)) or sent[-1])
     outcomes = frame.prepare_views(preop, sources)
-    assert [job.remote for job in sent] == [True]
+    assert [job.remote for job in sent] == [True, False]    # the second view; the first one's check (worker busy)
     workers.set_enabled(False)
     serial = frame.prepare_views(preop, sources)
-    assert [job.remote for job in sent] == [True, False]
+    assert not any(job.remote for job in sent[2:]) and len(sent) == 5
     for remote, local in zip(outcomes, serial):
         _same_outcome(remote, local)
     parallel, alone = (frame.register_prepared(preop, found) for found in (outcomes, serial))
@@ -318,3 +318,28 @@ def test_a_job_packed_with_its_arrays_in_the_shared_file_unpacks_to_the_same_job
     finally:
         if shared is not None:
             os.close(shared)
+
+
+def test_a_frame_check_in_the_idle_worker_gives_this_process_verdict(view_worker):
+    """One view: its frame check runs in the worker beside the 2D side; passed or failed, the
+    same verdict as here."""
+    from dataclasses import replace
+
+    from FevarPlannerLib.pipeline import frame
+
+    workers = view_worker
+    preop, sources = _two_raw_views()
+    scattered = np.random.default_rng(6).random(sources[0].image.shape) < 0.002
+    checked = [replace(sources[0], check=True), replace(sources[0], mask=scattered, check=True)]
+    assert workers.wait_until_ready(120.0)
+    verdicts = {}
+    for use_worker in (True, False):
+        workers.set_enabled(use_worker)
+        found = []
+        for source in checked:
+            outcome = frame._view_stage(preop, source, "proposed", "auto")
+            assert (outcome.check_job is not None) == use_worker
+            found.append(outcome.finish_check())
+        verdicts[use_worker] = [None if error is None else (type(error), str(error)) for error in found]
+    assert verdicts[True] == verdicts[False]
+    assert verdicts[True][0] is None and "pieces" in verdicts[True][1][1]

@@ -19,7 +19,7 @@ from ..files import InputError, InputWarning, check_inside, display_path
 from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
-from .frame import ViewSource, _source_mask, prepare_views, register_prepared
+from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_prepared
 from .outputs import _write_failure_qc, check_output_folder, write_outputs
 from .results import PlanResult, ViewFrame
 
@@ -131,17 +131,27 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
                              method=method, refine_pose=refine_pose)
     for stage in ("segmentation2d", "frame_check"):
         timings[stage] = sum(outcome.timings.get(stage, 0.0) for outcome in outcomes)
-    for view, outcome in zip(views, outcomes):
-        if outcome.mask_error is not None:
-            with _blamed_on(_view_frame_path(view)):
-                raise outcome.mask_error
-    qc.mask2d = outcomes[0].mask
+    try:
+        for view, outcome in zip(views, outcomes):
+            if outcome.mask_error is not None:
+                with _blamed_on(_view_frame_path(view)):
+                    raise outcome.mask_error
+        qc.mask2d = outcomes[0].mask
+        _report(progress, 0.5, f"registering ({method}, {len(views)} view(s))")
+        # registered while a frame check may still run in the worker; its failure comes first
+        try:
+            with _blamed_on(_view_frame_path(views[0])):
+                frame = register_prepared(preop, outcomes, method=method, alpha=alpha, beta=beta)
+            failure = None
+        except Exception as exc:        # noqa: BLE001  (raised after the frame checks)
+            failure = exc
+    finally:
+        finish_checks(outcomes)
     for view, outcome in zip(views, outcomes):
         if outcome.check_error is not None:
             _raise_check_error(outcome.check_error, view, view is views[0], qc)
-    _report(progress, 0.5, f"registering ({method}, {len(views)} view(s))")
-    with _blamed_on(_view_frame_path(views[0])):
-        frame = register_prepared(preop, outcomes, method=method, alpha=alpha, beta=beta)
+    if failure is not None:
+        raise failure
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
     _report(progress, 0.85, "planning the catheter path")

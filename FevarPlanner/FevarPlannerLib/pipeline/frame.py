@@ -337,6 +337,14 @@ class ViewOutcome:
     timings: dict = field(default_factory=dict)
     cpu_seconds: float = 0.0        # CPU time of the process that did the work, for the benchmarks
     in_worker: bool = False         # done by the worker process
+    check_job: object | None = field(default=None, repr=False)     # the frame check, still running in the worker
+
+    def finish_check(self) -> Exception | None:
+        """The frame check's error (None: passed or not asked for), waiting for it if it still runs."""
+        if self.check_job is not None:
+            job, self.check_job = self.check_job, None
+            self.check_error = job.result()
+        return self.check_error
 
 
 def _source_mask(source: ViewSource) -> np.ndarray:
@@ -372,19 +380,32 @@ def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pos
         outcome.mask_error = exc
         return
     if source.check:
-        from .. import quality
+        from . import workers
 
-        try:
+        # the check does not feed the registration: in the worker (when idle) while this goes on
+        job = workers.submit(_frame_check, preop, outcome.mask, source.prior, source.frame)
+        if job.remote:
+            outcome.check_job = job
+        else:
             with _timed(outcome.timings, "frame_check"):
-                quality.check_frame_mask(outcome.mask, source.prior, None, frame=source.frame)
-        except Exception as exc:    # noqa: BLE001
-            outcome.check_error = exc
+                outcome.check_error = job.result()
     try:
         with _threadpools().limit(limits=1, user_api="blas"):
             outcome.view = _prepare_view(preop, outcome.mask, source.P, source.name, source.frame, method,
                                          refine_pose, outcome.timings)
     except Exception as exc:        # noqa: BLE001
         outcome.view_error = exc
+
+
+def _frame_check(preop: Preoperative, mask: np.ndarray, prior, frame: np.ndarray | None) -> Exception | None:
+    """:func:`quality.check_frame_mask` of a view's mask: its error, or None when it passes."""
+    from .. import quality
+
+    try:
+        quality.check_frame_mask(mask, prior, None, frame=frame)
+    except Exception as exc:        # noqa: BLE001  (raised by the caller, in the serial order)
+        return exc
+    return None
 
 
 def _rekeyed(outcome: ViewOutcome) -> ViewOutcome:
@@ -402,6 +423,8 @@ def prepare_views(preop: Preoperative, sources, *, method: str = "proposed", ref
     With several views, the worker process (:mod:`workers`) does the second view of each
     pair while this process does the first; when the worker is off, not started yet or
     fails, both run here. The outcomes are the same either way, in the order of ``sources``.
+    A frame check that the idle worker took (one view) may still run: the caller collects it
+    (:func:`finish_checks`) before it uses or raises anything of the outcomes.
     """
     from . import workers
 
@@ -415,10 +438,17 @@ def prepare_views(preop: Preoperative, sources, *, method: str = "proposed", ref
         except BaseException:       # interrupted: the worker's answer must not be left in its pipe
             if job is not None and job.remote:
                 job.result()
+            finish_checks(outcomes)
             raise
         if job is not None:
             outcomes.append(_rekeyed(job.result()) if job.remote else job.result())
     return outcomes
+
+
+def finish_checks(outcomes) -> None:
+    """Wait for the frame checks still running in the worker (:meth:`ViewOutcome.finish_check`)."""
+    for outcome in outcomes:
+        outcome.finish_check()
 
 
 def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -> _ViewState:
