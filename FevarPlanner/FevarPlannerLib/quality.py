@@ -42,8 +42,13 @@ RADIUS_RANGE_MM = {"aorta": (4.0, 40.0), "renal_left": (1.0, 8.0), "renal_right"
 MIN_SEEN_FRACTION = 0.5
 SHIFT_MM = 40.0
 #: An angiogram's mask is one tree (plus small disconnected side branches): its largest
-#: 8-connected piece holds at least this fraction of it.
+#: 8-connected piece holds at least this fraction of it. On an unsubtracted frame the tree
+#: breaks where vessels cross bone edges; it still passes when the pieces lying along the
+#: projected tree (at least ON_PRIOR_PIECE of a piece's pixels inside the prior's band) hold
+#: this fraction of the mask and cover at least MIN_PRIOR_COVERED of the projected tree's length.
 MIN_LARGEST_PIECE = 0.75
+ON_PRIOR_PIECE = 0.5
+MIN_PRIOR_COVERED = 0.6
 #: The masked vessels must differ from their surroundings by this many noise standard deviations.
 MIN_CONTRAST_TO_NOISE = 3.0
 #: A vessel mask covering more of the frame than this is noise, not an angiogram.
@@ -298,10 +303,88 @@ def _best_shift_coverage(distance: np.ndarray, uv: np.ndarray, groups: dict, tol
     return coverage, best_shift
 
 
-def _pieces(mask: np.ndarray) -> tuple[int, np.ndarray]:
-    """Number of 8-connected pieces of ``mask`` and their sizes."""
-    labels, n = ndi.label(mask, structure=np.ones((3, 3), dtype=bool))
-    return n, np.bincount(labels.ravel())[1:]
+def _prior_reach_small(prior, small_shape, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of a grid reduced by ``factor``: whether it lies in the prior's band (within the
+    vessel's radius plus its deformation margin of the projected tree), and that reach in pixels."""
+    distance, nearest = prior.rasterise(small_shape, factor)
+    nearest = np.maximum(nearest, 0)
+    reach = (prior.radii_px[nearest] + prior.margin_px[nearest]) / factor
+    return distance <= reach, reach
+
+
+def _on_prior_pieces(labels: np.ndarray, count: int, prior, factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fraction of each piece's pixels inside the prior's band, and each piece's size (pixels)."""
+    small_shape = tuple(int(round(n / factor)) for n in labels.shape)
+    band, _ = _prior_reach_small(prior, small_shape, factor)
+    rows = np.minimum(np.arange(labels.shape[0]) // factor, small_shape[0] - 1)
+    cols = np.minimum(np.arange(labels.shape[1]) // factor, small_shape[1] - 1)
+    inside = band[np.ix_(rows, cols)]
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]
+    in_band = np.bincount(labels.ravel(), weights=inside.ravel(), minlength=count + 1)[1:]
+    return in_band / np.maximum(sizes, 1), sizes
+
+
+def _tree_samples(prior, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Points every pixel along the projected tree's edges inside a frame of ``shape``, and the
+    nearer node of each (so that each point stands for the same length of the projection)."""
+    finite = np.all(np.isfinite(prior.uv[prior.edges].reshape(len(prior.edges), -1)), axis=1)
+    a, b = prior.uv[prior.edges[finite, 0]], prior.uv[prior.edges[finite, 1]]
+    counts = np.ceil(np.linalg.norm(b - a, axis=1)).astype(int) + 1
+    edge = np.repeat(np.arange(len(a)), counts)
+    t = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)) / np.repeat(np.maximum(counts - 1, 1), counts)
+    points = a[edge] + t[:, None] * (b - a)[edge]
+    nodes = np.where(t < 0.5, prior.edges[finite, 0][edge], prior.edges[finite, 1][edge])
+    inside = (points[:, 0] >= 0) & (points[:, 0] < shape[1]) & (points[:, 1] >= 0) & (points[:, 1] < shape[0])
+    return points[inside], nodes[inside]
+
+
+def _prior_covered(mask: np.ndarray, prior, factor: int) -> tuple[float, np.ndarray | None]:
+    """Fraction of the projected tree's length (inside the frame) that lies within its vessel's
+    radius plus deformation margin of ``mask``, and the middle of its longest uncovered stretch (u, v)."""
+    points, nodes = _tree_samples(prior, mask.shape)
+    if not len(points):
+        return 0.0, None
+    small = ndi.zoom(mask.astype(np.float32), 1.0 / factor, order=1) > 0.25
+    distance = ndi.distance_transform_edt(~small) * factor
+    rows = np.clip(np.round((points[:, 1] + 0.5) / factor - 0.5).astype(int), 0, small.shape[0] - 1)
+    cols = np.clip(np.round((points[:, 0] + 0.5) / factor - 0.5).astype(int), 0, small.shape[1] - 1)
+    covered = distance[rows, cols] <= prior.radii_px[nodes] + prior.margin_px[nodes]
+    missed = points[~covered]
+    return float(covered.mean()), (missed[len(missed) // 2] if len(missed) else None)
+
+
+def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
+    """Refuse a mask that is not one vessel tree (:data:`MIN_LARGEST_PIECE`).
+
+    A mask whose largest 8-connected piece holds less than :data:`MIN_LARGEST_PIECE` of it still
+    passes as a tree broken by bone edges when the pieces lying along the projected tree (at
+    least :data:`ON_PRIOR_PIECE` of their pixels in the prior's band) hold that fraction of the
+    mask and cover at least :data:`MIN_PRIOR_COVERED` of the projected tree's length.
+    """
+    labels, count = ndi.label(mask, structure=np.ones((3, 3), dtype=bool))
+    sizes = np.bincount(labels.ravel())[1:]
+    if sizes.max() >= MIN_LARGEST_PIECE * sizes.sum():
+        return
+    factor = max(1, int(round(max(mask.shape) / 256)))
+    in_band, sizes = _on_prior_pieces(labels, count, prior, factor)
+    along = in_band >= ON_PRIOR_PIECE
+    share = float(sizes[along].sum() / sizes.sum())
+    start = (f"frame check: the segmented vessels fall apart into {count} pieces (the largest holds "
+             f"{100 * sizes.max() / sizes.sum():.0f}%)")
+    if share < MIN_LARGEST_PIECE:
+        off = np.flatnonzero(~along)
+        biggest = off[np.argmax(sizes[off])] + 1
+        rows, cols = np.nonzero(labels == biggest)
+        raise QualityError(f"{start} and {(~along).sum()} of them, {100 * (1 - share):.0f}% of the mask, lie away "
+                           f"from the projected tree (the largest near pixel (u={cols.mean():.0f}, "
+                           f"v={rows.mean():.0f})): not a contrast-filled vessel tree (bones or devices only? "
+                           f"see segmentation_qc.png)", qc)
+    covered, gap = _prior_covered(np.isin(labels, np.flatnonzero(along) + 1), prior, factor)
+    if covered < MIN_PRIOR_COVERED:
+        where = "" if gap is None else f" (missing near pixel (u={gap[0]:.0f}, v={gap[1]:.0f}))"
+        raise QualityError(f"{start} and those along the projected tree cover {100 * covered:.0f}% of its length, "
+                           f"less than {100 * MIN_PRIOR_COVERED:.0f}%{where}: not a contrast-filled vessel tree "
+                           f"(bones or devices only? see segmentation_qc.png)", qc)
 
 
 def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int = 6) -> float:
@@ -326,7 +409,9 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     """Check that a frame's vessel mask is an angiogram of the projected pre-operative tree.
 
     The mask must be neither empty nor cover more than :data:`MAX_MASK_FRACTION` of the frame,
-    and be one tree rather than scattered pieces (:data:`MIN_LARGEST_PIECE`);
+    and be one tree rather than scattered pieces (:data:`MIN_LARGEST_PIECE`), or a tree broken
+    by bone edges into pieces that lie along the projected tree and cover most of it
+    (:func:`_check_one_tree`);
     with the ``frame``, the masked vessels must stand out of the pixel noise (contrast to
     noise at least ``min_cnr``: noise and blank frames do not); after the in-plane shift (up
     to ``shift_mm``) that best lays the projected tree onto the mask's skeleton, at least
@@ -360,11 +445,7 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     if fraction > MAX_MASK_FRACTION:
         raise QualityError(f"frame check: the vessel mask covers {100 * fraction:.0f}% of the frame (noise, not an "
                            f"angiogram; see segmentation_qc.png)", qc)
-    pieces, sizes = _pieces(mask)
-    if sizes.max() < MIN_LARGEST_PIECE * sizes.sum():
-        raise QualityError(f"frame check: the segmented vessels fall apart into {pieces} pieces (the largest holds "
-                           f"{100 * sizes.max() / sizes.sum():.0f}%): not a contrast-filled vessel tree "
-                           f"(bones or devices only? see segmentation_qc.png)", qc)
+    _check_one_tree(mask, prior, qc)
     if frame is not None:
         cnr = vessel_contrast_to_noise(frame, mask)
         if cnr < min_cnr:
