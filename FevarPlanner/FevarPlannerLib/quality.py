@@ -324,33 +324,22 @@ def _on_prior_pieces(labels: np.ndarray, count: int, prior, factor: int) -> tupl
     return in_band / np.maximum(sizes, 1), sizes
 
 
-def _tree_samples(prior, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Points every pixel along the projected tree's edges inside a frame of ``shape``, and the
-    nearer node of each (so that each point stands for the same length of the projection)."""
-    finite = np.all(np.isfinite(prior.uv[prior.edges].reshape(len(prior.edges), -1)), axis=1)
-    a, b = prior.uv[prior.edges[finite, 0]], prior.uv[prior.edges[finite, 1]]
-    counts = np.ceil(np.linalg.norm(b - a, axis=1)).astype(int) + 1
-    edge = np.repeat(np.arange(len(a)), counts)
-    t = (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)) / np.repeat(np.maximum(counts - 1, 1), counts)
-    points = a[edge] + t[:, None] * (b - a)[edge]
-    nodes = np.where(t < 0.5, prior.edges[finite, 0][edge], prior.edges[finite, 1][edge])
-    inside = (points[:, 0] >= 0) & (points[:, 0] < shape[1]) & (points[:, 1] >= 0) & (points[:, 1] < shape[0])
-    return points[inside], nodes[inside]
-
-
 def _prior_covered(mask: np.ndarray, prior, factor: int) -> tuple[float, np.ndarray | None]:
-    """Fraction of the projected tree's length (inside the frame) that lies within its vessel's
-    radius plus deformation margin of ``mask``, and the middle of its longest uncovered stretch (u, v)."""
-    points, nodes = _tree_samples(prior, mask.shape)
-    if not len(points):
-        return 0.0, None
+    """Fraction of the projected tree's length inside the frame (its drawn pixels on the grid
+    reduced by ``factor``) within its vessel's radius plus deformation margin of ``mask``, and
+    the frame pixel (u, v) of the tree farthest from ``mask`` (None when all is covered)."""
     small = ndi.zoom(mask.astype(np.float32), 1.0 / factor, order=1) > 0.25
-    distance = ndi.distance_transform_edt(~small) * factor
-    rows = np.clip(np.round((points[:, 1] + 0.5) / factor - 0.5).astype(int), 0, small.shape[0] - 1)
-    cols = np.clip(np.round((points[:, 0] + 0.5) / factor - 0.5).astype(int), 0, small.shape[1] - 1)
-    covered = distance[rows, cols] <= prior.radii_px[nodes] + prior.margin_px[nodes]
-    missed = points[~covered]
-    return float(covered.mean()), (missed[len(missed) // 2] if len(missed) else None)
+    _, reach = _prior_reach_small(prior, small.shape, factor)
+    drawn = prior.rasterise(small.shape, factor)[0] == 0
+    if not drawn.any():
+        return 0.0, None
+    away = ndi.distance_transform_edt(~small)[drawn]
+    covered = away <= reach[drawn]
+    if covered.all():
+        return 1.0, None
+    rows, cols = np.nonzero(drawn)
+    farthest = np.argmax(away)
+    return float(covered.mean()), (np.array([cols[farthest], rows[farthest]]) + 0.5) * factor - 0.5
 
 
 def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
