@@ -87,9 +87,9 @@ def test_the_same_pieces_off_the_prior_are_refused_in_one_line(prior, broken):
     shifted = np.zeros_like(broken)
     shifted[:, 500:] = broken[:, :-500]                      # 500 px right of the projected tree
     assert len(pieces(shifted)) == 4
-    with pytest.raises(quality.QualityError, match=r"fall apart into 4 pieces .* and 4 of them, 100% of the mask, "
-                                                   r"lie away from the projected tree \(the largest near pixel "
-                                                   r"\(u=75\d, v=\d+\)\)") as failure:
+    with pytest.raises(quality.QualityError, match=r"fall apart into 4 pieces .*: 4 lie away from the projected "
+                                                   r"tree and 0 beside .* \(100% of the mask, the largest near "
+                                                   r"pixel \(u=75\d, v=\d+\)\)") as failure:
         quality.check_frame_mask(shifted, prior)
     assert "\n" not in str(failure.value)
 
@@ -109,9 +109,9 @@ def test_one_stray_piece_beside_a_broken_tree_is_tolerated_but_a_large_one_is_no
     small[40:50, 850:950] = True                             # 4% of the mask, far off the tree
     quality.check_frame_mask(small, prior)
     large = broken.copy()
-    large[40:100, 800:900] = True                            # 38% of the mask
-    with pytest.raises(quality.QualityError, match=r"lie away from the projected tree \(the largest near "
-                                                   r"pixel \(u=850, v=70\)\)"):
+    large[40:100, 800:900] = True                            # 39% of the mask
+    with pytest.raises(quality.QualityError, match=r"1 lie away from the projected tree and 0 beside .* \(39% of "
+                                                   r"the mask, the largest near pixel \(u=850, v=70\)\)"):
         quality.check_frame_mask(large, prior)
 
 
@@ -133,3 +133,15 @@ def test_one_piece_passes_without_looking_at_the_prior(prior):
     assert quality.check_frame_mask(whole, prior)["coverage"]["aorta"] >= 0.9
     quality._check_one_tree(whole, far, None)
     assert not far._raster_cache
+
+
+def test_slabs_beside_the_tree_are_refused_though_inside_its_band(prior, broken):
+    """What a prior-guided segmentation of a frame without contrast gives: slabs of background
+    lying side by side along the same stretch of the projected tree, all inside its band."""
+    slabs = np.zeros_like(broken)
+    for left in (225, 242, 259):                             # three 14 px slabs along the aorta, 3 px apart
+        slabs[70:350, left:left + 14] = True
+    assert len(pieces(slabs)) == 3
+    with pytest.raises(quality.QualityError, match=r"fall apart into 3 pieces .*: 0 lie away from the projected "
+                                                   r"tree and 2 beside a larger piece on the same stretch of it"):
+        quality.check_frame_mask(slabs, prior)

@@ -45,10 +45,14 @@ SHIFT_MM = 40.0
 #: 8-connected piece holds at least this fraction of it. On an unsubtracted frame the tree
 #: breaks where vessels cross bone edges; it still passes when the pieces lying along the
 #: projected tree (at least ON_PRIOR_PIECE of a piece's pixels inside the prior's band) hold
-#: this fraction of the mask and cover at least MIN_PRIOR_COVERED of the projected tree's length.
+#: this fraction of the mask, each on its own stretch of the tree (MAX_REACHED_AGAIN), and
+#: cover at least MIN_PRIOR_COVERED of the projected tree's length.
 MIN_LARGEST_PIECE = 0.75
 ON_PRIOR_PIECE = 0.5
 MIN_PRIOR_COVERED = 0.6
+#: A piece whose nearest projected-tree nodes are more than this fraction already reached by
+#: larger pieces lies beside them (a slab of background), not along the tree.
+MAX_REACHED_AGAIN = 0.5
 #: The masked vessels must differ from their surroundings by this many noise standard deviations.
 MIN_CONTRAST_TO_NOISE = 3.0
 #: A vessel mask covering more of the frame than this is noise, not an angiogram.
@@ -312,16 +316,28 @@ def _prior_reach_small(prior, small_shape, factor: int) -> tuple[np.ndarray, np.
     return distance <= reach, reach
 
 
-def _on_prior_pieces(labels: np.ndarray, count: int, prior, factor: int) -> tuple[np.ndarray, np.ndarray]:
-    """Fraction of each piece's pixels inside the prior's band, and each piece's size (pixels)."""
+def _on_prior_pieces(labels: np.ndarray, count: int, prior, factor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per piece (8-connected, ``labels`` 1..count): the fraction of its pixels inside the prior's
+    band, the fraction of the projected tree's nodes nearest to its pixels that larger pieces
+    already reach (a tree broken by bones reaches each stretch once; slabs lying beside a piece
+    reach the same stretch again), and its size in pixels."""
     small_shape = tuple(int(round(n / factor)) for n in labels.shape)
     band, _ = _prior_reach_small(prior, small_shape, factor)
+    nearest = np.maximum(prior.rasterise(small_shape, factor)[1], 0)
     rows = np.minimum(np.arange(labels.shape[0]) // factor, small_shape[0] - 1)
     cols = np.minimum(np.arange(labels.shape[1]) // factor, small_shape[1] - 1)
     inside = band[np.ix_(rows, cols)]
     sizes = np.bincount(labels.ravel(), minlength=count + 1)[1:]
     in_band = np.bincount(labels.ravel(), weights=inside.ravel(), minlength=count + 1)[1:]
-    return in_band / np.maximum(sizes, 1), sizes
+    where = labels > 0
+    pairs = np.unique(labels[where].astype(np.int64) * len(prior.uv) + nearest[np.ix_(rows, cols)][where])
+    nodes_of = np.split(pairs % len(prior.uv), np.searchsorted(pairs // len(prior.uv), np.arange(2, count + 1)))
+    reached, again = np.zeros(len(prior.uv), dtype=bool), np.zeros(count)
+    for piece in np.argsort(-sizes, kind="stable"):
+        nodes = nodes_of[piece]
+        again[piece] = reached[nodes].mean() if len(nodes) else 0.0
+        reached[nodes] = True
+    return in_band / np.maximum(sizes, 1), again, sizes
 
 
 def _prior_covered(mask: np.ndarray, prior, factor: int) -> tuple[float, np.ndarray | None]:
@@ -347,27 +363,29 @@ def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
 
     A mask whose largest 8-connected piece holds less than :data:`MIN_LARGEST_PIECE` of it still
     passes as a tree broken by bone edges when the pieces lying along the projected tree (at
-    least :data:`ON_PRIOR_PIECE` of their pixels in the prior's band) hold that fraction of the
-    mask and cover at least :data:`MIN_PRIOR_COVERED` of the projected tree's length.
+    least :data:`ON_PRIOR_PIECE` of their pixels in the prior's band, and at most
+    :data:`MAX_REACHED_AGAIN` of their stretch of it reached by larger pieces) hold that
+    fraction of the mask and cover at least :data:`MIN_PRIOR_COVERED` of the projected tree's length.
     """
     labels, count = ndi.label(mask, structure=np.ones((3, 3), dtype=bool))
     sizes = np.bincount(labels.ravel())[1:]
     if sizes.max() >= MIN_LARGEST_PIECE * sizes.sum():
         return
     factor = max(1, int(round(max(mask.shape) / 256)))
-    in_band, sizes = _on_prior_pieces(labels, count, prior, factor)
-    along = in_band >= ON_PRIOR_PIECE
+    in_band, again, sizes = _on_prior_pieces(labels, count, prior, factor)
+    away, beside = in_band < ON_PRIOR_PIECE, (in_band >= ON_PRIOR_PIECE) & (again > MAX_REACHED_AGAIN)
+    along = ~away & ~beside
     share = float(sizes[along].sum() / sizes.sum())
     start = (f"frame check: the segmented vessels fall apart into {count} pieces (the largest holds "
              f"{100 * sizes.max() / sizes.sum():.0f}%)")
     if share < MIN_LARGEST_PIECE:
-        off = np.flatnonzero(~along)
-        biggest = off[np.argmax(sizes[off])] + 1
+        stray = np.flatnonzero(~along)
+        biggest = stray[np.argmax(sizes[stray])] + 1
         rows, cols = np.nonzero(labels == biggest)
-        raise QualityError(f"{start} and {(~along).sum()} of them, {100 * (1 - share):.0f}% of the mask, lie away "
-                           f"from the projected tree (the largest near pixel (u={cols.mean():.0f}, "
-                           f"v={rows.mean():.0f})): not a contrast-filled vessel tree (bones or devices only? "
-                           f"see segmentation_qc.png)", qc)
+        raise QualityError(f"{start}: {away.sum()} lie away from the projected tree and {beside.sum()} beside a "
+                           f"larger piece on the same stretch of it ({100 * (1 - share):.0f}% of the mask, the "
+                           f"largest near pixel (u={cols.mean():.0f}, v={rows.mean():.0f})): not a contrast-filled "
+                           f"vessel tree (bones or devices only? see segmentation_qc.png)", qc)
     covered, gap = _prior_covered(np.isin(labels, np.flatnonzero(along) + 1), prior, factor)
     if covered < MIN_PRIOR_COVERED:
         where = "" if gap is None else f" (missing near pixel (u={gap[0]:.0f}, v={gap[1]:.0f}))"
