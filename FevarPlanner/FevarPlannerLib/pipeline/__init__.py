@@ -16,6 +16,7 @@ The package, one module per stage of a case (every name is re-exported here):
     results      FrameResult, ViewFrame, PlanResult: what a registration and a case return
     visibility   partial visibility: the part of the frame that shows vessels
     frame        register_frame / register_views: Algorithm 2 rows 3-16 for one or more views
+    workers      a persistent worker process for a second view's 2D side (and a view's frame check)
     multiview    the deformation over several views, unseen pieces carried rigidly
     fallback     never worse than SV: per-vessel length and 2D-fit checks with fallback
     case         prepare_preop, run_case, plan_case: a whole case, gated and evaluated
@@ -28,8 +29,8 @@ from ..preop import (Preoperative, SMOOTHING_ITERATIONS, _induced_edges, _timed,
                      preop_from_skeleton)
 from .case import _read_ground_truth, _vessel_mask, plan_case, prepare_preop, run_case
 from .fallback import FIT_TOLERANCE_PX, LENGTH_TOLERANCE, SV_NAME, _never_worse_than_sv, _vessels
-from .frame import (POSE_MODES, STABLE_VESSELS, _classify_2d, _prepare_view, _skeleton2d_graph,
-                    register_frame, register_views)
+from .frame import (POSE_MODES, STABLE_VESSELS, ViewSource, _classify_2d, _prepare_view, _skeleton2d_graph,
+                    prepare_views, register_frame, register_prepared, register_views)
 from .multiview import (CLOSEST_POINT_OUTLIER, CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM,
                         MAX_CANDIDATE_COMBINATIONS, TANGENT_MM)
 from .outputs import (DRR_NAME, OUTPUT_NAMES, OUTPUT_SUFFIXES, QC_NAME, check_output_folder, picture_title,
@@ -39,4 +40,4 @@ from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame
 
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult",
            "preop_from_skeleton", "preop_from_lumen", "build_preop", "prepare_preop", "picture_title",
-           "frame_visibility", "register_frame", "register_views", "run_case", "plan_case", "write_outputs"]
+           "frame_visibility", "register_frame", "register_views", "ViewSource", "prepare_views", "register_prepared", "run_case", "plan_case", "write_outputs"]
