@@ -1,4 +1,5 @@
-"""The aorta between the two renal junctions when the ostia move along it between CT and frame
+"""The aorta between the two renal junctions when the ostia move along it between CT and frame,
+and the trunk chain's ends where 2D and 3D thinning put their junctions differently
 (issue 10: bench phantom seed 2 case 02 fell back to SV, its aorta stretched 18-21 % at the
 renal level and grown +5.4 % in all).
 
@@ -36,6 +37,11 @@ def straight_aorta(junction_depths, length=100):
     return SkeletonGraph.from_points(positions, edges), [int(round(d)) for d in junction_depths]
 
 
+def without_projection_fit(monkeypatch):
+    """Make every fit of a chain's projection untrustworthy: the knots of eq. (5) with sliding junctions."""
+    monkeypatch.setattr(paper, "MIN_FIT_NODES", 10**9)
+
+
 def renal_trunk_target_ratio(left_2d_depth, slide_mm, monkeypatch):
     """2D target length / projected 3D length of the aorta between the renal junctions (3D: 20 and 26 mm deep)."""
     monkeypatch.setattr(paper, "JUNCTION_SLIDE_MM", slide_mm)
@@ -60,26 +66,69 @@ def test_per_trunk_eq5_stretches_the_aorta_between_shifted_ostia(monkeypatch):
 
 
 def test_sliding_junctions_keep_the_renal_trunk_length(monkeypatch):
+    without_projection_fit(monkeypatch)
     ratio = renal_trunk_target_ratio(17, 5.0, monkeypatch)
     assert ratio == pytest.approx(83.0 / 80.0, rel=1e-6)     # the whole chain's lambda2 / lambda3
     assert ratio < 1.05
 
 
+def test_the_projected_chain_places_its_junctions(monkeypatch):
+    # the top end slides 3 mm (6 px, within the 5 mm limit) to where the projection puts it:
+    # the renal trunk's targets are exactly its projection's length
+    assert renal_trunk_target_ratio(17, 5.0, monkeypatch) == pytest.approx(1.0, rel=1e-9)
+
+
 def test_a_junction_slides_no_further_than_its_limit(monkeypatch):
     # 2D left junction 14 mm higher: slides 2 mm (of 3D path, scaled) towards the proportional spot, no more
+    without_projection_fit(monkeypatch)
     ratio = renal_trunk_target_ratio(6, 2.0, monkeypatch)
     scale = 94.0 / 80.0
     assert ratio == pytest.approx((20.0 - 2.0 * scale) / 6.0, rel=1e-6)
 
 
-def test_a_single_trunk_is_eq5(monkeypatch):
+def test_a_chain_end_slides_no_further_than_its_limit(monkeypatch):
+    # the same, fitted: the top end (28 px below the 2D junction by the projection) slides 2 mm
+    # scaled (4.7 px at 188 / 80 px per mm), the inner junction already lies where the projection puts it
+    ratio = renal_trunk_target_ratio(6, 2.0, monkeypatch)
+    scale = 94.0 / 80.0
+    assert ratio == pytest.approx((40.0 - 2.0 * 2.0 * scale) / 12.0, rel=1e-6)
+
+
+def single_trunk_targets(monkeypatch=None):
+    """Targets of a straight 100 mm trunk whose 2D partner is its projection stretched 1.3 times."""
     g3, _ = straight_aorta([])
     g2 = SkeletonGraph.from_points(project(P_ORTHO, g3.positions) * [1.0, 1.3], np.stack([np.arange(100), np.arange(1, 101)], axis=1))
     nodes = np.arange(101)
     correspondence = matching.Correspondence([], [(nodes, nodes)], {0: 0, 100: 100})
     no_branches = SimpleNamespace(branches=[])
-    assignment = matching.soft_assign(g3, no_branches, g2, no_branches, P_ORTHO, correspondence)
+    return matching.soft_assign(g3, no_branches, g2, no_branches, P_ORTHO, correspondence), g2
+
+
+def test_a_single_trunk_is_eq5(monkeypatch):
+    without_projection_fit(monkeypatch)
+    assignment, g2 = single_trunk_targets()
     np.testing.assert_allclose(assignment.targets, g2.positions, atol=1e-9)
+
+
+def test_a_chain_end_slides_by_the_2d_radius_at_its_junction():
+    # with radii known, an end slides by up to the 2D vessel radius at its junction (3 px here)
+    g3, _ = straight_aorta([])
+    image = project(P_ORTHO, g3.positions)
+    g2 = SkeletonGraph(image, SkeletonGraph.from_points(image, np.stack([np.arange(100), np.arange(1, 101)], axis=1)).adjacency,
+                       radii=np.full(101, 3.0))
+    nodes3, nodes2 = np.arange(0, 96), np.arange(0, 101)      # the 2D chain runs 10 px beyond the projected one
+    chain, s2 = paper._sliding_trunk_lengths(g3, g2, [(nodes3, nodes2)], P_ORTHO)
+    np.testing.assert_array_equal(chain, nodes3)
+    assert s2[-1] == pytest.approx(200.0 - 3.0, abs=1e-9) and s2[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_single_trunk_fitted_ends_slide_by_the_limit_only():
+    # the projection (200 px) ends 60 px short of the 2D chain (260 px): the end slides 5 mm
+    # (13 px at 2.6 px per mm, no radii known) towards it, the rest is eq. (5) on 247 px
+    assignment, g2 = single_trunk_targets()
+    assert assignment.assigned.all()
+    np.testing.assert_allclose(assignment.targets[:, 1], np.arange(101) * 2.47, atol=1e-9)
+    np.testing.assert_allclose(assignment.targets[:, 0], 100.0, atol=1e-9)
 
 
 SEED = 5

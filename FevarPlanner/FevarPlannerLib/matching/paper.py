@@ -48,6 +48,12 @@ _FORBIDDEN = 1e6
 #: towards the chain's proportional position (:func:`_sliding_trunk_lengths`): the ostia
 #: of the renal arteries move 3-4 mm along the aorta between CT and frame.
 JUNCTION_SLIDE_MM = 5.0
+#: The fit of a trunk chain's projection along its 2D partner (:func:`_projected_length_fit`):
+#: at least this many nodes, residuals beyond this many px (or 3 median residuals) left
+#: out, and a slope (2D path per projected 3D path) within this range.
+MIN_FIT_NODES = 10
+FIT_OUTLIER_PX = 2.0
+FIT_SLOPE_RANGE = (0.8, 1.25)
 
 
 @dataclass
@@ -215,10 +221,10 @@ def _assign_by_arc_length(s3: np.ndarray, nodes2: np.ndarray, x2: np.ndarray):
 
     Implements the common core of eqs. (4) and (5): for the 2D node ``i`` with
     ``c_i <= s < c_{i+1}``, ``m(i+1, j) = (s - c_i) / |x_{i+1} - x_i|`` and
-    ``m(i, j) = 1 - m(i+1, j)``; a 3D node beyond the 2D chain gets no weight.
+    ``m(i, j) = 1 - m(i+1, j)``; a 3D node beyond either end of the 2D chain gets no weight.
     """
     c2 = _cumulative_length(x2)
-    inside = s3 <= c2[-1] + 1e-9
+    inside = (s3 >= -1e-9) & (s3 <= c2[-1] + 1e-9)
     i = np.clip(np.searchsorted(c2, s3, side="right") - 1, 0, len(c2) - 2)
     step = c2[i + 1] - c2[i]
     m_next = np.where(step > 0, (s3 - c2[i]) / np.where(step > 0, step, 1.0), 0.0)
@@ -273,7 +279,51 @@ def _join_two(first: list, second: list) -> list | None:
     return None
 
 
-def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list) -> tuple[np.ndarray, np.ndarray]:
+def _arc_positions(curve: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Path length along the polyline ``curve`` of its point nearest to each of ``points``."""
+    start, step = curve[:-1], np.diff(curve, axis=0)
+    squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
+    offset = points[:, None, :] - start[None]
+    t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
+    gap = offset - t[..., None] * step[None]
+    segment = np.argmin(np.einsum("nmd,nmd->nm", gap, gap), axis=1)
+    return _cumulative_length(curve)[segment] + t[np.arange(len(points)), segment] * np.sqrt(squared[segment])
+
+
+def _projected_length_fit(curve2: np.ndarray, projected: np.ndarray) -> np.ndarray | None:
+    """``(a, b)`` of the path position ``a + b s`` on the 2D chain ``curve2`` of the projected 3D
+    chain's node at projected path length ``s``, or None when the fit is not to be trusted.
+
+    Each projected node is placed at the path position of its nearest point of the 2D chain;
+    nodes whose nearest point is an end of the chain (beyond it) are left out, and so, after
+    a first least-squares fit, are those more than :data:`FIT_OUTLIER_PX` (or three times the
+    median residual) off it. Fewer than :data:`MIN_FIT_NODES` nodes, or a slope outside
+    :data:`FIT_SLOPE_RANGE`, give None.
+    """
+    s = _cumulative_length(projected)
+    at = _arc_positions(curve2, projected)
+    length = _cumulative_length(curve2)[-1]
+    used = (at > 0.5) & (at < length - 0.5)
+    design = np.stack([np.ones_like(s), s], axis=1)
+    coefficients = None
+    for _ in range(2):
+        if used.sum() < MIN_FIT_NODES:
+            return None
+        coefficients = np.linalg.lstsq(design[used], at[used], rcond=None)[0]
+        residual = np.abs(design @ coefficients - at)
+        used &= residual <= max(FIT_OUTLIER_PX, 3.0 * float(np.median(residual[used])))
+    low, high = FIT_SLOPE_RANGE
+    return coefficients if low <= coefficients[1] <= high else None
+
+
+def _end_slide_px(g2: SkeletonGraph, node: int, default_px: float) -> float:
+    """How far a chain end may slide along its 2D partner: the 2D vessel radius at its junction
+    (a thinned junction lies within about a radius of the branch point), else ``default_px``."""
+    return default_px if g2.radii is None else float(g2.radii[node])
+
+
+def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list,
+                           P: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """3D nodes of a trunk chain and the 2D path length each is assigned to (eq. 5, with sliding junctions).
 
     Eq. (5) maps a trunk's 3D path length onto its 2D partner in equal proportion. Applied
@@ -281,10 +331,23 @@ def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list)
     ostia of the renal arteries move a few millimetres along the aorta between CT and
     frame: the few millimetres of aorta between two close renal junctions are then mapped
     onto a 2D stretch of another length, which stretches the aorta there by 20 % and more.
-    Here the whole chain is mapped piecewise linearly between knots at its junctions; the
-    two ends are pinned as in eq. (5), and an inner junction's knot lies at its 2D
-    partner's path length moved towards the proportional position of the whole chain by
-    up to :data:`JUNCTION_SLIDE_MM` (scaled by lambda2 / lambda3). A single trunk is eq. (5).
+    Here the whole chain is mapped piecewise linearly between knots at its junctions.
+
+    The 3D and the 2D skeleton junctions are not the same point of the anatomy either:
+    thinning puts a junction up to about a vessel radius from the branch point, a 3D
+    thinning and a 2D one differently (on the bench phantom the chain's top junction in 2D
+    lay 8-22 px above where the 3D one belongs, its bottom one up to 16 px below: eq. (5)
+    then stretched the aorta's targets by up to 10 %, which the length term turned into
+    depth bulges of +-5 mm). With ``P``, the projected 3D chain tells where its junctions
+    belong: each of its nodes is placed at the path position of its nearest 2D point, and
+    a line fitted to those positions against the projected path length
+    (:func:`_projected_length_fit`) gives every knot's expected 2D position. An inner
+    junction's knot moves from its 2D partner towards it by up to :data:`JUNCTION_SLIDE_MM`
+    (scaled by lambda2 / lambda3), an end's by up to the 2D vessel radius at that junction
+    (:func:`_end_slide_px`); between knots the mapping follows the projected 3D path length.
+    Without ``P`` or a trustworthy fit, the ends stay pinned as in eq. (5) and an inner
+    knot moves towards the proportional position of the whole chain (a single trunk is
+    then eq. 5).
     """
     nodes3 = _joined([n3 for n3, _ in segments])
     s3 = _cumulative_length(g3.positions[nodes3])
@@ -293,12 +356,38 @@ def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list)
     knots3 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g3.positions[n3])[-1] for n3, _ in segments])])
     knots2 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g2.positions[n2])[-1] for _, n2 in segments])])
     scale = knots2[-1] / knots3[-1]                     # lambda2 / lambda3 of the whole chain
-    slide = JUNCTION_SLIDE_MM * scale
+    slide = np.full(len(knots2), JUNCTION_SLIDE_MM * scale)
+    fitted = _fitted_knots(g3, g2, segments, nodes3, P, slide)
+    if fitted is not None:
+        return nodes3, fitted
     knots = knots2 + np.clip(knots3 * scale - knots2, -slide, slide)
     knots[[0, -1]] = knots2[[0, -1]]
     if np.any(np.diff(knots) <= 0) or np.any(np.diff(knots3) <= 0):
         knots = knots2
     return nodes3, np.interp(s3, knots3, knots)
+
+
+def _fitted_knots(g3: SkeletonGraph, g2: SkeletonGraph, segments: list, nodes3: np.ndarray, P, slide: np.ndarray):
+    """The 2D path positions of a chain's nodes from knots moved towards the projected chain's
+    fit (:func:`_sliding_trunk_lengths`), or None without ``P`` or a trustworthy fit."""
+    if P is None:
+        return None
+    nodes2 = _joined([n2 for _, n2 in segments])
+    projected = project(P, g3.positions[nodes3])
+    fit = _projected_length_fit(g2.positions[nodes2], projected)
+    if fit is None:
+        return None
+    s = _cumulative_length(projected)
+    bounds = np.concatenate([[0], np.cumsum([len(n3) - 1 for n3, _ in segments])])
+    knots_s = s[bounds]
+    knots2 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g2.positions[n2])[-1] for _, n2 in segments])])
+    slide = slide.copy()
+    slide[0] = _end_slide_px(g2, int(nodes2[0]), slide[0])
+    slide[-1] = _end_slide_px(g2, int(nodes2[-1]), slide[-1])
+    knots = knots2 + np.clip(fit[0] + fit[1] * knots_s - knots2, -slide, slide)
+    if np.any(np.diff(knots) <= 0) or np.any(np.diff(knots_s) <= 0):
+        return None
+    return np.interp(s, knots_s, knots)
 
 
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
@@ -322,7 +411,7 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         assigned[j] = True
 
     for segments in _trunk_chains(correspondence.trunk_pairs):
-        nodes3, s2 = _sliding_trunk_lengths(g3, g2, segments)
+        nodes3, s2 = _sliding_trunk_lengths(g3, g2, segments, P)
         add(nodes3, s2, _joined([n2 for _, n2 in segments]))
     chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
     for i3, nodes2 in chains.items():
