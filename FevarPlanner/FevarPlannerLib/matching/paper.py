@@ -316,10 +316,11 @@ def _projected_length_fit(curve2: np.ndarray, projected: np.ndarray) -> np.ndarr
     return coefficients if low <= coefficients[1] <= high else None
 
 
-def _end_slide_px(g2: SkeletonGraph, node: int, default_px: float) -> float:
-    """How far a chain end may slide along its 2D partner: the 2D vessel radius at its junction
-    (a thinned junction lies within about a radius of the branch point), else ``default_px``."""
-    return default_px if g2.radii is None else float(g2.radii[node])
+def _end_slide_px(g2: SkeletonGraph, node: int, limit_px: float) -> float:
+    """How far a chain end may slide along its 2D partner: ``limit_px``, and no more than the 2D
+    vessel radius at its junction where the graph knows it (a thinned junction lies within
+    about a radius of the branch point)."""
+    return limit_px if g2.radii is None else min(limit_px, float(g2.radii[node]))
 
 
 def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list,
@@ -343,8 +344,8 @@ def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list,
     a line fitted to those positions against the projected path length
     (:func:`_projected_length_fit`) gives every knot's expected 2D position. An inner
     junction's knot moves from its 2D partner towards it by up to :data:`JUNCTION_SLIDE_MM`
-    (scaled by lambda2 / lambda3), an end's by up to the 2D vessel radius at that junction
-    (:func:`_end_slide_px`); between knots the mapping follows the projected 3D path length.
+    (scaled by lambda2 / lambda3), an end's as far but no more than the 2D vessel radius at
+    that junction (:func:`_end_slide_px`); between knots the mapping follows the projected 3D path length.
     Without ``P`` or a trustworthy fit, the ends stay pinned as in eq. (5) and an inner
     knot moves towards the proportional position of the whole chain (a single trunk is
     then eq. 5).
