@@ -345,8 +345,8 @@ def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list,
     (:func:`_projected_length_fit`) gives every knot's expected 2D position. An inner
     junction's knot moves from its 2D partner towards it by up to :data:`JUNCTION_SLIDE_MM`
     (scaled by lambda2 / lambda3), an end's as far but no more than the 2D vessel radius at
-    that junction (:func:`_end_slide_px`); between knots the mapping follows the projected 3D path length.
-    Without ``P`` or a trustworthy fit, the ends stay pinned as in eq. (5) and an inner
+    that junction (:func:`_end_slide_px`); between knots the mapping is eq. (5)'s (equal
+    proportion of 3D path length). Without ``P`` or a trustworthy fit, the ends stay pinned as in eq. (5) and an inner
     knot moves towards the proportional position of the whole chain (a single trunk is
     then eq. 5).
     """
@@ -378,17 +378,17 @@ def _fitted_knots(g3: SkeletonGraph, g2: SkeletonGraph, segments: list, nodes3: 
     fit = _projected_length_fit(g2.positions[nodes2], projected)
     if fit is None:
         return None
-    s = _cumulative_length(projected)
     bounds = np.concatenate([[0], np.cumsum([len(n3) - 1 for n3, _ in segments])])
-    knots_s = s[bounds]
+    expected = fit[0] + fit[1] * _cumulative_length(projected)[bounds]
     knots2 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g2.positions[n2])[-1] for _, n2 in segments])])
     slide = slide.copy()
     slide[0] = _end_slide_px(g2, int(nodes2[0]), slide[0])
     slide[-1] = _end_slide_px(g2, int(nodes2[-1]), slide[-1])
-    knots = knots2 + np.clip(fit[0] + fit[1] * knots_s - knots2, -slide, slide)
-    if np.any(np.diff(knots) <= 0) or np.any(np.diff(knots_s) <= 0):
+    knots = knots2 + np.clip(expected - knots2, -slide, slide)
+    s3 = _cumulative_length(g3.positions[nodes3])
+    if np.any(np.diff(knots) <= 0) or np.any(np.diff(s3[bounds]) <= 0):
         return None
-    return np.interp(s, knots_s, knots)
+    return np.interp(s3, s3[bounds], knots)
 
 
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
