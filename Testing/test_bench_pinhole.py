@@ -183,9 +183,14 @@ P_FRONTAL = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 109.0], [0.0, 0.0, 
 def test_trunk_targets_follow_the_projection_where_2d_and_3d_thinning_place_junctions_apart():
     """The anatomy does not move, so each 3D node's target is its own projection. The 2D
     thinning puts both junctions a pixel lower than the 3D one does: eq. (5), pinning the
-    trunk's ends to the 2D junctions, misplaces the targets by a pixel; the knots fitted to
-    the projected trunk (matching.paper._sliding_trunk_lengths with P) by 0.05 px."""
+    trunk's ends to the 2D junctions, misplaces the targets by a pixel. With the knots fitted
+    to the projected trunk (matching.paper._sliding_trunk_lengths with P) the bottom end,
+    whose 2D junction lies outwards (beyond where the 3D one belongs), slides in and its
+    targets are right; the top end, whose 2D junction lies inwards, stays pinned (an end
+    slides inwards only): 0.5 px."""
     projected, eq5 = _aortic_trunk_targets(None)
     assert np.abs(eq5 - projected).mean() == pytest.approx(1.0, abs=0.1)
+    assert abs(eq5[-1] - projected[-1]) == pytest.approx(1.0, abs=0.1)
     projected, fitted = _aortic_trunk_targets(P_FRONTAL)
-    assert np.abs(fitted - projected).mean() < 0.1
+    assert np.abs(fitted - projected).mean() == pytest.approx(0.5, abs=0.1)
+    assert abs(fitted[-1] - projected[-1]) < 0.05 and abs(fitted[0] - projected[0]) == pytest.approx(1.0, abs=0.1)

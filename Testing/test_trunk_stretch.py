@@ -122,6 +122,16 @@ def test_a_chain_end_slides_by_the_2d_radius_at_its_junction():
     assert s2[-1] == pytest.approx(200.0 - 3.0, abs=1e-9) and s2[0] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_a_chain_end_never_slides_outwards():
+    # the projection (200 px) runs 40 px beyond a 2D chain of 160 px (an aorta bent out of the
+    # view's plane, not a thinned junction): the ends stay pinned, the chain is eq. (5)
+    g3, _ = straight_aorta([])
+    g2 = SkeletonGraph.from_points(project(P_ORTHO, g3.positions) * [1.0, 0.8], np.stack([np.arange(100), np.arange(1, 101)], axis=1))
+    nodes = np.arange(101)
+    chain, s2 = paper._sliding_trunk_lengths(g3, g2, [(nodes, nodes)], P_ORTHO)
+    np.testing.assert_allclose(s2, nodes * 1.6, atol=1e-9)
+
+
 def test_a_single_trunk_fitted_ends_slide_by_the_limit_only():
     # the projection (200 px) ends 60 px short of the 2D chain (260 px): the end slides 5 mm
     # (13 px at 2.6 px per mm, no radii known) towards it, the rest is eq. (5) on 247 px

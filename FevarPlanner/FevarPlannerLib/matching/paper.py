@@ -345,7 +345,11 @@ def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list,
     (:func:`_projected_length_fit`) gives every knot's expected 2D position. An inner
     junction's knot moves from its 2D partner towards it by up to :data:`JUNCTION_SLIDE_MM`
     (scaled by lambda2 / lambda3), an end's as far but no more than the 2D vessel radius at
-    that junction (:func:`_end_slide_px`); between knots the mapping is eq. (5)'s (equal
+    that junction (:func:`_end_slide_px`) and only inwards, shortening the 2D chain (a 2D
+    junction thinned into the crotch lies outwards; a projection running beyond the 2D
+    chain is a trunk bent out of the view's plane, whose foreshortening eq. 5 keeps: with
+    outward slides an aorta bent 12 degrees towards an AP view came out 4.95 mm off with a
+    LAO 60 second view, 0.30 mm without); between knots the mapping is eq. (5)'s (equal
     proportion of 3D path length). Without ``P`` or a trustworthy fit, the ends stay pinned as in eq. (5) and an inner
     knot moves towards the proportional position of the whole chain (a single trunk is
     then eq. 5).
@@ -384,7 +388,9 @@ def _fitted_knots(g3: SkeletonGraph, g2: SkeletonGraph, segments: list, nodes3: 
     slide = slide.copy()
     slide[0] = _end_slide_px(g2, int(nodes2[0]), slide[0])
     slide[-1] = _end_slide_px(g2, int(nodes2[-1]), slide[-1])
-    knots = knots2 + np.clip(expected - knots2, -slide, slide)
+    low, high = -slide, slide.copy()
+    low[0], high[-1] = 0.0, 0.0          # the ends only inwards: thinning puts a junction outwards
+    knots = knots2 + np.clip(expected - knots2, low, high)
     s3 = _cumulative_length(g3.positions[nodes3])
     if np.any(np.diff(knots) <= 0) or np.any(np.diff(s3[bounds]) <= 0):
         return None
