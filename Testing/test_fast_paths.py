@@ -343,3 +343,102 @@ def test_a_frame_check_in_the_idle_worker_gives_this_process_verdict(view_worker
         verdicts[use_worker] = [None if error is None else (type(error), str(error)) for error in found]
     assert verdicts[True] == verdicts[False]
     assert verdicts[True][0] is None and "pieces" in verdicts[True][1][1]
+
+
+def _best_shift_by_loop(distance, uv, tolerance_px, shift_px, step_px):
+    """The frame check's shift search as a double loop over shifts, the first best kept."""
+    offsets = np.arange(-shift_px, shift_px + step_px / 2, step_px)
+    rows, cols = distance.shape
+    best, best_shift = -1.0, np.zeros(2)
+    for du in offsets:
+        for dv in offsets:
+            u = np.clip(np.round(uv[:, 0] + du).astype(int), 0, cols - 1)
+            v = np.clip(np.round(uv[:, 1] + dv).astype(int), 0, rows - 1)
+            score = float(np.mean(distance[v, u] <= tolerance_px))
+            if score > best:
+                best, best_shift = score, np.array([du, dv])
+    return best_shift
+
+
+def test_the_shift_search_finds_the_loops_first_best_shift_to_the_bit():
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(7)
+    for trial in range(12):
+        shape = tuple(rng.integers(20, 90, size=2))
+        skeleton = rng.random(shape) < rng.uniform(0.002, 0.05)
+        distance = ndi.distance_transform_edt(~skeleton) if trial % 4 else np.zeros(shape)   # all shifts tie
+        uv = rng.uniform(-10, max(shape) + 10, size=(int(rng.integers(5, 120)), 2))
+        labels = rng.integers(0, 3, size=len(uv))
+        tolerance = np.array([1.5, 2.0, 3.7])[labels] if trial % 3 else 2.5
+        groups = {f"g{k}": labels == k for k in range(3)}
+        shift_px, step_px = rng.uniform(3, 15), (1.0, 1.7, 2.5)[trial % 3]
+        coverage, shift = quality._best_shift_coverage(distance, uv, groups, tolerance, shift_px, step_px)
+        expected = _best_shift_by_loop(distance, uv, tolerance, shift_px, step_px)
+        np.testing.assert_array_equal(shift, expected)
+        assert list(coverage) == list(groups)
+
+
+def _contrast_to_noise_on_the_whole_frame(frame, mask, ring_px=6):
+    """Contrast to noise with the ring dilated over the whole frame."""
+    grey = np.asarray(frame, dtype=np.float32)
+    if grey.ndim == 3:
+        grey = grey[..., :3].mean(axis=-1) if grey.shape[-1] in (3, 4) else grey[0]
+    mask = np.asarray(mask) > 0
+    ring = ndi.binary_dilation(mask, iterations=ring_px) & ~ndi.binary_dilation(mask, iterations=2)
+    if not mask.any() or not ring.any():
+        return 0.0
+    detail = grey - ndi.gaussian_filter(grey, 1.0)
+    noise = 1.4826 * float(np.median(np.abs(detail - np.median(detail)))) / 0.78 + 1e-6
+    return abs(float(np.median(grey[mask]) - np.median(grey[ring]))) / noise
+
+
+def test_contrast_to_noise_in_the_masks_box_equals_the_whole_frame_to_the_bit():
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(3)
+    checked = 0
+    for k, small in enumerate(random_masks(seed=5, count=60)):
+        shape = (small.shape[0] + int(rng.integers(0, 40)), small.shape[1] + int(rng.integers(0, 40)))
+        mask = np.zeros(shape, dtype=bool)
+        r0, c0 = int(rng.integers(0, shape[0] - small.shape[0] + 1)), int(rng.integers(0, shape[1] - small.shape[1] + 1))
+        mask[r0:r0 + small.shape[0], c0:c0 + small.shape[1]] = small
+        frame = 1000.0 - 300.0 * mask + rng.normal(0.0, 40.0, shape)
+        frame = frame.astype(np.uint16) if k % 2 else frame
+        if k % 5 == 0:
+            frame = np.repeat(frame[..., None], 3, axis=-1)
+        for ring_px in (6, 3, 2, 1):
+            assert quality.vessel_contrast_to_noise(frame, mask, ring_px) == \
+                _contrast_to_noise_on_the_whole_frame(frame, mask, ring_px)
+        checked += mask.any()
+    assert checked > 40
+
+
+def _radii_on_the_whole_volume(points, lumen):
+    distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
+    index = np.clip(np.round(lumen.lps_to_index(points)).astype(int), 0, np.array(lumen.shape) - 1)
+    return distance[tuple(index.T)]
+
+
+def test_lumen_radii_in_the_lumens_box_equal_the_whole_volume_to_the_bit():
+    from types import SimpleNamespace
+
+    from FevarPlannerLib import quality
+    from FevarPlannerLib.io import Volume
+
+    rng = np.random.default_rng(9)
+    for trial in range(8):
+        shape = tuple(int(n) for n in rng.integers(8, 40, size=3))
+        blobs = ndi.gaussian_filter(rng.random(shape), rng.uniform(0.8, 2.5)) > rng.uniform(0.5, 0.56)
+        if trial == 0:
+            blobs[:] = False
+        if trial == 1:
+            blobs[:, :, :3] = True          # the lumen touches the volume's border
+        lumen = Volume(blobs.astype(np.uint8), rng.uniform(0.5, 2.0, 3), rng.normal(0, 20, 3), np.diag([1.0, -1.0, 1.0]))
+        index = rng.uniform(-3, np.array(shape) + 3, size=(200, 3))       # (k, j, i), some outside
+        inside = np.argwhere(blobs)
+        if len(inside):
+            index[:100] = inside[rng.integers(0, len(inside), 100)]
+        points = SimpleNamespace(points=lumen.index_to_lps(index))
+        np.testing.assert_array_equal(quality._radii(points, lumen), _radii_on_the_whole_volume(points.points, lumen))
+        assert trial < 2 or quality._radii(points, lumen)[:100].max() > 0

@@ -104,9 +104,7 @@ class FluoroPrior:
         """The prior of a labelled :class:`Centerline`; radii from ``lumen``'s distance map if given."""
         radii = None
         if lumen is not None:
-            distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
-            index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
-            radii = np.maximum(distance[tuple(index.T)], 1.0)
+            radii = np.maximum(_radii(centerline, lumen), 1.0)
         return cls(centerline.points, centerline.edges, centerline.labels, P, radii)
 
     def rasterise(self, shape, factor: int = 1):
@@ -221,10 +219,31 @@ def _vessel_lengths(centerline) -> dict:
     return lengths
 
 
+def _lumen_box(inside: np.ndarray) -> tuple:
+    """The bounding box of ``inside`` widened by one voxel (clipped to the volume): every voxel
+    of the widening is background, so each lumen voxel's nearest background voxel (the
+    clamp of any nearer one outside the box) lies in the box."""
+    box = []
+    for axis in range(inside.ndim):
+        hit = np.flatnonzero(inside.any(axis=tuple(a for a in range(inside.ndim) if a != axis)))
+        box.append(slice(max(int(hit[0]) - 1, 0), min(int(hit[-1]) + 2, inside.shape[axis])))
+    return tuple(box)
+
+
 def _radii(centerline, lumen: Volume) -> np.ndarray:
-    distance = ndi.distance_transform_edt(np.asarray(lumen.array) > 0, sampling=np.asarray(lumen.spacing)[::-1])
+    """Lumen radius (mm) at each centreline node: its voxel's Euclidean distance to the nearest
+    background voxel, computed only in the lumen's bounding box (zero outside it)."""
+    inside = np.asarray(lumen.array) > 0
     index = np.clip(np.round(lumen.lps_to_index(centerline.points)).astype(int), 0, np.array(lumen.shape) - 1)
-    return distance[tuple(index.T)]
+    radii = np.zeros(len(index))
+    if not inside.any():
+        return radii
+    box = _lumen_box(inside)
+    distance = ndi.distance_transform_edt(inside[box], sampling=np.asarray(lumen.spacing)[::-1])
+    start, stop = np.array([b.start for b in box]), np.array([b.stop for b in box])
+    within = np.all((index >= start) & (index < stop), axis=1)
+    radii[within] = distance[tuple((index[within] - start).T)]
+    return radii
 
 
 def _where_aorta_ends(centerline) -> str:
@@ -283,20 +302,34 @@ def check_preop_tree(centerline, lumen: Volume | None = None, qc: QCData | None 
     return report
 
 
+def _shift_scores(distance: np.ndarray, uv: np.ndarray, tolerance_px, offsets: np.ndarray) -> np.ndarray:
+    """Number of points within their tolerance of the skeleton per shift (du = offsets[i],
+    dv = offsets[j]): one look-up per point and shift in a stack of "within tolerance" maps,
+    one map per distinct tolerance, a block of du at a time."""
+    rows, cols = distance.shape
+    tolerance = np.broadcast_to(np.asarray(tolerance_px, dtype=float), (len(uv),))
+    levels, level_of_point = np.unique(tolerance, return_inverse=True)
+    within = (distance[None] <= levels[:, None, None]).ravel()
+    us = np.clip(np.round(uv[:, 0] + offsets[:, None]).astype(int), 0, cols - 1)
+    vs = np.clip(np.round(uv[:, 1] + offsets[:, None]).astype(int), 0, rows - 1)
+    row_starts = level_of_point * (rows * cols) + vs * cols
+    scores = np.empty((len(offsets), len(offsets)), dtype=np.int64)
+    block = max(1, 2_000_000 // max(len(offsets) * len(uv), 1))
+    for first in range(0, len(offsets), block):
+        flat = row_starts[None, :, :] + us[first:first + block, None, :]
+        scores[first:first + block] = np.count_nonzero(within[flat], axis=2)
+    return scores
+
+
 def _best_shift_coverage(distance: np.ndarray, uv: np.ndarray, groups: dict, tolerance_px: float,
                          shift_px: float, step_px: float) -> tuple[dict, np.ndarray]:
     """Fraction of each group's points within ``tolerance_px`` of the skeleton, for the shift that
-    maximises the overall fraction (an exhaustive search over in-plane translations)."""
+    maximises the overall fraction (an exhaustive search over in-plane translations; of equal
+    scores the first in the order du, then dv, both ascending)."""
     offsets = np.arange(-shift_px, shift_px + step_px / 2, step_px)
     rows, cols = distance.shape
-    best, best_shift = -1.0, np.zeros(2)
-    for du in offsets:
-        for dv in offsets:
-            u = np.clip(np.round(uv[:, 0] + du).astype(int), 0, cols - 1)
-            v = np.clip(np.round(uv[:, 1] + dv).astype(int), 0, rows - 1)
-            score = float(np.mean(distance[v, u] <= tolerance_px))
-            if score > best:
-                best, best_shift = score, np.array([du, dv])
+    best = np.unravel_index(np.argmax(_shift_scores(distance, uv, tolerance_px, offsets)), (len(offsets),) * 2)
+    best_shift = offsets[np.array(best)]
     u = np.clip(np.round(uv[:, 0] + best_shift[0]).astype(int), 0, cols - 1)
     v = np.clip(np.round(uv[:, 1] + best_shift[1]).astype(int), 0, rows - 1)
     close = distance[v, u] <= tolerance_px
@@ -394,20 +427,43 @@ def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
                            f"(bones or devices only? see segmentation_qc.png)", qc)
 
 
+def _pixel_noise(grey: np.ndarray) -> float:
+    """Robust noise of one pixel: 1.4826 MAD of the frame minus its 1-pixel Gaussian blur, / 0.78."""
+    detail = grey - ndi.gaussian_filter(grey, 1.0)
+    centre = np.median(detail, overwrite_input=False)
+    np.subtract(detail, centre, out=detail)
+    np.abs(detail, out=detail)
+    return 1.4826 * float(np.median(detail.ravel(), overwrite_input=True)) / 0.78 + 1e-6
+
+
+def _padded_box(mask: np.ndarray, pad: int) -> tuple:
+    """The bounding box of ``mask`` widened by ``pad`` pixels (clipped to the frame)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    return (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, mask.shape[0])),
+            slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, mask.shape[1])))
+
+
 def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int = 6) -> float:
     """|median inside the mask - median of a ring around it| over the frame's pixel noise
     (robust: 1.4826 MAD of the difference between the frame and its 1-pixel Gaussian blur,
-    rescaled to the noise of a single pixel)."""
+    rescaled to the noise of a single pixel).
+
+    The ring (between 2 and ``ring_px`` dilations of the mask) is built in the mask's bounding
+    box widened by ``ring_px``: the dilations cannot reach past it.
+    """
     grey = np.asarray(frame, dtype=np.float32)
     if grey.ndim == 3:
         grey = grey[..., :3].mean(axis=-1) if grey.shape[-1] in (3, 4) else grey[0]
     mask = np.asarray(mask) > 0
-    ring = ndi.binary_dilation(mask, iterations=ring_px) & ~ndi.binary_dilation(mask, iterations=2)
-    if not mask.any() or not ring.any():
+    if not mask.any():
         return 0.0
-    detail = grey - ndi.gaussian_filter(grey, 1.0)
-    noise = 1.4826 * float(np.median(np.abs(detail - np.median(detail)))) / 0.78 + 1e-6
-    return abs(float(np.median(grey[mask]) - np.median(grey[ring]))) / noise
+    box = _padded_box(mask, ring_px)
+    near = ndi.binary_dilation(mask[box], iterations=2)
+    ring = ndi.binary_dilation(near, iterations=ring_px - 2) & ~near if ring_px > 2 else np.zeros_like(near)
+    if not ring.any():
+        return 0.0
+    values = grey[box]
+    return abs(float(np.median(values[mask[box]]) - np.median(values[ring]))) / _pixel_noise(grey)
 
 
 def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame: np.ndarray | None = None,
