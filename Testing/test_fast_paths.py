@@ -442,3 +442,19 @@ def test_lumen_radii_in_the_lumens_box_equal_the_whole_volume_to_the_bit():
         points = SimpleNamespace(points=lumen.index_to_lps(index))
         np.testing.assert_array_equal(quality._radii(points, lumen), _radii_on_the_whole_volume(points.points, lumen))
         assert trial < 2 or quality._radii(points, lumen)[:100].max() > 0
+
+
+def test_the_reordering_median_equals_np_median_to_the_bit():
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(12)
+    for size in (1, 2, 3, 10, 11, 1000, 1001):
+        for dtype in (np.float32, np.float64):
+            values = rng.normal(0.0, 3.0, size).astype(dtype)
+            values[: size // 3] = np.round(values[: size // 3])          # ties
+            expected = np.median(values)
+            got = quality._median_reordering(values.copy())
+            assert got == expected and got.dtype == expected.dtype
+    with_nan = rng.normal(size=9).astype(np.float32)
+    with_nan[4] = np.nan
+    assert np.isnan(quality._median_reordering(with_nan)) and np.isnan(np.median(with_nan))

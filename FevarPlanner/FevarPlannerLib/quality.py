@@ -427,13 +427,25 @@ def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
                            f"(bones or devices only? see segmentation_qc.png)", qc)
 
 
+def _median_reordering(values: np.ndarray):
+    """``np.median`` of a 1-D float array, which it reorders: one partition at the middle, the
+    lower middle of an even count being the largest value below it (NaN when any value is NaN)."""
+    middle = values.size // 2
+    values.partition(middle)
+    if np.isnan(values[middle:].max()):
+        return values.dtype.type(np.nan)
+    if values.size % 2:
+        return values[middle]
+    return np.mean(np.array([values[:middle].max(), values[middle]], dtype=values.dtype))
+
+
 def _pixel_noise(grey: np.ndarray) -> float:
     """Robust noise of one pixel: 1.4826 MAD of the frame minus its 1-pixel Gaussian blur, / 0.78."""
-    detail = grey - ndi.gaussian_filter(grey, 1.0)
-    centre = np.median(detail, overwrite_input=False)
+    detail = (grey - ndi.gaussian_filter(grey, 1.0)).ravel()
+    centre = _median_reordering(detail)
     np.subtract(detail, centre, out=detail)
     np.abs(detail, out=detail)
-    return 1.4826 * float(np.median(detail.ravel(), overwrite_input=True)) / 0.78 + 1e-6
+    return 1.4826 * float(_median_reordering(detail)) / 0.78 + 1e-6
 
 
 def _padded_box(mask: np.ndarray, pad: int) -> tuple:
