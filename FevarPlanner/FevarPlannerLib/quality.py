@@ -136,12 +136,7 @@ class FluoroPrior:
             nearest = np.maximum(nearest, 0)
             radius = (self.radii_px[nearest] / factor).astype(np.float32)
             band = distance <= radius + self.margin_px[nearest] / factor
-            if band.any():
-                rows, cols = np.flatnonzero(band.any(axis=1)), np.flatnonzero(band.any(axis=0))
-                box = (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, shape[0])),
-                       slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, shape[1])))
-            else:
-                box = (slice(0, shape[0]), slice(0, shape[1]))
+            box = _padded_box(band, pad) if band.any() else (slice(0, shape[0]), slice(0, shape[1]))
             self._raster_cache[key] = PriorBand(box, distance[box], nearest[box], radius[box], band[box])
         return self._raster_cache[key]
 
@@ -173,6 +168,15 @@ class FluoroPrior:
             return np.full(shape, np.inf, dtype=np.float32), np.full(shape, -1, dtype=np.int64)
         distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
         return distance.astype(np.float32), node_of_pixel[ri, ci]
+
+
+def _padded_box(mask: np.ndarray, pad: int) -> tuple:
+    """The bounding box (slices) of a non-empty ``mask`` widened by ``pad`` along each axis, clipped to it."""
+    box = []
+    for axis, size in enumerate(mask.shape):
+        hit = np.flatnonzero(mask.any(axis=tuple(a for a in range(mask.ndim) if a != axis)))
+        box.append(slice(max(int(hit[0]) - pad, 0), min(int(hit[-1]) + pad + 1, size)))
+    return tuple(box)
 
 
 @dataclass(frozen=True)
@@ -219,17 +223,6 @@ def _vessel_lengths(centerline) -> dict:
     return lengths
 
 
-def _lumen_box(inside: np.ndarray) -> tuple:
-    """The bounding box of ``inside`` widened by one voxel (clipped to the volume): every voxel
-    of the widening is background, so each lumen voxel's nearest background voxel (the
-    clamp of any nearer one outside the box) lies in the box."""
-    box = []
-    for axis in range(inside.ndim):
-        hit = np.flatnonzero(inside.any(axis=tuple(a for a in range(inside.ndim) if a != axis)))
-        box.append(slice(max(int(hit[0]) - 1, 0), min(int(hit[-1]) + 2, inside.shape[axis])))
-    return tuple(box)
-
-
 def _radii(centerline, lumen: Volume) -> np.ndarray:
     """Lumen radius (mm) at each centreline node: its voxel's Euclidean distance to the nearest
     background voxel, computed only in the lumen's bounding box (zero outside it)."""
@@ -238,7 +231,7 @@ def _radii(centerline, lumen: Volume) -> np.ndarray:
     radii = np.zeros(len(index))
     if not inside.any():
         return radii
-    box = _lumen_box(inside)
+    box = _padded_box(inside, 1)      # the widening is background: every nearest background voxel lies in it
     distance = ndi.distance_transform_edt(inside[box], sampling=np.asarray(lumen.spacing)[::-1])
     start, stop = np.array([b.start for b in box]), np.array([b.stop for b in box])
     within = np.all((index >= start) & (index < stop), axis=1)
@@ -446,13 +439,6 @@ def _pixel_noise(grey: np.ndarray) -> float:
     np.subtract(detail, centre, out=detail)
     np.abs(detail, out=detail)
     return 1.4826 * float(_median_reordering(detail)) / 0.78 + 1e-6
-
-
-def _padded_box(mask: np.ndarray, pad: int) -> tuple:
-    """The bounding box of ``mask`` widened by ``pad`` pixels (clipped to the frame)."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    return (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, mask.shape[0])),
-            slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, mask.shape[1])))
 
 
 def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int = 6) -> float:
