@@ -4,6 +4,9 @@ points for the views that follow it), pieces a view does not show carried rigidl
 
 from __future__ import annotations
 
+import functools
+from collections import OrderedDict
+
 import numpy as np
 import scipy.sparse
 from scipy.optimize import linear_sum_assignment
@@ -11,8 +14,82 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .. import deformation, matching
-from ..preop import Preoperative, _induced_edges
+from ..preop import Preoperative
 from ..projection import pixels_per_mm, project
+
+
+#: Graphs whose facts (:class:`_GraphFacts`) are kept: the few of the frames in hand.
+GRAPH_FACTS_KEPT = 8
+_graph_facts: OrderedDict = OrderedDict()
+
+
+class _GraphFacts:
+    """What the nearest-point passes ask of one graph again and again, found once: its edges,
+    the KD-tree of its nodes, and (a 2D skeleton's) legs, their KD-trees and end neighbours,
+    node directions and the KD-trees of matched chains. The graph does not change meanwhile."""
+
+    def __init__(self, g):
+        self.graph, self.positions, self.adjacency = g, g.positions, g.adjacency
+        self.edges = g.edges()
+        self._chain_trees = {}
+
+    def holds(self, g) -> bool:
+        """Whether these are still the facts of ``g`` (the same graph, arrays not replaced)."""
+        return self.graph is g and self.positions is g.positions and self.adjacency is g.adjacency
+
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.positions)
+
+    @functools.cached_property
+    def legs(self) -> np.ndarray:
+        """Per node its leg (:func:`_skeleton_legs`)."""
+        return _skeleton_legs(self.graph, self.edges)
+
+    @functools.cached_property
+    def leg_trees(self) -> list:
+        """Per leg (its nodes, the KD-tree of their positions)."""
+        found = []
+        for j in range(int(self.legs.max()) + 1 if len(self.legs) else 0):
+            on_leg = np.flatnonzero(self.legs == j)
+            found.append((on_leg, cKDTree(self.positions[on_leg])))
+        return found
+
+    @functools.cached_property
+    def leg_end_neighbour(self) -> np.ndarray:
+        """Per node the one neighbour on its leg where it is the leg's end, -1 elsewhere (:func:`_past_leg_ends`)."""
+        return _leg_end_neighbours(self.edges, self.legs)
+
+    @functools.cached_property
+    def directions(self) -> tuple:
+        """(direction, degree) per node (:func:`_node_directions`)."""
+        return _node_directions(self.positions, self.edges, len(self.positions))
+
+    def chain_tree(self, chain: np.ndarray) -> cKDTree:
+        """The KD-tree of the positions of the node chain ``chain``."""
+        key = (chain.dtype.str, chain.tobytes())
+        if key not in self._chain_trees:
+            self._chain_trees[key] = cKDTree(self.positions[chain])
+        return self._chain_trees[key]
+
+
+def _facts(g) -> _GraphFacts:
+    """The :class:`_GraphFacts` of graph ``g`` (found again while ``g`` is among the last few)."""
+    found = _graph_facts.get(id(g))
+    if found is None or not found.holds(g):
+        found = _graph_facts[id(g)] = _GraphFacts(g)
+        while len(_graph_facts) > GRAPH_FACTS_KEPT:
+            _graph_facts.popitem(last=False)
+    _graph_facts.move_to_end(id(g))
+    return found
+
+
+def _induced(g, nodes: np.ndarray) -> np.ndarray:
+    """Edges of ``g`` between ``nodes``, renumbered to positions in ``nodes`` (as ``preop._induced_edges``)."""
+    index = np.full(len(g.positions), -1)
+    index[nodes] = np.arange(len(nodes))
+    edges = index[_facts(g).edges]
+    return edges[np.all(edges >= 0, axis=1)]
 
 
 #: Most candidate correspondences of the anchor view deformed (the first in order).
@@ -40,7 +117,7 @@ def _carry_unseen(preop: Preoperative, moved: np.ndarray, assigned: np.ndarray, 
     unseen = free & ~np.logical_or.reduce(visible)
     if not unseen.any():
         return np.empty(0, dtype=np.int64)
-    edges = g3.edges()
+    edges = _facts(g3).edges
     inner = edges[free[edges[:, 0]] & free[edges[:, 1]]]
     adjacency = scipy.sparse.coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(n, n))
     _, component = csgraph.connected_components(adjacency, directed=False)
@@ -151,7 +228,7 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     n3 = len(g3.positions)
     local = np.full(n3, -1, dtype=np.int64)
     local[nodes] = np.arange(len(nodes))
-    edges3 = g3.edges()
+    edges3 = _facts(g3).edges
     edges3 = local[edges3[(local[edges3[:, 0]] >= 0) & (local[edges3[:, 1]] >= 0)]]
     direction3, degree3 = _node_directions(uv, edges3, len(nodes))
     projected = np.linalg.norm(uv[edges3[:, 0]] - uv[edges3[:, 1]], axis=1)
@@ -160,7 +237,7 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     ratio = ratio / max(float(np.median(ratio)), 1e-12) if len(ratio) else ratio
     both = np.r_[edges3[:, 0], edges3[:, 1]]
     node_ratio = np.bincount(both, np.r_[ratio, ratio], len(nodes)) / np.maximum(degree3, 1)
-    direction2, degree2 = _node_directions(view.g2.positions, view.g2.edges(), len(view.g2.positions))
+    direction2, degree2 = _facts(view.g2).directions
     cosine = np.abs((direction3 * direction2[index]).sum(axis=1))
     crossing = (degree3 == 2) & (degree2[index] == 2) & (cosine < np.cos(np.radians(CLOSEST_POINT_MAX_ANGLE_DEG)))
     crossing |= (degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING)
@@ -242,13 +319,13 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
 LEG_COST_CAP_MM = 25.0
 
 
-def _skeleton_legs(g2) -> np.ndarray:
+def _skeleton_legs(g2, edges: np.ndarray | None = None) -> np.ndarray:
     """Per 2D skeleton node the leg it lies on, -1 for none: a leg is a chain between a junction
     (a node of degree three or more, on no leg) and a free end; legs are numbered 0, 1, ...
     Chains between two junctions (the aorta between the renals and the bifurcation, a piece
-    between two crossings) are no leg."""
+    between two crossings) are no leg. ``edges``: those of ``g2`` if already at hand."""
     inner = g2.degrees <= 2
-    edges = g2.edges()
+    edges = g2.edges() if edges is None else edges
     edges = edges[inner[edges[:, 0]] & inner[edges[:, 1]]]
     n = len(g2.positions)
     adjacency = scipy.sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
@@ -282,10 +359,14 @@ def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     if not vessels or count == 0:
         return {}
     scale = pixels_per_mm(view.P, preop.centre)
+    facts = _facts(view.g2)
+    trees = facts.leg_trees if leg is facts.legs else [(None, cKDTree(view.g2.positions[leg == j])) for j in range(count)]
+    wanted = np.unique(np.concatenate([rows for _, rows in vessels]))
     cost = np.empty((len(vessels), count))
-    for j in range(count):
-        tree = cKDTree(view.g2.positions[leg == j])
-        cost[:, j] = [tree.query(uv[rows])[0].mean() / scale for _, rows in vessels]
+    for j, (_, tree) in enumerate(trees):
+        distance = np.zeros(len(uv))
+        distance[wanted] = tree.query(uv[wanted])[0]
+        cost[:, j] = [distance[rows].mean() / scale for _, rows in vessels]
     cost = np.c_[cost, np.full((len(vessels), len(vessels)), LEG_COST_CAP_MM)]       # the "no leg" columns
     chosen, legs = linear_sum_assignment(cost)
     return {vessels[i][0]: (vessels[i][1], int(j)) for i, j in zip(chosen, legs) if j < count}
@@ -308,13 +389,14 @@ def _matches_on_legs(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     the unclaimed leg. A branch with a leg takes its nearest node on that leg only; the aorta's
     nodes and branches without a leg keep the nearest node of the whole skeleton.
     """
-    distance, index = cKDTree(view.g2.positions).query(uv)
-    leg = _skeleton_legs(view.g2)
+    facts = _facts(view.g2)
+    distance, index = facts.tree.query(uv)
+    leg = facts.legs
     legs = _legs_of_vessels(view, nodes, preop, uv, usable, leg)
     past = np.zeros(len(nodes), dtype=bool)
     for rows, own in legs.values():
-        on_leg = np.flatnonzero(leg == own)
-        distance[rows], found = cKDTree(view.g2.positions[on_leg]).query(uv[rows])
+        on_leg, tree = facts.leg_trees[own]
+        distance[rows], found = tree.query(uv[rows])
         index[rows] = on_leg[found]
         past[rows] = _past_leg_ends(view.g2, leg, index[rows], uv[rows])
     return distance, index, legs, past
@@ -329,19 +411,25 @@ def _past_leg_ends(g2, leg: np.ndarray, index: np.ndarray, uv: np.ndarray) -> np
     is where they part in the image, not the anatomical one). There the leg's end node is no
     target: it would pull the node along its own vessel, against the other views.
     """
-    edges = g2.edges()
-    edges = edges[(leg[edges[:, 0]] >= 0) & (leg[edges[:, 0]] == leg[edges[:, 1]])]
-    both = np.r_[edges, edges[:, ::-1]]                       # (node, its neighbour on the leg)
-    count = np.bincount(both[:, 0], minlength=len(leg))
-    neighbour = np.full(len(leg), -1, dtype=np.int64)
-    ends = both[count[both[:, 0]] == 1]
-    neighbour[ends[:, 0]] = ends[:, 1]
+    facts = _facts(g2)
+    neighbour = facts.leg_end_neighbour if leg is facts.legs else _leg_end_neighbours(facts.edges, leg)
     inward = neighbour[index]
     at_end = inward >= 0
     outward = g2.positions[index[at_end]] - g2.positions[inward[at_end]]
     past = np.zeros(len(index), dtype=bool)
     past[at_end] = ((uv[at_end] - g2.positions[index[at_end]]) * outward).sum(axis=1) > 0
     return past
+
+
+def _leg_end_neighbours(edges: np.ndarray, leg: np.ndarray) -> np.ndarray:
+    """Per 2D skeleton node its one neighbour on its leg where it ends the leg, -1 elsewhere."""
+    edges = edges[(leg[edges[:, 0]] >= 0) & (leg[edges[:, 0]] == leg[edges[:, 1]])]
+    both = np.r_[edges, edges[:, ::-1]]                       # (node, its neighbour on the leg)
+    count = np.bincount(both[:, 0], minlength=len(leg))
+    neighbour = np.full(len(leg), -1, dtype=np.int64)
+    ends = both[count[both[:, 0]] == 1]
+    neighbour[ends[:, 0]] = ends[:, 1]
+    return neighbour
 
 
 def _outlier_limits(distance: np.ndarray, usable: np.ndarray, legs: dict) -> np.ndarray:
@@ -386,15 +474,16 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 CHAIN_REFINEMENT_PASSES = 1
 
 
-def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
+def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray, tree: cKDTree | None = None):
     """Nearest point of a 2D polyline to each point: (nearest (k, 2), past an end (k,) bool).
 
     "Past an end" marks a point whose nearest polyline point is an end node and which lies
-    beyond it along the end segment: the 2D vessel stops before this node does.
+    beyond it along the end segment: the 2D vessel stops before this node does. ``tree``: the
+    KD-tree of ``polyline`` if already at hand.
     """
     start, step = polyline[:-1], np.diff(polyline, axis=0)
     length2 = np.maximum((step * step).sum(axis=1), 1e-12)
-    _, vertex = cKDTree(polyline).query(points)
+    _, vertex = (cKDTree(polyline) if tree is None else tree).query(points)
     candidates = np.clip(np.c_[vertex - 1, vertex], 0, len(step) - 1)                # the segments at it
     t = ((points[:, None, :] - start[candidates]) * step[candidates]).sum(axis=2) / length2[candidates]
     clipped = np.clip(t, 0.0, 1.0)
@@ -459,8 +548,10 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
         rows = rows[~done[rows] & has_target[rows]]
         if len(rows) == 0 or len(nodes2) < 2:
             continue
-        polyline = view.g2.positions[np.asarray(nodes2)]
-        foot, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline)
+        chain = np.asarray(nodes2)
+        polyline = view.g2.positions[chain]
+        foot, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline,
+                                          _facts(view.g2).chain_tree(chain))
         if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
             past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
             has_target[rows[past]] = False
@@ -590,7 +681,7 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     if estimate is not None:        # later passes: the classified views' targets slide with the estimate too
         data = [_chain_closest_data(v, c, nodes, preop, estimate, d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
-    edges = _induced_edges(g3, nodes)
+    edges = _induced(g3, nodes)
     result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
         current = np.array(g3.positions, dtype=float)
