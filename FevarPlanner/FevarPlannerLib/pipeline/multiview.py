@@ -474,24 +474,40 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 CHAIN_REFINEMENT_PASSES = 1
 
 
-def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray, tree: cKDTree | None = None):
+def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
     """Nearest point of a 2D polyline to each point: (nearest (k, 2), past an end (k,) bool).
 
     "Past an end" marks a point whose nearest polyline point is an end node and which lies
-    beyond it along the end segment: the 2D vessel stops before this node does. ``tree``: the
-    KD-tree of ``polyline`` if already at hand.
+    beyond it along the end segment: the 2D vessel stops before this node does.
     """
-    start, step = polyline[:-1], np.diff(polyline, axis=0)
+    return _closest_on_polylines([points], [polyline], [cKDTree(polyline)])
+
+
+def _closest_on_polylines(points: list, polylines: list, trees: list):
+    """:func:`_closest_on_polyline` of several point sets at once, each on its own polyline
+    (``trees``: their KD-trees): (nearest (k, 2), past an end (k,) bool), all sets in order.
+
+    Each point's nearest vertex of its polyline picks the two segments at it; the nearest
+    foot on those is its nearest point.
+    """
+    counts = [len(p) for p in points]
+    segments = [len(polyline) - 1 for polyline in polylines]
+    vertex = np.concatenate([tree.query(p)[1] for tree, p in zip(trees, points)])
+    last = np.repeat(segments, counts) - 1
+    first = np.repeat(np.cumsum([0] + segments[:-1]), counts)
+    points = np.concatenate(points)
+    start = np.concatenate([polyline[:-1] for polyline in polylines])
+    step = np.concatenate([np.diff(polyline, axis=0) for polyline in polylines])
     length2 = np.maximum((step * step).sum(axis=1), 1e-12)
-    _, vertex = (cKDTree(polyline) if tree is None else tree).query(points)
-    candidates = np.clip(np.c_[vertex - 1, vertex], 0, len(step) - 1)                # the segments at it
+    local = np.clip(np.c_[vertex - 1, vertex], 0, last[:, None])                  # the segments at it
+    candidates = local + first[:, None]
     t = ((points[:, None, :] - start[candidates]) * step[candidates]).sum(axis=2) / length2[candidates]
     clipped = np.clip(t, 0.0, 1.0)
     foot = start[candidates] + clipped[..., None] * step[candidates]
     row = np.arange(len(points))
     pick = np.argmin(((points[:, None, :] - foot) ** 2).sum(axis=2), axis=1)
-    segment, along = candidates[row, pick], t[row, pick]
-    past = ((segment == 0) & (along < 0)) | ((segment == len(step) - 1) & (along > 1))
+    segment, along = local[row, pick], t[row, pick]
+    past = ((segment == 0) & (along < 0)) | ((segment == last) & (along > 1))
     return foot[row, pick], past
 
 
@@ -500,7 +516,7 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray, tree: cKDTree
 PARENT_BRIDGE = 1.0
 
 
-def _inside_parent(g2, chain, foot: np.ndarray) -> np.ndarray:
+def _inside_parents(g2, chains: list, counts: list, foot: np.ndarray) -> np.ndarray:
     """Feet on a branch chain within the parent vessel's 2D radius of its junction (the first node).
 
     Thinning joins a branch to the parent's centre line across the parent's lumen. Where the
@@ -508,13 +524,37 @@ def _inside_parent(g2, chain, foot: np.ndarray) -> np.ndarray:
     degree view), that bridge runs inside the parent's silhouette, 5-11 mm off the branch,
     and the nearest-chain-point targets of the branch's first nodes lie on it, pulling the
     branch's origin along the parent. Those nodes get no target from this chain and follow
-    their neighbours (S_L, S_S). False everywhere when the 2D graph has no radii.
+    their neighbours (S_L, S_S). False everywhere when the 2D graph has no radii. ``foot``
+    holds ``counts`` feet on each of ``chains`` in turn.
     """
     radii = getattr(g2, "radii", None)
     if radii is None:
         return np.zeros(len(foot), dtype=bool)
-    start = g2.positions[int(chain[0])]
-    return np.linalg.norm(foot - start, axis=1) < PARENT_BRIDGE * float(radii[int(chain[0])])
+    junction = np.repeat([int(chain[0]) for chain in chains], counts)
+    return np.linalg.norm(foot - g2.positions[junction], axis=1) < PARENT_BRIDGE * radii[junction].astype(float)
+
+
+def _matched_chains(view, correspondence, nodes: np.ndarray, preop: Preoperative, has_target: np.ndarray) -> list:
+    """(rows, 2D chain, is a branch) per matched chain of ``correspondence`` that holds rows of
+    ``nodes`` with a target: trunk pairs first, then branches; a row belongs to the first chain
+    that holds it."""
+    index = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    index[nodes] = np.arange(len(nodes))
+    chains = [(nodes3, nodes2, False) for nodes3, nodes2 in correspondence.trunk_pairs]
+    chains += [(preop.classification.branches[i3].nodes, nodes2, True) for i3, nodes2 in
+               (correspondence.branch_chains or {i3: view.c2.branches[i2].nodes
+                                                 for i3, i2 in correspondence.branch_pairs}).items()]
+    done = np.zeros(len(nodes), dtype=bool)
+    found = []
+    for nodes3, nodes2, is_branch in chains:
+        rows = index[np.asarray(nodes3)]
+        rows = rows[(rows >= 0)]
+        rows = rows[~done[rows] & has_target[rows]]
+        if len(rows) == 0 or len(nodes2) < 2:
+            continue
+        found.append((rows, np.asarray(nodes2), is_branch))
+        done[rows] = True
+    return found
 
 
 def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
@@ -529,37 +569,28 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
     projection lies past the 2D chain's free end (the 2D vessel is shorter than the 3D one:
     a tip the frame does not show) gets no target and follows its neighbours (S_L, S_S);
     so does a node whose nearest point lies on the bridge thinning draws across the parent
-    vessel's lumen at the chain's junction (:func:`_inside_parent`). ``fallback`` (targets,
+    vessel's lumen at the chain's junction (:func:`_inside_parents`). ``fallback`` (targets,
     weights) of the first assignment is kept for the nodes that no chain holds.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
     targets, has_target = np.array(fallback[0], dtype=float), fallback[1] > 0
-    index = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    index[nodes] = np.arange(len(nodes))
-    chains = list(correspondence.trunk_pairs)
-    chains += [(preop.classification.branches[i3].nodes, nodes2) for i3, nodes2 in
-               (correspondence.branch_chains or {i3: view.c2.branches[i2].nodes
-                                                 for i3, i2 in correspondence.branch_pairs}).items()]
-    done = np.zeros(len(nodes), dtype=bool)
-    for k, (nodes3, nodes2) in enumerate(chains):
-        rows = index[np.asarray(nodes3)]
-        rows = rows[(rows >= 0)]
-        rows = rows[~done[rows] & has_target[rows]]
-        if len(rows) == 0 or len(nodes2) < 2:
-            continue
-        chain = np.asarray(nodes2)
-        polyline = view.g2.positions[chain]
-        foot, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline,
-                                          _facts(view.g2).chain_tree(chain))
-        if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
-            past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
-            has_target[rows[past]] = False
-            has_target[rows[_inside_parent(view.g2, nodes2, foot)]] = False
-        else:
-            past[:] = False
-        targets[rows[~past]] = foot[~past]
-        done[rows] = True
+    matched = _matched_chains(view, correspondence, nodes, preop, has_target)
+    if not matched:
+        return targets, _data_weights(has_target)
+    rows = np.concatenate([r for r, _, _ in matched])
+    counts = [len(r) for r, _, _ in matched]
+    facts = _facts(view.g2)
+    polylines = [view.g2.positions[chain] for _, chain, _ in matched]
+    foot, past = _closest_on_polylines([project(view.P, positions[nodes[r]]) for r, _, _ in matched], polylines,
+                                       [facts.chain_tree(chain) for _, chain, _ in matched])
+    branch = np.repeat([is_branch for _, _, is_branch in matched], counts)
+    free_end = np.concatenate([np.repeat(p[-1:], k, axis=0) for p, k in zip(polylines, counts)])
+    junction = np.concatenate([np.repeat(p[:1], k, axis=0) for p, k in zip(polylines, counts)])
+    past &= branch & (np.linalg.norm(foot - free_end, axis=1) < np.linalg.norm(foot - junction, axis=1))
+    has_target[rows[past]] = False
+    has_target[rows[branch & _inside_parents(view.g2, [chain for _, chain, _ in matched], counts, foot)]] = False
+    targets[rows[~past]] = foot[~past]
     return targets, _data_weights(has_target)
 
 
