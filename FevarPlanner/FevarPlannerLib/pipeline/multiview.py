@@ -5,6 +5,7 @@ points for the views that follow it), pieces a view does not show carried rigidl
 from __future__ import annotations
 
 import functools
+import itertools
 from collections import OrderedDict
 
 import numpy as np
@@ -29,13 +30,16 @@ class _GraphFacts:
     node directions and the KD-trees of matched chains. The graph does not change meanwhile."""
 
     def __init__(self, g):
-        self.graph, self.positions, self.adjacency = g, g.positions, g.adjacency
-        self.edges = g.edges()
-        self._chain_trees = {}
+        self.graph, self.positions, self.adjacency = g, g.positions, getattr(g, "adjacency", None)
+        self._chain_trees, self._branch_rows = {}, {}
 
     def holds(self, g) -> bool:
         """Whether these are still the facts of ``g`` (the same graph, arrays not replaced)."""
-        return self.graph is g and self.positions is g.positions and self.adjacency is g.adjacency
+        return self.graph is g and self.positions is g.positions and self.adjacency is getattr(g, "adjacency", None)
+
+    @functools.cached_property
+    def edges(self) -> np.ndarray:
+        return self.graph.edges()
 
     @functools.cached_property
     def tree(self) -> cKDTree:
@@ -72,6 +76,26 @@ class _GraphFacts:
             self._chain_trees[key] = cKDTree(self.positions[chain])
         return self._chain_trees[key]
 
+    def labels(self, classification) -> np.ndarray:
+        """The node labels of ``classification`` (of this graph) as an array."""
+        found = self.__dict__.get("_labels")
+        if found is None or found[0] is not classification:
+            found = self._labels = (classification, np.asarray(classification.node_labels, dtype=object))
+        return found[1]
+
+    def branch_rows(self, classification, nodes: np.ndarray) -> list:
+        """Per branch of ``classification`` (of this graph) the rows of ``nodes`` that are its nodes."""
+        key = (id(classification), nodes.dtype.str, nodes.tobytes())
+        found = self._branch_rows.get(key)
+        if found is None or found[0] is not classification:
+            if len(self._branch_rows) >= GRAPH_FACTS_KEPT * MAX_CANDIDATE_COMBINATIONS:
+                self._branch_rows.clear()
+            local = np.full(len(self.positions), -1, dtype=np.int64)
+            local[nodes] = np.arange(len(nodes))
+            rows = [local[branch.nodes] for branch in classification.branches]
+            found = self._branch_rows[key] = (classification, [r[r >= 0] for r in rows])
+        return found[1]
+
 
 def _facts(g) -> _GraphFacts:
     """The :class:`_GraphFacts` of graph ``g`` (found again while ``g`` is among the last few)."""
@@ -82,6 +106,11 @@ def _facts(g) -> _GraphFacts:
             _graph_facts.popitem(last=False)
     _graph_facts.move_to_end(id(g))
     return found
+
+
+def _branch_rows(preop: Preoperative, nodes: np.ndarray) -> list:
+    """Per pre-operative branch the rows of ``nodes`` (graph node indices) that are its nodes."""
+    return _facts(preop.graph).branch_rows(preop.classification, np.asarray(nodes))
 
 
 def _induced(g, nodes: np.ndarray) -> np.ndarray:
@@ -244,17 +273,15 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     if g3.radii is not None and getattr(view.g2, "radii", None) is not None:     # radius of the 2D vessel
         wider = view.g2.radii[index] / np.maximum(g3.radii[nodes] * pixels_per_mm(view.P, positions[nodes]), 1e-6)
         crossing |= wider > CLOSEST_POINT_WIDER_VESSEL * np.median(wider)
-    return _whole_branches(preop, local, crossing)
+    return _whole_branches(preop, nodes, crossing)
 
 
-def _whole_branches(preop: Preoperative, local: np.ndarray, flagged: np.ndarray) -> np.ndarray:
-    """A copy of ``flagged`` (one flag per deformation node; ``local`` maps graph nodes to its
-    rows, -1 outside) in which a branch with more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` of
-    its nodes flagged is flagged whole: a branch mostly hidden in the view, all of it."""
+def _whole_branches(preop: Preoperative, nodes: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+    """A copy of ``flagged`` (one flag per deformation node of ``nodes``) in which a branch with
+    more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` of its nodes flagged is flagged whole: a
+    branch mostly hidden in the view, all of it."""
     flagged = flagged.copy()
-    for branch in preop.classification.branches:
-        rows = local[branch.nodes]
-        rows = rows[rows >= 0]
+    for rows in _branch_rows(preop, nodes):
         if len(rows) and flagged[rows].mean() > CLOSEST_POINT_HIDDEN_BRANCH:
             flagged[rows] = True
     return flagged
@@ -294,12 +321,12 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     claimed = np.zeros(len(nodes), dtype=bool)
     if radii2 is None or radii3 is None or len(nodes) < 2:
         return claimed
-    vessel = np.asarray(preop.classification.node_labels, dtype=object)[nodes]
+    vessel = _facts(preop.graph).labels(preop.classification)[nodes]
     radius_px = radii3[nodes] * pixels_per_mm(view.P, positions[nodes])
     points2 = view.g2.positions[index]
     neighbours = cKDTree(points2).query_ball_point(points2, SAME_POINT_RADII * radii2[index])
     a = np.repeat(np.arange(len(nodes)), [len(n) for n in neighbours])
-    b = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
+    b = np.fromiter(itertools.chain.from_iterable(neighbours), dtype=np.int64, count=len(a))
     apart = np.linalg.norm(uv[a] - uv[b], axis=1) > APART_SHARE * (radius_px[a] + radius_px[b])
     pairs = (vessel[a] != vessel[b]) & apart
     a, b = a[pairs], b[pairs]
@@ -309,9 +336,7 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
         along = csgraph.dijkstra(preop.graph.adjacency, directed=False, indices=sources, limit=float(bound.max()))
         parted = ~(along[row, nodes[b]] <= bound)
         claimed[a[parted]] = claimed[b[parted]] = True
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
-    return _whole_branches(preop, local, claimed)
+    return _whole_branches(preop, nodes, claimed)
 
 
 #: Mean distance (mm at the anatomy's depth) of a branch's projection to a 2D leg above which
@@ -347,12 +372,8 @@ def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     with ``rows`` the branch's usable rows in ``nodes``.
     """
     count = int(leg.max()) + 1 if len(leg) else 0
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
     vessels = []
-    for k, branch in enumerate(preop.classification.branches):
-        rows = local[branch.nodes]
-        rows = rows[rows >= 0]
+    for k, rows in enumerate(_branch_rows(preop, nodes)):
         rows = rows[usable[rows]]
         if len(rows) >= 2:
             vessels.append((k, rows))
@@ -604,14 +625,10 @@ VIEW_DISAGREEMENT_RATIO = 2.0
 
 def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop: Preoperative) -> list:
     """Per view a bool (n_a,) mask: the nodes of branches on which this view disagrees with the others."""
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
     drop = [np.zeros(len(nodes), dtype=bool) for _ in views]
     residual = [np.linalg.norm(project(v.P, points) - t, axis=1) / pixels_per_mm(v.P, preop.centre)
                 for v, (t, _) in zip(views, data)]
-    for branch in preop.classification.branches:
-        rows = local[branch.nodes]
-        rows = rows[rows >= 0]
+    for rows in _branch_rows(preop, nodes):
         mean = np.array([r[rows][w[rows] > 0].mean() if np.any(w[rows] > 0) else np.nan
                          for r, (_, w) in zip(residual, data)])
         if np.count_nonzero(np.isfinite(mean)) < 2:
@@ -647,7 +664,7 @@ def outside_silhouette_mm(view, points: np.ndarray, at: np.ndarray) -> np.ndarra
     if radii is None or len(points) == 0:
         return np.full(len(points), np.nan)
     k = min(SILHOUETTE_DISKS, len(view.g2.positions))
-    distance, index = cKDTree(view.g2.positions).query(project(view.P, points), k=k)
+    distance, index = _facts(view.g2).tree.query(project(view.P, points), k=k)
     distance, index = distance.reshape(len(points), k), index.reshape(len(points), k)
     return np.maximum((distance - radii[index]).min(axis=1), 0.0) / pixels_per_mm(view.P, at)
 
