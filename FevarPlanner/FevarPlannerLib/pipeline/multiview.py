@@ -660,13 +660,17 @@ CHECKED_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_ri
 def outside_silhouette_mm(view, points: np.ndarray, at: np.ndarray) -> np.ndarray:
     """How far (mm at ``at``) each point's projection lies outside the view's vessel silhouette,
     the union of the disks of its 2D skeleton nodes (their radii); 0 inside, NaN without radii."""
-    radii = getattr(view.g2, "radii", None)
-    if radii is None or len(points) == 0:
+    if getattr(view.g2, "radii", None) is None or len(points) == 0:
         return np.full(len(points), np.nan)
+    return _outside_silhouette_px(view, project(view.P, points)) / pixels_per_mm(view.P, at)
+
+
+def _outside_silhouette_px(view, uv: np.ndarray) -> np.ndarray:
+    """How far (px) each image point ``uv`` lies outside the view's vessel silhouette (2D radii known)."""
     k = min(SILHOUETTE_DISKS, len(view.g2.positions))
-    distance, index = _facts(view.g2).tree.query(project(view.P, points), k=k)
-    distance, index = distance.reshape(len(points), k), index.reshape(len(points), k)
-    return np.maximum((distance - radii[index]).min(axis=1), 0.0) / pixels_per_mm(view.P, at)
+    distance, index = _facts(view.g2).tree.query(uv, k=k)
+    distance, index = distance.reshape(len(uv), k), index.reshape(len(uv), k)
+    return np.maximum((distance - view.g2.radii[index]).min(axis=1), 0.0)
 
 
 def outside_silhouette_warnings(preop: Preoperative, views, deformed: np.ndarray) -> list:
@@ -681,13 +685,17 @@ def outside_silhouette_warnings(preop: Preoperative, views, deformed: np.ndarray
     labels = np.asarray(preop.centerline.labels, dtype=object)
     found = []
     for view in views:
+        if getattr(view.g2, "radii", None) is None:
+            continue                                # a view without radii says nothing
         shown = view.visible[preop.kept]
-        for label in CHECKED_VESSELS:
-            rows = np.flatnonzero((labels == label) & shown)
-            if len(rows) < 2:
-                continue
-            off = outside_silhouette_mm(view, deformed[rows], preop.centre).mean()
-            if off > OUTSIDE_SILHOUETTE_MM:         # False for NaN: a view without radii says nothing
+        checked = [(label, np.flatnonzero((labels == label) & shown)) for label in CHECKED_VESSELS]
+        checked = [(label, rows) for label, rows in checked if len(rows) >= 2]
+        if not checked:
+            continue
+        outside = _outside_silhouette_px(view, np.concatenate([project(view.P, deformed[rows]) for _, rows in checked]))
+        split = np.split(outside / pixels_per_mm(view.P, preop.centre), np.cumsum([len(r) for _, r in checked])[:-1])
+        for (label, _), off in zip(checked, (part.mean() for part in split)):
+            if off > OUTSIDE_SILHOUETTE_MM:
                 found.append(f"view {view.name}: the {label} lies {off:.1f} mm outside the vessels of this view on "
                              f"average: the views disagree on it; check it before use")
     return found
