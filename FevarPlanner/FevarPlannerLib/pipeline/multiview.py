@@ -4,6 +4,10 @@ points for the views that follow it), pieces a view does not show carried rigidl
 
 from __future__ import annotations
 
+import functools
+import itertools
+from collections import OrderedDict
+
 import numpy as np
 import scipy.sparse
 from scipy.optimize import linear_sum_assignment
@@ -11,8 +15,110 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .. import deformation, matching
-from ..preop import Preoperative, _induced_edges
+from ..preop import Preoperative
 from ..projection import pixels_per_mm, project
+
+
+#: Graphs whose facts (:class:`_GraphFacts`) are kept: the few of the frames in hand.
+GRAPH_FACTS_KEPT = 8
+_graph_facts: OrderedDict = OrderedDict()
+
+
+class _GraphFacts:
+    """What the nearest-point passes ask of one graph again and again, found once: its edges,
+    the KD-tree of its nodes, and (a 2D skeleton's) legs, their KD-trees and end neighbours,
+    node directions and the KD-trees of matched chains. The graph does not change meanwhile."""
+
+    def __init__(self, g):
+        self.graph, self.positions, self.adjacency = g, g.positions, getattr(g, "adjacency", None)
+        self._chain_trees, self._branch_rows = {}, {}
+
+    def holds(self, g) -> bool:
+        """Whether these are still the facts of ``g`` (the same graph, arrays not replaced)."""
+        return self.graph is g and self.positions is g.positions and self.adjacency is getattr(g, "adjacency", None)
+
+    @functools.cached_property
+    def edges(self) -> np.ndarray:
+        return self.graph.edges()
+
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.positions)
+
+    @functools.cached_property
+    def legs(self) -> np.ndarray:
+        """Per node its leg (:func:`_skeleton_legs`)."""
+        return _skeleton_legs(self.graph, self.edges)
+
+    @functools.cached_property
+    def leg_trees(self) -> list:
+        """Per leg (its nodes, the KD-tree of their positions)."""
+        found = []
+        for j in range(int(self.legs.max()) + 1 if len(self.legs) else 0):
+            on_leg = np.flatnonzero(self.legs == j)
+            found.append((on_leg, cKDTree(self.positions[on_leg])))
+        return found
+
+    @functools.cached_property
+    def leg_end_neighbour(self) -> np.ndarray:
+        """Per node the one neighbour on its leg where it is the leg's end, -1 elsewhere (:func:`_past_leg_ends`)."""
+        return _leg_end_neighbours(self.edges, self.legs)
+
+    @functools.cached_property
+    def directions(self) -> tuple:
+        """(direction, degree) per node (:func:`_node_directions`)."""
+        return _node_directions(self.positions, self.edges, len(self.positions))
+
+    def chain_tree(self, chain: np.ndarray) -> cKDTree:
+        """The KD-tree of the positions of the node chain ``chain``."""
+        key = (chain.dtype.str, chain.tobytes())
+        if key not in self._chain_trees:
+            self._chain_trees[key] = cKDTree(self.positions[chain])
+        return self._chain_trees[key]
+
+    def labels(self, classification) -> np.ndarray:
+        """The node labels of ``classification`` (of this graph) as an array."""
+        found = self.__dict__.get("_labels")
+        if found is None or found[0] is not classification:
+            found = self._labels = (classification, np.asarray(classification.node_labels, dtype=object))
+        return found[1]
+
+    def branch_rows(self, classification, nodes: np.ndarray) -> list:
+        """Per branch of ``classification`` (of this graph) the rows of ``nodes`` that are its nodes."""
+        key = (id(classification), nodes.dtype.str, nodes.tobytes())
+        found = self._branch_rows.get(key)
+        if found is None or found[0] is not classification:
+            if len(self._branch_rows) >= GRAPH_FACTS_KEPT * MAX_CANDIDATE_COMBINATIONS:
+                self._branch_rows.clear()
+            local = np.full(len(self.positions), -1, dtype=np.int64)
+            local[nodes] = np.arange(len(nodes))
+            rows = [local[branch.nodes] for branch in classification.branches]
+            found = self._branch_rows[key] = (classification, [r[r >= 0] for r in rows])
+        return found[1]
+
+
+def _facts(g) -> _GraphFacts:
+    """The :class:`_GraphFacts` of graph ``g`` (found again while ``g`` is among the last few)."""
+    found = _graph_facts.get(id(g))
+    if found is None or not found.holds(g):
+        found = _graph_facts[id(g)] = _GraphFacts(g)
+        while len(_graph_facts) > GRAPH_FACTS_KEPT:
+            _graph_facts.popitem(last=False)
+    _graph_facts.move_to_end(id(g))
+    return found
+
+
+def _branch_rows(preop: Preoperative, nodes: np.ndarray) -> list:
+    """Per pre-operative branch the rows of ``nodes`` (graph node indices) that are its nodes."""
+    return _facts(preop.graph).branch_rows(preop.classification, np.asarray(nodes))
+
+
+def _induced(g, nodes: np.ndarray) -> np.ndarray:
+    """Edges of ``g`` between ``nodes``, renumbered to positions in ``nodes`` (as ``preop._induced_edges``)."""
+    index = np.full(len(g.positions), -1)
+    index[nodes] = np.arange(len(nodes))
+    edges = index[_facts(g).edges]
+    return edges[np.all(edges >= 0, axis=1)]
 
 
 #: Most candidate correspondences of the anchor view deformed (the first in order).
@@ -40,7 +146,7 @@ def _carry_unseen(preop: Preoperative, moved: np.ndarray, assigned: np.ndarray, 
     unseen = free & ~np.logical_or.reduce(visible)
     if not unseen.any():
         return np.empty(0, dtype=np.int64)
-    edges = g3.edges()
+    edges = _facts(g3).edges
     inner = edges[free[edges[:, 0]] & free[edges[:, 1]]]
     adjacency = scipy.sparse.coo_matrix((np.ones(len(inner)), (inner[:, 0], inner[:, 1])), shape=(n, n))
     _, component = csgraph.connected_components(adjacency, directed=False)
@@ -151,7 +257,7 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     n3 = len(g3.positions)
     local = np.full(n3, -1, dtype=np.int64)
     local[nodes] = np.arange(len(nodes))
-    edges3 = g3.edges()
+    edges3 = _facts(g3).edges
     edges3 = local[edges3[(local[edges3[:, 0]] >= 0) & (local[edges3[:, 1]] >= 0)]]
     direction3, degree3 = _node_directions(uv, edges3, len(nodes))
     projected = np.linalg.norm(uv[edges3[:, 0]] - uv[edges3[:, 1]], axis=1)
@@ -160,24 +266,22 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     ratio = ratio / max(float(np.median(ratio)), 1e-12) if len(ratio) else ratio
     both = np.r_[edges3[:, 0], edges3[:, 1]]
     node_ratio = np.bincount(both, np.r_[ratio, ratio], len(nodes)) / np.maximum(degree3, 1)
-    direction2, degree2 = _node_directions(view.g2.positions, view.g2.edges(), len(view.g2.positions))
+    direction2, degree2 = _facts(view.g2).directions
     cosine = np.abs((direction3 * direction2[index]).sum(axis=1))
     crossing = (degree3 == 2) & (degree2[index] == 2) & (cosine < np.cos(np.radians(CLOSEST_POINT_MAX_ANGLE_DEG)))
     crossing |= (degree3 > 0) & (node_ratio < CLOSEST_POINT_MIN_FORESHORTENING)
     if g3.radii is not None and getattr(view.g2, "radii", None) is not None:     # radius of the 2D vessel
         wider = view.g2.radii[index] / np.maximum(g3.radii[nodes] * pixels_per_mm(view.P, positions[nodes]), 1e-6)
         crossing |= wider > CLOSEST_POINT_WIDER_VESSEL * np.median(wider)
-    return _whole_branches(preop, local, crossing)
+    return _whole_branches(preop, nodes, crossing)
 
 
-def _whole_branches(preop: Preoperative, local: np.ndarray, flagged: np.ndarray) -> np.ndarray:
-    """A copy of ``flagged`` (one flag per deformation node; ``local`` maps graph nodes to its
-    rows, -1 outside) in which a branch with more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` of
-    its nodes flagged is flagged whole: a branch mostly hidden in the view, all of it."""
+def _whole_branches(preop: Preoperative, nodes: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+    """A copy of ``flagged`` (one flag per deformation node of ``nodes``) in which a branch with
+    more than :data:`CLOSEST_POINT_HIDDEN_BRANCH` of its nodes flagged is flagged whole: a
+    branch mostly hidden in the view, all of it."""
     flagged = flagged.copy()
-    for branch in preop.classification.branches:
-        rows = local[branch.nodes]
-        rows = rows[rows >= 0]
+    for rows in _branch_rows(preop, nodes):
         if len(rows) and flagged[rows].mean() > CLOSEST_POINT_HIDDEN_BRANCH:
             flagged[rows] = True
     return flagged
@@ -217,12 +321,12 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     claimed = np.zeros(len(nodes), dtype=bool)
     if radii2 is None or radii3 is None or len(nodes) < 2:
         return claimed
-    vessel = np.asarray(preop.classification.node_labels, dtype=object)[nodes]
+    vessel = _facts(preop.graph).labels(preop.classification)[nodes]
     radius_px = radii3[nodes] * pixels_per_mm(view.P, positions[nodes])
     points2 = view.g2.positions[index]
     neighbours = cKDTree(points2).query_ball_point(points2, SAME_POINT_RADII * radii2[index])
     a = np.repeat(np.arange(len(nodes)), [len(n) for n in neighbours])
-    b = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours])
+    b = np.fromiter(itertools.chain.from_iterable(neighbours), dtype=np.int64, count=len(a))
     apart = np.linalg.norm(uv[a] - uv[b], axis=1) > APART_SHARE * (radius_px[a] + radius_px[b])
     pairs = (vessel[a] != vessel[b]) & apart
     a, b = a[pairs], b[pairs]
@@ -232,9 +336,7 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
         along = csgraph.dijkstra(preop.graph.adjacency, directed=False, indices=sources, limit=float(bound.max()))
         parted = ~(along[row, nodes[b]] <= bound)
         claimed[a[parted]] = claimed[b[parted]] = True
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
-    return _whole_branches(preop, local, claimed)
+    return _whole_branches(preop, nodes, claimed)
 
 
 #: Mean distance (mm at the anatomy's depth) of a branch's projection to a 2D leg above which
@@ -242,13 +344,13 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
 LEG_COST_CAP_MM = 25.0
 
 
-def _skeleton_legs(g2) -> np.ndarray:
+def _skeleton_legs(g2, edges: np.ndarray | None = None) -> np.ndarray:
     """Per 2D skeleton node the leg it lies on, -1 for none: a leg is a chain between a junction
     (a node of degree three or more, on no leg) and a free end; legs are numbered 0, 1, ...
     Chains between two junctions (the aorta between the renals and the bifurcation, a piece
-    between two crossings) are no leg."""
+    between two crossings) are no leg. ``edges``: those of ``g2`` if already at hand."""
     inner = g2.degrees <= 2
-    edges = g2.edges()
+    edges = g2.edges() if edges is None else edges
     edges = edges[inner[edges[:, 0]] & inner[edges[:, 1]]]
     n = len(g2.positions)
     adjacency = scipy.sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
@@ -270,22 +372,22 @@ def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     with ``rows`` the branch's usable rows in ``nodes``.
     """
     count = int(leg.max()) + 1 if len(leg) else 0
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
     vessels = []
-    for k, branch in enumerate(preop.classification.branches):
-        rows = local[branch.nodes]
-        rows = rows[rows >= 0]
+    for k, rows in enumerate(_branch_rows(preop, nodes)):
         rows = rows[usable[rows]]
         if len(rows) >= 2:
             vessels.append((k, rows))
     if not vessels or count == 0:
         return {}
     scale = pixels_per_mm(view.P, preop.centre)
+    facts = _facts(view.g2)
+    trees = facts.leg_trees if leg is facts.legs else [(None, cKDTree(view.g2.positions[leg == j])) for j in range(count)]
+    wanted = np.unique(np.concatenate([rows for _, rows in vessels]))
     cost = np.empty((len(vessels), count))
-    for j in range(count):
-        tree = cKDTree(view.g2.positions[leg == j])
-        cost[:, j] = [tree.query(uv[rows])[0].mean() / scale for _, rows in vessels]
+    for j, (_, tree) in enumerate(trees):
+        distance = np.zeros(len(uv))
+        distance[wanted] = tree.query(uv[wanted])[0]
+        cost[:, j] = [distance[rows].mean() / scale for _, rows in vessels]
     cost = np.c_[cost, np.full((len(vessels), len(vessels)), LEG_COST_CAP_MM)]       # the "no leg" columns
     chosen, legs = linear_sum_assignment(cost)
     return {vessels[i][0]: (vessels[i][1], int(j)) for i, j in zip(chosen, legs) if j < count}
@@ -308,13 +410,14 @@ def _matches_on_legs(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     the unclaimed leg. A branch with a leg takes its nearest node on that leg only; the aorta's
     nodes and branches without a leg keep the nearest node of the whole skeleton.
     """
-    distance, index = cKDTree(view.g2.positions).query(uv)
-    leg = _skeleton_legs(view.g2)
+    facts = _facts(view.g2)
+    distance, index = facts.tree.query(uv)
+    leg = facts.legs
     legs = _legs_of_vessels(view, nodes, preop, uv, usable, leg)
     past = np.zeros(len(nodes), dtype=bool)
     for rows, own in legs.values():
-        on_leg = np.flatnonzero(leg == own)
-        distance[rows], found = cKDTree(view.g2.positions[on_leg]).query(uv[rows])
+        on_leg, tree = facts.leg_trees[own]
+        distance[rows], found = tree.query(uv[rows])
         index[rows] = on_leg[found]
         past[rows] = _past_leg_ends(view.g2, leg, index[rows], uv[rows])
     return distance, index, legs, past
@@ -329,19 +432,25 @@ def _past_leg_ends(g2, leg: np.ndarray, index: np.ndarray, uv: np.ndarray) -> np
     is where they part in the image, not the anatomical one). There the leg's end node is no
     target: it would pull the node along its own vessel, against the other views.
     """
-    edges = g2.edges()
-    edges = edges[(leg[edges[:, 0]] >= 0) & (leg[edges[:, 0]] == leg[edges[:, 1]])]
-    both = np.r_[edges, edges[:, ::-1]]                       # (node, its neighbour on the leg)
-    count = np.bincount(both[:, 0], minlength=len(leg))
-    neighbour = np.full(len(leg), -1, dtype=np.int64)
-    ends = both[count[both[:, 0]] == 1]
-    neighbour[ends[:, 0]] = ends[:, 1]
+    facts = _facts(g2)
+    neighbour = facts.leg_end_neighbour if leg is facts.legs else _leg_end_neighbours(facts.edges, leg)
     inward = neighbour[index]
     at_end = inward >= 0
     outward = g2.positions[index[at_end]] - g2.positions[inward[at_end]]
     past = np.zeros(len(index), dtype=bool)
     past[at_end] = ((uv[at_end] - g2.positions[index[at_end]]) * outward).sum(axis=1) > 0
     return past
+
+
+def _leg_end_neighbours(edges: np.ndarray, leg: np.ndarray) -> np.ndarray:
+    """Per 2D skeleton node its one neighbour on its leg where it ends the leg, -1 elsewhere."""
+    edges = edges[(leg[edges[:, 0]] >= 0) & (leg[edges[:, 0]] == leg[edges[:, 1]])]
+    both = np.r_[edges, edges[:, ::-1]]                       # (node, its neighbour on the leg)
+    count = np.bincount(both[:, 0], minlength=len(leg))
+    neighbour = np.full(len(leg), -1, dtype=np.int64)
+    ends = both[count[both[:, 0]] == 1]
+    neighbour[ends[:, 0]] = ends[:, 1]
+    return neighbour
 
 
 def _outlier_limits(distance: np.ndarray, usable: np.ndarray, legs: dict) -> np.ndarray:
@@ -392,17 +501,34 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
     "Past an end" marks a point whose nearest polyline point is an end node and which lies
     beyond it along the end segment: the 2D vessel stops before this node does.
     """
-    start, step = polyline[:-1], np.diff(polyline, axis=0)
+    return _closest_on_polylines([points], [polyline], [cKDTree(polyline)])
+
+
+def _closest_on_polylines(points: list, polylines: list, trees: list):
+    """:func:`_closest_on_polyline` of several point sets at once, each on its own polyline
+    (``trees``: their KD-trees): (nearest (k, 2), past an end (k,) bool), all sets in order.
+
+    Each point's nearest vertex of its polyline picks the two segments at it; the nearest
+    foot on those is its nearest point.
+    """
+    counts = [len(p) for p in points]
+    segments = [len(polyline) - 1 for polyline in polylines]
+    vertex = np.concatenate([tree.query(p)[1] for tree, p in zip(trees, points)])
+    last = np.repeat(segments, counts) - 1
+    first = np.repeat(np.cumsum([0] + segments[:-1]), counts)
+    points = np.concatenate(points)
+    start = np.concatenate([polyline[:-1] for polyline in polylines])
+    step = np.concatenate([np.diff(polyline, axis=0) for polyline in polylines])
     length2 = np.maximum((step * step).sum(axis=1), 1e-12)
-    _, vertex = cKDTree(polyline).query(points)
-    candidates = np.clip(np.c_[vertex - 1, vertex], 0, len(step) - 1)                # the segments at it
+    local = np.clip(np.c_[vertex - 1, vertex], 0, last[:, None])                  # the segments at it
+    candidates = local + first[:, None]
     t = ((points[:, None, :] - start[candidates]) * step[candidates]).sum(axis=2) / length2[candidates]
     clipped = np.clip(t, 0.0, 1.0)
     foot = start[candidates] + clipped[..., None] * step[candidates]
     row = np.arange(len(points))
     pick = np.argmin(((points[:, None, :] - foot) ** 2).sum(axis=2), axis=1)
-    segment, along = candidates[row, pick], t[row, pick]
-    past = ((segment == 0) & (along < 0)) | ((segment == len(step) - 1) & (along > 1))
+    segment, along = local[row, pick], t[row, pick]
+    past = ((segment == 0) & (along < 0)) | ((segment == last) & (along > 1))
     return foot[row, pick], past
 
 
@@ -411,7 +537,7 @@ def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
 PARENT_BRIDGE = 1.0
 
 
-def _inside_parent(g2, chain, foot: np.ndarray) -> np.ndarray:
+def _inside_parents(g2, chains: list, counts: list, foot: np.ndarray) -> np.ndarray:
     """Feet on a branch chain within the parent vessel's 2D radius of its junction (the first node).
 
     Thinning joins a branch to the parent's centre line across the parent's lumen. Where the
@@ -419,13 +545,37 @@ def _inside_parent(g2, chain, foot: np.ndarray) -> np.ndarray:
     degree view), that bridge runs inside the parent's silhouette, 5-11 mm off the branch,
     and the nearest-chain-point targets of the branch's first nodes lie on it, pulling the
     branch's origin along the parent. Those nodes get no target from this chain and follow
-    their neighbours (S_L, S_S). False everywhere when the 2D graph has no radii.
+    their neighbours (S_L, S_S). False everywhere when the 2D graph has no radii. ``foot``
+    holds ``counts`` feet on each of ``chains`` in turn.
     """
     radii = getattr(g2, "radii", None)
     if radii is None:
         return np.zeros(len(foot), dtype=bool)
-    start = g2.positions[int(chain[0])]
-    return np.linalg.norm(foot - start, axis=1) < PARENT_BRIDGE * float(radii[int(chain[0])])
+    junction = np.repeat([int(chain[0]) for chain in chains], counts)
+    return np.linalg.norm(foot - g2.positions[junction], axis=1) < PARENT_BRIDGE * radii[junction].astype(float)
+
+
+def _matched_chains(view, correspondence, nodes: np.ndarray, preop: Preoperative, has_target: np.ndarray) -> list:
+    """(rows, 2D chain, is a branch) per matched chain of ``correspondence`` that holds rows of
+    ``nodes`` with a target: trunk pairs first, then branches; a row belongs to the first chain
+    that holds it."""
+    index = np.full(len(preop.graph.positions), -1, dtype=np.int64)
+    index[nodes] = np.arange(len(nodes))
+    chains = [(nodes3, nodes2, False) for nodes3, nodes2 in correspondence.trunk_pairs]
+    chains += [(preop.classification.branches[i3].nodes, nodes2, True) for i3, nodes2 in
+               (correspondence.branch_chains or {i3: view.c2.branches[i2].nodes
+                                                 for i3, i2 in correspondence.branch_pairs}).items()]
+    done = np.zeros(len(nodes), dtype=bool)
+    found = []
+    for nodes3, nodes2, is_branch in chains:
+        rows = index[np.asarray(nodes3)]
+        rows = rows[(rows >= 0)]
+        rows = rows[~done[rows] & has_target[rows]]
+        if len(rows) == 0 or len(nodes2) < 2:
+            continue
+        found.append((rows, np.asarray(nodes2), is_branch))
+        done[rows] = True
+    return found
 
 
 def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preoperative, estimate: np.ndarray,
@@ -440,35 +590,28 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
     projection lies past the 2D chain's free end (the 2D vessel is shorter than the 3D one:
     a tip the frame does not show) gets no target and follows its neighbours (S_L, S_S);
     so does a node whose nearest point lies on the bridge thinning draws across the parent
-    vessel's lumen at the chain's junction (:func:`_inside_parent`). ``fallback`` (targets,
+    vessel's lumen at the chain's junction (:func:`_inside_parents`). ``fallback`` (targets,
     weights) of the first assignment is kept for the nodes that no chain holds.
     """
     positions = np.array(preop.graph.positions, dtype=float)
     positions[preop.kept] = estimate
     targets, has_target = np.array(fallback[0], dtype=float), fallback[1] > 0
-    index = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    index[nodes] = np.arange(len(nodes))
-    chains = list(correspondence.trunk_pairs)
-    chains += [(preop.classification.branches[i3].nodes, nodes2) for i3, nodes2 in
-               (correspondence.branch_chains or {i3: view.c2.branches[i2].nodes
-                                                 for i3, i2 in correspondence.branch_pairs}).items()]
-    done = np.zeros(len(nodes), dtype=bool)
-    for k, (nodes3, nodes2) in enumerate(chains):
-        rows = index[np.asarray(nodes3)]
-        rows = rows[(rows >= 0)]
-        rows = rows[~done[rows] & has_target[rows]]
-        if len(rows) == 0 or len(nodes2) < 2:
-            continue
-        polyline = view.g2.positions[np.asarray(nodes2)]
-        foot, past = _closest_on_polyline(project(view.P, positions[nodes[rows]]), polyline)
-        if k >= len(correspondence.trunk_pairs):       # a branch: its free end is the chain's last node
-            past &= np.linalg.norm(foot - polyline[-1], axis=1) < np.linalg.norm(foot - polyline[0], axis=1)
-            has_target[rows[past]] = False
-            has_target[rows[_inside_parent(view.g2, nodes2, foot)]] = False
-        else:
-            past[:] = False
-        targets[rows[~past]] = foot[~past]
-        done[rows] = True
+    matched = _matched_chains(view, correspondence, nodes, preop, has_target)
+    if not matched:
+        return targets, _data_weights(has_target)
+    rows = np.concatenate([r for r, _, _ in matched])
+    counts = [len(r) for r, _, _ in matched]
+    facts = _facts(view.g2)
+    polylines = [view.g2.positions[chain] for _, chain, _ in matched]
+    foot, past = _closest_on_polylines([project(view.P, positions[nodes[r]]) for r, _, _ in matched], polylines,
+                                       [facts.chain_tree(chain) for _, chain, _ in matched])
+    branch = np.repeat([is_branch for _, _, is_branch in matched], counts)
+    free_end = np.concatenate([np.repeat(p[-1:], k, axis=0) for p, k in zip(polylines, counts)])
+    junction = np.concatenate([np.repeat(p[:1], k, axis=0) for p, k in zip(polylines, counts)])
+    past &= branch & (np.linalg.norm(foot - free_end, axis=1) < np.linalg.norm(foot - junction, axis=1))
+    has_target[rows[past]] = False
+    has_target[rows[branch & _inside_parents(view.g2, [chain for _, chain, _ in matched], counts, foot)]] = False
+    targets[rows[~past]] = foot[~past]
     return targets, _data_weights(has_target)
 
 
@@ -482,14 +625,10 @@ VIEW_DISAGREEMENT_RATIO = 2.0
 
 def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop: Preoperative) -> list:
     """Per view a bool (n_a,) mask: the nodes of branches on which this view disagrees with the others."""
-    local = np.full(len(preop.graph.positions), -1, dtype=np.int64)
-    local[nodes] = np.arange(len(nodes))
     drop = [np.zeros(len(nodes), dtype=bool) for _ in views]
     residual = [np.linalg.norm(project(v.P, points) - t, axis=1) / pixels_per_mm(v.P, preop.centre)
                 for v, (t, _) in zip(views, data)]
-    for branch in preop.classification.branches:
-        rows = local[branch.nodes]
-        rows = rows[rows >= 0]
+    for rows in _branch_rows(preop, nodes):
         mean = np.array([r[rows][w[rows] > 0].mean() if np.any(w[rows] > 0) else np.nan
                          for r, (_, w) in zip(residual, data)])
         if np.count_nonzero(np.isfinite(mean)) < 2:
@@ -521,13 +660,17 @@ CHECKED_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_ri
 def outside_silhouette_mm(view, points: np.ndarray, at: np.ndarray) -> np.ndarray:
     """How far (mm at ``at``) each point's projection lies outside the view's vessel silhouette,
     the union of the disks of its 2D skeleton nodes (their radii); 0 inside, NaN without radii."""
-    radii = getattr(view.g2, "radii", None)
-    if radii is None or len(points) == 0:
+    if getattr(view.g2, "radii", None) is None or len(points) == 0:
         return np.full(len(points), np.nan)
+    return _outside_silhouette_px(view, project(view.P, points)) / pixels_per_mm(view.P, at)
+
+
+def _outside_silhouette_px(view, uv: np.ndarray) -> np.ndarray:
+    """How far (px) each image point ``uv`` lies outside the view's vessel silhouette (2D radii known)."""
     k = min(SILHOUETTE_DISKS, len(view.g2.positions))
-    distance, index = cKDTree(view.g2.positions).query(project(view.P, points), k=k)
-    distance, index = distance.reshape(len(points), k), index.reshape(len(points), k)
-    return np.maximum((distance - radii[index]).min(axis=1), 0.0) / pixels_per_mm(view.P, at)
+    distance, index = _facts(view.g2).tree.query(uv, k=k)
+    distance, index = distance.reshape(len(uv), k), index.reshape(len(uv), k)
+    return np.maximum((distance - view.g2.radii[index]).min(axis=1), 0.0)
 
 
 def outside_silhouette_warnings(preop: Preoperative, views, deformed: np.ndarray) -> list:
@@ -542,13 +685,17 @@ def outside_silhouette_warnings(preop: Preoperative, views, deformed: np.ndarray
     labels = np.asarray(preop.centerline.labels, dtype=object)
     found = []
     for view in views:
+        if getattr(view.g2, "radii", None) is None:
+            continue                                # a view without radii says nothing
         shown = view.visible[preop.kept]
-        for label in CHECKED_VESSELS:
-            rows = np.flatnonzero((labels == label) & shown)
-            if len(rows) < 2:
-                continue
-            off = outside_silhouette_mm(view, deformed[rows], preop.centre).mean()
-            if off > OUTSIDE_SILHOUETTE_MM:         # False for NaN: a view without radii says nothing
+        checked = [(label, np.flatnonzero((labels == label) & shown)) for label in CHECKED_VESSELS]
+        checked = [(label, rows) for label, rows in checked if len(rows) >= 2]
+        if not checked:
+            continue
+        outside = _outside_silhouette_px(view, np.concatenate([project(view.P, deformed[rows]) for _, rows in checked]))
+        split = np.split(outside / pixels_per_mm(view.P, preop.centre), np.cumsum([len(r) for _, r in checked])[:-1])
+        for (label, _), off in zip(checked, (part.mean() for part in split)):
+            if off > OUTSIDE_SILHOUETTE_MM:
                 found.append(f"view {view.name}: the {label} lies {off:.1f} mm outside the vessels of this view on "
                              f"average: the views disagree on it; check it before use")
     return found
@@ -590,7 +737,7 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     if estimate is not None:        # later passes: the classified views' targets slide with the estimate too
         data = [_chain_closest_data(v, c, nodes, preop, estimate, d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
-    edges = _induced_edges(g3, nodes)
+    edges = _induced(g3, nodes)
     result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
         current = np.array(g3.positions, dtype=float)
