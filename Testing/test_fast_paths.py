@@ -380,7 +380,10 @@ def test_the_shift_search_finds_the_loops_first_best_shift_to_the_bit():
 
 
 def _contrast_to_noise_on_the_whole_frame(frame, mask, ring_px=6):
-    """Contrast to noise with the ring dilated over the whole frame."""
+    """Contrast to noise with the ring dilated over the whole frame (the pixel noise: the
+    check's own, tested against the whole frame's below)."""
+    from FevarPlannerLib import quality
+
     grey = np.asarray(frame, dtype=np.float32)
     if grey.ndim == 3:
         grey = grey[..., :3].mean(axis=-1) if grey.shape[-1] in (3, 4) else grey[0]
@@ -388,9 +391,7 @@ def _contrast_to_noise_on_the_whole_frame(frame, mask, ring_px=6):
     ring = ndi.binary_dilation(mask, iterations=ring_px) & ~ndi.binary_dilation(mask, iterations=2)
     if not mask.any() or not ring.any():
         return 0.0
-    detail = grey - ndi.gaussian_filter(grey, 1.0)
-    noise = 1.4826 * float(np.median(np.abs(detail - np.median(detail)))) / 0.78 + 1e-6
-    return abs(float(np.median(grey[mask]) - np.median(grey[ring]))) / noise
+    return abs(float(np.median(grey[mask]) - np.median(grey[ring]))) / quality._pixel_noise(grey)
 
 
 def test_contrast_to_noise_in_the_masks_box_equals_the_whole_frame_to_the_bit():
@@ -458,3 +459,47 @@ def test_the_reordering_median_equals_np_median_to_the_bit():
     with_nan = rng.normal(size=9).astype(np.float32)
     with_nan[4] = np.nan
     assert np.isnan(quality._median_reordering(with_nan)) and np.isnan(np.median(with_nan))
+
+
+def _detail_of_the_whole_frame(grey):
+    return grey - ndi.gaussian_filter(grey, 1.0)
+
+
+def test_the_noise_grid_detail_equals_the_whole_frame_blur_at_its_pixels():
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(21)
+    r = quality.NOISE_BLUR_RADIUS
+    for shape, stride in (((9, 9), 1), ((40, 33), 1), ((41, 57), 2), ((64, 90), 3), ((130, 129), 4)):
+        grey = (500.0 + 80.0 * rng.normal(size=shape) + np.linspace(0, 300, shape[1])).astype(np.float32)
+        grid = quality._detail_on_grid(grey, stride)
+        expected = _detail_of_the_whole_frame(grey)[r:shape[0] - r:stride, r:shape[1] - r:stride]
+        assert grid.shape == expected.shape
+        np.testing.assert_allclose(grid, expected, atol=2e-3)
+
+
+def test_the_noise_stride_keeps_enough_pixels_and_at_most_one_in_sixteen():
+    from FevarPlannerLib import quality
+
+    assert [quality._noise_stride((n, n)) for n in (64, 256, 511, 512, 767, 768, 1024, 4096)] == [1, 1, 1, 2, 2, 3, 4, 4]
+    for n in (256, 512, 700, 1024, 2048):
+        stride = quality._noise_stride((n, n))
+        samples = ((n - 2 * quality.NOISE_BLUR_RADIUS - 1) // stride + 1) ** 2
+        assert samples >= 0.9 * quality.NOISE_MIN_SAMPLES and stride <= quality.NOISE_MAX_STRIDE
+
+
+def test_the_sampled_pixel_noise_is_the_whole_frames_within_two_percent():
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(4)
+    rows, cols = np.mgrid[0:1024, 0:1024]
+    vessels = 400.0 * (np.abs(np.sin(rows / 90.0) * 200 - cols + 512) < 12)       # edges the MAD must ignore
+    for sigma in (5.0, 40.0):
+        grey = (2000.0 - vessels + 300.0 * np.cos(cols / 300.0) + rng.normal(0.0, sigma, (1024, 1024))).astype(np.float32)
+        detail = _detail_of_the_whole_frame(grey)
+        whole = 1.4826 * float(np.median(np.abs(detail - np.median(detail)))) / 0.78 + 1e-6
+        sampled = quality._pixel_noise(grey)
+        assert abs(sampled - whole) < 0.02 * whole
+        assert abs(sampled - sigma) < 0.2 * sigma
+    blank = np.full((6, 300), 7.0, dtype=np.float32)        # too thin for the grid: every pixel
+    assert quality._pixel_noise(blank) == 1e-6
