@@ -503,3 +503,21 @@ def test_the_sampled_pixel_noise_is_the_whole_frames_within_two_percent():
         assert abs(sampled - sigma) < 0.2 * sigma
     blank = np.full((6, 300), 7.0, dtype=np.float32)        # too thin for the grid: every pixel
     assert quality._pixel_noise(blank) == 1e-6
+
+
+def test_pieces_labelled_in_the_masks_box_are_the_whole_frames_to_the_number():
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(8)
+    eight = np.ones((3, 3), dtype=bool)
+    for small in random_masks(seed=11, count=30):
+        if not small.any():
+            continue
+        mask = np.zeros((small.shape[0] + 30, small.shape[1] + 25), dtype=bool)
+        r0, c0 = int(rng.integers(0, 31)), int(rng.integers(0, 26))
+        mask[r0:r0 + small.shape[0], c0:c0 + small.shape[1]] = small
+        box = quality._padded_box(mask, 0)
+        labels, count = ndi.label(mask[box], structure=eight)
+        expected, expected_count = ndi.label(mask, structure=eight)
+        assert count == expected_count
+        np.testing.assert_array_equal(quality._in_frame(labels, box, mask.shape), expected)

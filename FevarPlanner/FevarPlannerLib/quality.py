@@ -385,6 +385,13 @@ def _prior_covered(mask: np.ndarray, prior, factor: int) -> tuple[float, np.ndar
     return float(covered.mean()), (np.array([cols[farthest], rows[farthest]]) + 0.5) * factor - 0.5
 
 
+def _in_frame(part: np.ndarray, box: tuple, shape) -> np.ndarray:
+    """``part`` (of a frame's ``box``) placed in a zero frame of ``shape``."""
+    whole = np.zeros(shape, dtype=part.dtype)
+    whole[box] = part
+    return whole
+
+
 def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
     """Refuse a mask that is not one vessel tree (:data:`MIN_LARGEST_PIECE`).
 
@@ -394,10 +401,12 @@ def _check_one_tree(mask: np.ndarray, prior, qc: QCData | None) -> None:
     :data:`MAX_REACHED_AGAIN` of their stretch of it reached by larger pieces) hold that
     fraction of the mask and cover at least :data:`MIN_PRIOR_COVERED` of the projected tree's length.
     """
-    labels, count = ndi.label(mask, structure=np.ones((3, 3), dtype=bool))
+    box = _padded_box(mask, 0)        # the pieces, and their numbers in raster order, of the whole frame
+    labels, count = ndi.label(mask[box], structure=np.ones((3, 3), dtype=bool))
     sizes = np.bincount(labels.ravel())[1:]
     if sizes.max() >= MIN_LARGEST_PIECE * sizes.sum():
         return
+    labels = _in_frame(labels, box, mask.shape)
     factor = max(1, int(round(max(mask.shape) / 256)))
     in_band, again, sizes = _on_prior_pieces(labels, count, prior, factor)
     away, beside = in_band < ON_PRIOR_PIECE, (in_band >= ON_PRIOR_PIECE) & (again > MAX_REACHED_AGAIN)
@@ -489,8 +498,9 @@ def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int =
     (robust: 1.4826 MAD of the difference between the frame and its 1-pixel Gaussian blur,
     rescaled to the noise of a single pixel).
 
-    The ring (between 2 and ``ring_px`` dilations of the mask) is built in the mask's bounding
-    box widened by ``ring_px``: the dilations cannot reach past it.
+    The ring (between 2 and ``ring_px`` dilations of the mask by the 4-neighbour cross: the
+    pixels at city-block distance 3 to ``ring_px`` from it) is built in the mask's bounding box
+    widened by ``ring_px``: the dilations cannot reach past it.
     """
     grey = np.asarray(frame, dtype=np.float32)
     if grey.ndim == 3:
@@ -499,8 +509,8 @@ def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int =
     if not mask.any():
         return 0.0
     box = _padded_box(mask, ring_px)
-    near = ndi.binary_dilation(mask[box], iterations=2)
-    ring = ndi.binary_dilation(near, iterations=ring_px - 2) & ~near if ring_px > 2 else np.zeros_like(near)
+    steps = ndi.distance_transform_cdt(~mask[box], metric="taxicab")
+    ring = (steps > 2) & (steps <= ring_px)
     if not ring.any():
         return 0.0
     values = grey[box]
