@@ -34,11 +34,16 @@ is the better guide (one BLAS thread, no worker threads: CPU time <= wall time);
 view worker, the CPU time of the calling process (``this_process``) is the critical path's
 when the worker keeps up. The goals: 33 ms for one view, 66 ms for two.
 
+The frame check (:func:`quality.check_frame_mask`, run on every frame beside the registration) is
+timed on its own on the two raw views and the two bench frames below (``frame_check``: the
+whole check, the pixel noise, the contrast to noise, the one-tree check; its verdict and the
+contrast to noise's margin over ``MIN_CONTRAST_TO_NOISE``); ``--frame-check-only`` times only it.
+
 The mask stage is also timed on the AP anatomy rendered as a bench frame with every distractor
 (:mod:`phantom.distractors`: spine, pelvis, box, rail, table, collimator, devices, ruler, text,
 exposure), unsubtracted and subtracted (``mask_by_frame_kind``, with its Dice; issue 11).
 
-    OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame.py --out OUT [--repeats 30]
+    OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame.py --out OUT [--repeats 30] [--frame-check-only]
 
 Writes ``bench_frame.json`` and ``bench_frame.png`` into ``--out``.
 """
@@ -58,7 +63,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from FevarPlannerLib import phantom, pipeline, segmentation  # noqa: E402
+from FevarPlannerLib import phantom, pipeline, quality, segmentation  # noqa: E402
 from FevarPlannerLib.pipeline import frame as frame_module, workers  # noqa: E402
 from FevarPlannerLib.quality import FluoroPrior  # noqa: E402
 
@@ -187,27 +192,71 @@ def mask_breakdown(preop, frame: np.ndarray, P: np.ndarray, repeats: int) -> dic
     return out
 
 
-def mask_by_frame_kind(seed: int, repeats: int) -> dict:
-    """CPU ms (median) of the mask stage (prior + segment_fluoro, as :func:`time_views`) and its Dice
-    on the 1024 x 1024 AP frame of ``seed`` rendered as a bench frame (:mod:`phantom.distractors`,
-    every distractor): unsubtracted, and subtracted (DSA), vessels dark (issue 11)."""
+def bench_frames(seed: int):
+    """(pre-operative model, P, {kind: BenchFrame}) of the 1024 x 1024 AP frame of ``seed`` rendered
+    as a bench frame (:mod:`phantom.distractors`, every distractor): unsubtracted, and subtracted
+    (DSA), vessels dark (issue 11)."""
     from FevarPlannerLib.phantom.distractors import render_bench_frame
 
     params = replace(phantom.random_params(np.random.default_rng(seed)), detector_rows=FRAME_SIZE,
                      detector_cols=FRAME_SIZE, primary_angle_deg=0.0, secondary_angle_deg=0.0)
     case = phantom.generate_case(params, name="frame_AP")
     preop = pipeline.preop_from_lumen(phantom.rasterize_lumen(case.preop, case.grid))
+    return preop, case.P_true, {kind: render_bench_frame(case, np.random.default_rng(seed), subtracted=subtracted)
+                                for kind, subtracted in (("unsubtracted", False), ("subtracted", True))}
+
+
+def mask_by_frame_kind(preop, P: np.ndarray, benches: dict, repeats: int) -> dict:
+    """CPU ms (median) of the mask stage (prior + segment_fluoro, as :func:`time_views`) and its Dice
+    on each of :func:`bench_frames`."""
     out = {}
-    for kind, subtracted in (("unsubtracted", False), ("subtracted", True)):
-        bench = render_bench_frame(case, np.random.default_rng(seed), subtracted=subtracted)
+    for kind, bench in benches.items():
         times = []
         for _ in range(repeats + 1):
             start = _clock()
-            mask = segmentation.segment_fluoro(bench.frame, FluoroPrior.from_centerline(preop.centerline, case.P_true))
+            mask = segmentation.segment_fluoro(bench.frame, FluoroPrior.from_centerline(preop.centerline, P))
             times.append(_since(start)[1])
         out[kind] = {"mask_cpu_ms": 1e3 * float(np.median(times[1:])),
                      "dice": float(segmentation.dice(mask, bench.mask))}
     return out
+
+
+def _median_cpu_ms(work, repeats: int) -> float:
+    """Median CPU ms of ``work()`` over ``repeats`` calls after one warm-up call."""
+    times = []
+    for _ in range(repeats + 1):
+        start = _clock()
+        work()
+        times.append(_since(start)[1])
+    return 1e3 * float(np.median(times[1:]))
+
+
+def frame_check_cost(frames: dict, repeats: int) -> dict:
+    """The frame check (:func:`quality.check_frame_mask`, as ``pipeline.frame._frame_check`` runs
+    it on every frame) on each of ``frames`` ({name: (frame, prior, mask)}): median CPU ms of the
+    whole check and of its parts (the pixel noise, the contrast to noise with it, the one-tree
+    check), its verdict and the contrast to noise and its margin over ``MIN_CONTRAST_TO_NOISE``."""
+    out = {}
+    for name, (frame, prior, mask) in frames.items():
+        grey = np.asarray(frame, dtype=np.float32)
+        cnr = quality.vessel_contrast_to_noise(frame, mask)
+        out[name] = {
+            "check_cpu_ms": _median_cpu_ms(lambda: _frame_check_verdict(mask, prior, frame), repeats),
+            "noise_cpu_ms": _median_cpu_ms(lambda: quality._pixel_noise(grey), repeats),
+            "contrast_to_noise_cpu_ms": _median_cpu_ms(lambda: quality.vessel_contrast_to_noise(frame, mask), repeats),
+            "one_tree_cpu_ms": _median_cpu_ms(lambda: quality._check_one_tree(mask, prior, None), repeats),
+            "verdict": _frame_check_verdict(mask, prior, frame), "contrast_to_noise": cnr,
+            "margin_over_min_contrast_to_noise": cnr - quality.MIN_CONTRAST_TO_NOISE}
+    return out
+
+
+def _frame_check_verdict(mask, prior, frame) -> str:
+    """"pass", or "refused: " and the frame check's message."""
+    try:
+        quality.check_frame_mask(mask, prior, None, frame=frame)
+    except quality.QualityError as error:
+        return f"refused: {error}"
+    return "pass"
 
 
 def profile_mask(preop, frame: np.ndarray, P: np.ndarray, repeats: int, top: int = 12) -> list[str]:
@@ -236,9 +285,28 @@ def summarise(runs: list[tuple[dict, dict, dict]]) -> dict:
             "facts": runs[0][2]}
 
 
-def plot(path: Path, per_view: dict, two_views: dict, serial: dict) -> None:
+def plot_frame_check(ax, checked: dict) -> None:
+    """Bars: the frame check's median CPU ms per frame, whole and by part (:func:`frame_check_cost`)."""
+    parts = ("check", "noise", "contrast_to_noise", "one_tree")
+    x = np.arange(len(checked))
+    width = 0.8 / len(parts)
+    for i, part in enumerate(parts):
+        ax.bar(x + (i - (len(parts) - 1) / 2) * width, [row[f"{part}_cpu_ms"] for row in checked.values()], width,
+               label="whole check" if part == "check" else part.replace("_", " "))
+    ax.set_xticks(x, [f"{name}\nCNR {row['contrast_to_noise']:.1f}" for name, row in checked.items()], fontsize=8)
+    ax.set(ylabel="median CPU time per frame (ms)", title="frame check, 1024 x 1024")
+    ax.legend(fontsize=8)
+
+
+def plot(path: Path, per_view: dict | None, two_views: dict | None, serial: dict | None, checked: dict) -> None:
     plt = pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5))
+    if per_view is None:
+        fig, ax = plt.subplots(1, 1, figsize=(6.5, 4.5))
+        plot_frame_check(ax, checked)
+        save_figure(fig, path)
+        return
+    fig, axes = plt.subplots(1, 3, figsize=(19, 4.5))
+    plot_frame_check(axes[2], checked)
     bars = per_view | {"two views (joint, worker)": two_views}
     names = list(bars)
     x = np.arange(len(STAGES))
@@ -264,23 +332,16 @@ def plot(path: Path, per_view: dict, two_views: dict, serial: dict) -> None:
     save_figure(fig, path)
 
 
-def main() -> None:
-    parser = argument_parser(__doc__)
-    parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--seed", type=int, default=3)
-    parser.add_argument("--second-angle", type=float, default=30.0, help="primary angle of the second view (deg)")
-    parser.add_argument("--no-breakdown", action="store_true", help="skip the segment_fluoro breakdown")
-    args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    preop, views = frame_cases(args.seed, args.second_angle)
-    worker_ready = workers.wait_until_ready(120.0)
+def pipeline_runs(preop, views, repeats: int) -> dict:
+    """{variant: :func:`summarise` of its runs}: each view alone, both jointly with the view worker
+    and without it, alternating over ``repeats`` (the shared machine's load hits them alike)."""
     runs = {}
     variants = [(view[0], [view], True) for view in views] + [("two views", views, True),
                                                               ("two views (serial)", views, False)]
     for _, chosen, worker in variants:
         time_views(preop, chosen, worker)     # warm-up: imports, caches, the worker's copy of the model
     found = {name: [] for name, _, _ in variants}
-    for _ in range(args.repeats):       # the variants alternate: the shared machine's load hits them alike
+    for _ in range(repeats):
         for name, chosen, worker in variants:
             found[name].append(time_views(preop, chosen, worker))
     for name, _, _ in variants:
@@ -288,25 +349,58 @@ def main() -> None:
         print(name, {k: round(v, 2) for k, v in runs[name]["cpu_ms"].items()}, "CPU ms;",
               f"wall total {runs[name]['wall_ms']['total']:.1f} ms", flush=True)
     workers.set_enabled(None)
-    per_view = {k: v for k, v in runs.items() if not k.startswith("two views")}
-    two = runs["two views"]
+    return runs
+
+
+def checked_frames(preop, views, bench_preop, bench_P, benches) -> dict:
+    """{name: (frame, prior, mask)} of the raw views and the bench frames, as the frame check gets them."""
+    checked = {}
+    for name, image, P, model in [(name, image, P, preop) for name, image, _, P in views] + \
+            [(f"bench {kind}", bench.frame, bench_P, bench_preop) for kind, bench in benches.items()]:
+        prior = FluoroPrior.from_centerline(model.centerline, P)
+        checked[name] = (image, prior, segmentation.segment_fluoro(image, prior))
+    return checked
+
+
+def main() -> None:
+    parser = argument_parser(__doc__)
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--second-angle", type=float, default=30.0, help="primary angle of the second view (deg)")
+    parser.add_argument("--no-breakdown", action="store_true", help="skip the segment_fluoro breakdown")
+    parser.add_argument("--frame-check-only", action="store_true", help="time only the frame check (no pipeline runs)")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    preop, views = frame_cases(args.seed, args.second_angle)
     payload = {"frame_shape": [FRAME_SIZE, FRAME_SIZE], "repeats": args.repeats, "seed": args.seed,
-               "goals_ms": GOALS_MS, "nodes_3d": len(preop.centerline), "views": per_view, "two_views": two,
-               "two_views_serial": runs["two views (serial)"], "worker_ready": worker_ready,
-               "two_views_how": "pipeline.frame.prepare_views + register_prepared on both frames (one joint "
-                                "deformation): the second view's mask and 2D side in the view worker process; "
-                                "two_views_serial: the same with the worker off, alternating with it",
+               "goals_ms": GOALS_MS, "nodes_3d": len(preop.centerline),
                "note": "medians over repeats; CPU time = time.process_time of this process (one BLAS thread); "
                        "wall times are noisy on the shared 2-core machine"}
-    if not args.no_breakdown:
+    runs = {}
+    if not args.frame_check_only:
+        payload["worker_ready"] = workers.wait_until_ready(120.0)
+        runs = pipeline_runs(preop, views, args.repeats)
+        payload |= {"views": {k: v for k, v in runs.items() if not k.startswith("two views")},
+                    "two_views": runs["two views"], "two_views_serial": runs["two views (serial)"],
+                    "two_views_how": "pipeline.frame.prepare_views + register_prepared on both frames (one joint "
+                                     "deformation): the second view's mask and 2D side in the view worker process; "
+                                     "two_views_serial: the same with the worker off, alternating with it"}
+    breakdown = not args.no_breakdown and not args.frame_check_only
+    if breakdown:
         _, frame, _, P = views[0]
         payload["mask_breakdown"] = mask_breakdown(preop, frame, P, max(5, args.repeats // 3))
         payload["mask_profile"] = profile_mask(preop, frame, P, max(5, args.repeats // 3))
         print(payload["mask_breakdown"], *payload["mask_profile"], sep="\n")
-        payload["mask_by_frame_kind"] = mask_by_frame_kind(args.seed, max(5, args.repeats // 3))
+    bench_preop, bench_P, benches = bench_frames(args.seed)
+    if breakdown:
+        payload["mask_by_frame_kind"] = mask_by_frame_kind(bench_preop, bench_P, benches, max(5, args.repeats // 3))
         print("bench frames (every distractor):", payload["mask_by_frame_kind"])
+    payload["frame_check"] = frame_check_cost(checked_frames(preop, views, bench_preop, bench_P, benches), args.repeats)
+    for name, row in payload["frame_check"].items():
+        print("frame check", name, {k: round(v, 2) if isinstance(v, float) else v[:60] for k, v in row.items()})
     write_report(args.out, "bench_frame", payload)
-    plot(args.out / "bench_frame.png", per_view, two, runs["two views (serial)"])
+    plot(args.out / "bench_frame.png", payload.get("views"), payload.get("two_views"), payload.get("two_views_serial"),
+         payload["frame_check"])
 
 
 if __name__ == "__main__":
