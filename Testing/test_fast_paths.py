@@ -13,8 +13,11 @@ from scipy.linalg import cholesky_banded
 from scipy.sparse import csgraph
 
 from FevarPlannerLib import pipeline
+from FevarPlannerLib.deformation import ThinPlateSpline3D, fill_unassigned
+from FevarPlannerLib.deformation import fill as fill_module
 from FevarPlannerLib.deformation.energy import _build_model
 from FevarPlannerLib.deformation.solve import _BandedPreconditioner
+from FevarPlannerLib.deformation.tps import FixedControlsTPS
 from FevarPlannerLib.graph import SkeletonGraph, skeleton_graph_2d, smooth_positions
 from FevarPlannerLib.graph.skeleton_graph import _walk_back
 from FevarPlannerLib.pipeline import fallback
@@ -521,3 +524,71 @@ def test_pieces_labelled_in_the_masks_box_are_the_whole_frames_to_the_number():
         expected, expected_count = ndi.label(mask, structure=eight)
         assert count == expected_count
         np.testing.assert_array_equal(quality._in_frame(labels, box, mask.shape), expected)
+
+
+def test_a_tps_with_fixed_controls_equals_fitting_and_transforming_to_the_bit():
+    """FixedControlsTPS precomputes the control side once; every refit is the plain TPS's."""
+    rng = np.random.default_rng(21)
+    general = rng.uniform(-40.0, 40.0, (30, 3))
+    repeated = np.vstack([general[:12], general[3:7]])                     # merged, targets averaged
+    coplanar = np.column_stack([rng.uniform(-30.0, 30.0, (15, 2)), np.zeros(15)])
+    queries = rng.uniform(-60.0, 60.0, (25, 3))
+    for source, regularization, ratio in ((general, 0.0, 1e-8), (repeated, 0.0, 0.05), (coplanar, 2.5, 0.05)):
+        fixed = FixedControlsTPS(source, queries, regularization, min_extent_ratio=ratio)
+        for _ in range(3):                                                 # several targets, one set-up
+            target = source + rng.normal(0.0, 3.0, source.shape)
+            plain = ThinPlateSpline3D().fit(source, target, regularization, min_extent_ratio=ratio)
+            np.testing.assert_array_equal(fixed.apply(target), plain.transform(queries))
+    with pytest.raises(ValueError, match="same"):
+        FixedControlsTPS(general, queries).apply(general[:-1])
+
+
+def _fill_skeleton():
+    """vessel_tree(200) with its adjacency and an assigned mask with gaps, a cut branch end and a lone node."""
+    tree = vessel_tree(200)
+    n = len(tree.points)
+    adjacency = sp.csr_matrix((np.ones(len(tree.edges)), (tree.edges[:, 0], tree.edges[:, 1])), shape=(n, n))
+    assigned = np.ones(n, dtype=bool)
+    assigned[[5, 6, 7, 40, 41, 90]] = False
+    assigned[-12:] = False
+    return tree.points, adjacency, assigned
+
+
+def _fill_by_plain_splines(plan, points, moved, assigned, regularization=0.0, ratio=0.05):
+    """The fill as it was before plans: one ThinPlateSpline3D fitted and evaluated per piece."""
+    result = points.copy()
+    result[assigned] = moved[assigned]
+    for nodes, controls, _ in plan.splines:
+        spline = ThinPlateSpline3D().fit(points[controls], moved[controls], regularization, min_extent_ratio=ratio)
+        result[nodes] = spline.transform(points[nodes])
+    return result
+
+
+def test_a_cached_fill_plan_gives_the_uncached_fill_to_the_bit(monkeypatch):
+    """Passes of a frame reuse the plan (controls, graph, TPS systems); the fill is unchanged to the bit."""
+    monkeypatch.setattr(fill_module, "_plan_cache", type(fill_module._plan_cache)())
+    points, adjacency, assigned = _fill_skeleton()
+    rng = np.random.default_rng(22)
+    passes = [points + rng.normal(0.0, 2.0, points.shape) for _ in range(3)]
+    filled = [fill_unassigned(points.copy(), moved, assigned, adjacency) for moved in passes]
+    assert len(fill_module._plan_cache) == 1                              # one plan for all passes
+    plan = next(iter(fill_module._plan_cache.values()))
+    assert sum(len(nodes) for nodes, _, _ in plan.splines) == np.count_nonzero(~assigned)
+    for moved, result in zip(passes, filled):
+        np.testing.assert_array_equal(result, _fill_by_plain_splines(plan, points, moved, assigned))
+
+    other = assigned.copy()                                               # another mask: another plan
+    other[100:104] = False
+    result = fill_unassigned(points, passes[0], other, adjacency)
+    assert len(fill_module._plan_cache) == 2
+    fresh = fill_module._FillPlan(points, *fill_module._stored_edges(adjacency), other, [], 80, 40.0, 0.0, 0.05)
+    np.testing.assert_array_equal(result, _fill_by_plain_splines(fresh, points, passes[0], other))
+    cut = sp.lil_matrix(adjacency)                                        # another skeleton: another plan
+    cut[100, 101] = 0.0
+    cut = cut.tocsr()
+    cut.eliminate_zeros()
+    fill_unassigned(points, passes[0], other, cut)
+    assert len(fill_module._plan_cache) == 3
+    for size in range(fill_module._PLAN_CACHE_SIZE + 2):                  # the cache stays small
+        fill_unassigned(points + size, passes[0], assigned, adjacency)
+    assert len(fill_module._plan_cache) == fill_module._PLAN_CACHE_SIZE

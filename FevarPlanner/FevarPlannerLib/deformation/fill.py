@@ -2,22 +2,29 @@
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import scipy.sparse
 from scipy.sparse import csgraph
 from scipy.spatial.distance import cdist
 
 from ..centerline import as_points
-from .tps import ThinPlateSpline3D
+from .tps import FixedControlsTPS
 
 __all__ = ["fill_unassigned"]
 
 
-def _edge_weighted_graph(points: np.ndarray, adjacency) -> scipy.sparse.csr_matrix:
-    """The undirected skeleton graph with Euclidean edge lengths (mm) as weights."""
+def _stored_edges(adjacency) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the stored off-diagonal entries of ``adjacency``, in storage order."""
     coo = scipy.sparse.coo_matrix(adjacency)
     mask = coo.row != coo.col
-    rows, cols = coo.row[mask], coo.col[mask]
+    return coo.row[mask], coo.col[mask]
+
+
+def _edge_weighted_graph(points: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> scipy.sparse.csr_matrix:
+    """The undirected skeleton graph with Euclidean edge lengths (mm) as weights."""
     lengths = np.linalg.norm(points[rows] - points[cols], axis=1)
     lengths = np.maximum(lengths, 1e-9)          # csgraph treats an explicit 0 as "no edge"
     n = len(points)
@@ -62,10 +69,85 @@ def _choose_controls(points, graph, nodes, assigned, candidates, neighbourhood_m
     return found[order]
 
 
-def _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio) -> np.ndarray:
-    spline = ThinPlateSpline3D().fit(points[controls], moved[controls], regularization,
-                                     min_extent_ratio=min_extent_ratio)
-    return spline.transform(points[nodes])
+class _FillPlan:
+    """Which unassigned nodes follow which controls, with each spline's fixed part (Algorithm 2 row 16).
+
+    All of it depends only on the pre-operative points, the skeleton, the assigned mask and
+    the options, never on where the assigned nodes moved: a frame's nearest-point passes
+    (and the frames of a patient with the same assignment) reuse it (:func:`_plan_for`).
+    """
+
+    def __init__(self, points, rows, cols, assigned, groups, max_controls, neighbourhood_mm, regularization,
+                 min_extent_ratio):
+        n = len(points)
+        self.splines = []                  # (unassigned nodes, their controls, FixedControlsTPS)
+        graph = _edge_weighted_graph(points, rows, cols)
+        pending = ~assigned
+        everywhere = np.ones(n, dtype=bool)
+        for group in groups:
+            if group.size and (group.min() < 0 or group.max() >= n):
+                raise ValueError(f"groups: node indices must lie in [0, {n})")
+            nodes = group[pending[group]]
+            members = np.zeros(n, dtype=bool)
+            members[group] = True
+            if nodes.size == 0 or np.count_nonzero(assigned & members) < 4:
+                continue
+            controls = _choose_controls(points, graph, nodes, assigned, members, np.inf, max_controls, 4)
+            self._add(points, controls, nodes, regularization, min_extent_ratio)
+            pending[nodes] = False
+
+        remaining = np.flatnonzero(pending)
+        if remaining.size == 0:
+            return
+        sub = graph[remaining][:, remaining]
+        _, component_of = csgraph.connected_components(sub, directed=False)
+        table = None
+        if remaining.size * n <= _DISTANCE_TABLE_LIMIT:      # one Dijkstra call for all components
+            table = csgraph.dijkstra(graph, directed=False, indices=remaining, limit=neighbourhood_mm)
+        for label in np.unique(component_of):
+            rows = np.flatnonzero(component_of == label)
+            nodes = remaining[rows]
+            near = None if table is None else table[rows].min(axis=0)
+            controls = _choose_controls(points, graph, nodes, assigned, everywhere, neighbourhood_mm,
+                                        max_controls, 4, near)
+            self._add(points, controls, nodes, regularization, min_extent_ratio)
+
+    def _add(self, points, controls, nodes, regularization, min_extent_ratio) -> None:
+        spline = FixedControlsTPS(points[controls], points[nodes], regularization, min_extent_ratio=min_extent_ratio)
+        self.splines.append((nodes, controls, spline))
+
+    def apply(self, result: np.ndarray, moved: np.ndarray) -> None:
+        """Move the planned nodes of ``result`` (in place) by the splines through ``moved`` controls."""
+        for nodes, controls, spline in self.splines:
+            result[nodes] = spline.apply(moved[controls])
+
+
+#: Fill plans kept (most recently used last): a few frames' passes and candidates.
+_PLAN_CACHE_SIZE = 16
+_plan_cache: OrderedDict = OrderedDict()
+_plan_lock = threading.Lock()
+
+
+def _plan_for(points, adjacency, assigned, groups, max_controls, neighbourhood_mm, regularization,
+              min_extent_ratio) -> _FillPlan:
+    """The :class:`_FillPlan` of these inputs, from a small LRU cache keyed by their content."""
+    rows, cols = _stored_edges(adjacency)
+    groups = [np.unique(np.asarray(group, dtype=np.int64).reshape(-1)) for group in groups or ()]
+    key = (points.shape, points.tobytes(), rows.tobytes(), cols.tobytes(), assigned.tobytes(),
+           tuple(group.tobytes() for group in groups), int(max_controls), float(neighbourhood_mm),
+           float(regularization), float(min_extent_ratio))
+    with _plan_lock:
+        plan = _plan_cache.get(key)
+        if plan is not None:
+            _plan_cache.move_to_end(key)
+            return plan
+    plan = _FillPlan(points, rows, cols, assigned, groups, max_controls, neighbourhood_mm, regularization,
+                     min_extent_ratio)
+    with _plan_lock:
+        _plan_cache[key] = plan
+        while len(_plan_cache) > _PLAN_CACHE_SIZE:
+            _plan_cache.popitem(last=False)
+    return plan
 
 
 def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=None, max_controls=80,
@@ -124,35 +206,7 @@ def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=No
     if assigned.all() or not assigned.any():
         return result
 
-    graph = _edge_weighted_graph(points, adjacency)
-    pending = ~assigned
-    everywhere = np.ones(n, dtype=bool)
-    for group in groups or ():
-        group = np.unique(np.asarray(group, dtype=np.int64).reshape(-1))
-        if group.size and (group.min() < 0 or group.max() >= n):
-            raise ValueError(f"groups: node indices must lie in [0, {n})")
-        nodes = group[pending[group]]
-        members = np.zeros(n, dtype=bool)
-        members[group] = True
-        if nodes.size == 0 or np.count_nonzero(assigned & members) < 4:
-            continue
-        controls = _choose_controls(points, graph, nodes, assigned, members, np.inf, max_controls, 4)
-        result[nodes] = _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio)
-        pending[nodes] = False
-
-    remaining = np.flatnonzero(pending)
-    if remaining.size == 0:
-        return result
-    sub = graph[remaining][:, remaining]
-    _, component_of = csgraph.connected_components(sub, directed=False)
-    table = None
-    if remaining.size * n <= _DISTANCE_TABLE_LIMIT:      # one Dijkstra call for all components
-        table = csgraph.dijkstra(graph, directed=False, indices=remaining, limit=neighbourhood_mm)
-    for label in np.unique(component_of):
-        rows = np.flatnonzero(component_of == label)
-        nodes = remaining[rows]
-        near = None if table is None else table[rows].min(axis=0)
-        controls = _choose_controls(points, graph, nodes, assigned, everywhere, neighbourhood_mm,
-                                    max_controls, 4, near)
-        result[nodes] = _tps_move(points, moved, controls, nodes, regularization, min_extent_ratio)
+    plan = _plan_for(points, adjacency, assigned, groups, max_controls, neighbourhood_mm, regularization,
+                     min_extent_ratio)
+    plan.apply(result, moved)
     return result

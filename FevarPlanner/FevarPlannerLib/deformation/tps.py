@@ -13,7 +13,7 @@ from scipy.spatial.distance import cdist
 
 from ..centerline import as_points
 
-__all__ = ["ThinPlateSpline3D"]
+__all__ = ["FixedControlsTPS", "ThinPlateSpline3D"]
 
 
 class ThinPlateSpline3D:
@@ -63,10 +63,17 @@ class ThinPlateSpline3D:
                              f"(got {len(source)} and {len(target)})")
         if not (np.isfinite(regularization) and regularization >= 0):
             raise ValueError(f"TPS: regularization must be finite and >= 0 (got {regularization})")
-        source, target = _merge_repeated(source, target)
-        k = len(source)
+        merge = _RepeatMerge(source)
+        source, target = merge.sources, merge.targets(target)
         self._center = source.mean(axis=0)
         self._basis = _affine_hull_basis(source - self._center, min_extent_ratio)
+        system = self._system(source, regularization)
+        self._solve(system, source, target)
+        return self
+
+    def _system(self, source: np.ndarray, regularization: float) -> np.ndarray:
+        """The ``(k + 1 + r)`` square matrix ``[[U + lambda I, Q], [Q^T, 0]]`` of the merged controls."""
+        k = len(source)
         poly = self._polynomial(source)
         n_poly = poly.shape[1]
         system = np.zeros((k + n_poly, k + n_poly))
@@ -74,7 +81,11 @@ class ThinPlateSpline3D:
         system[:k, :k].flat[:: k + 1] += regularization
         system[:k, k:] = poly
         system[k:, :k] = poly.T
-        rhs = np.zeros((k + n_poly, 3))
+        return system
+
+    def _solve(self, system: np.ndarray, source: np.ndarray, target: np.ndarray) -> None:
+        k = len(source)
+        rhs = np.zeros((len(system), 3))
         rhs[:k] = target - source          # displacements: dropped affine directions keep the identity
         try:
             coefficients = scipy.linalg.solve(system, rhs, assume_a="sym", check_finite=False)
@@ -83,7 +94,6 @@ class ThinPlateSpline3D:
         self.controls = source
         self._kernel_weights = coefficients[:k]
         self._affine = coefficients[k:]
-        return self
 
     def _polynomial(self, points: np.ndarray) -> np.ndarray:
         return np.column_stack([np.ones(len(points)), (points - self._center) @ self._basis])
@@ -93,7 +103,11 @@ class ThinPlateSpline3D:
         if self.controls is None:
             raise ValueError("TPS: call fit() before transform()")
         points = as_points(points, "TPS points", 3)
-        displacement = cdist(points, self.controls) @ self._kernel_weights + self._polynomial(points) @ self._affine
+        return self._transform_with(points, cdist(points, self.controls), self._polynomial(points))
+
+    def _transform_with(self, points: np.ndarray, kernel: np.ndarray, poly: np.ndarray) -> np.ndarray:
+        """:meth:`transform` of ``points`` given their kernel values and polynomial terms."""
+        displacement = kernel @ self._kernel_weights + poly @ self._affine
         return points + displacement
 
     @staticmethod
@@ -135,13 +149,68 @@ class ThinPlateSpline3D:
         return G, B
 
 
-def _merge_repeated(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    unique, inverse, counts = np.unique(source, axis=0, return_inverse=True, return_counts=True)
-    if len(unique) == len(source):
-        return source, target
-    merged = np.zeros((len(unique), 3))
-    np.add.at(merged, inverse.ravel(), target)
-    return unique, merged / counts[:, None]
+class _RepeatMerge:
+    """Which control sources repeat: the distinct ``sources`` and how to average their targets."""
+
+    def __init__(self, source: np.ndarray):
+        unique, inverse, counts = np.unique(source, axis=0, return_inverse=True, return_counts=True)
+        self.repeated = len(unique) != len(source)
+        self.sources = unique if self.repeated else source
+        self._inverse, self._counts = inverse.ravel(), counts
+
+    def targets(self, target: np.ndarray) -> np.ndarray:
+        """``target`` (k, 3) with the targets of repeated sources averaged."""
+        if not self.repeated:
+            return target
+        merged = np.zeros((len(self.sources), 3))
+        np.add.at(merged, self._inverse, target)
+        return merged / self._counts[:, None]
+
+
+class FixedControlsTPS:
+    """The TPS from fixed controls to fixed query points, refitted for ever new control targets.
+
+    Everything that depends only on the control sources and the query points (merged
+    repeats, affine hull, the system matrix, the kernel at the queries) is computed once;
+    :meth:`apply` then solves the system for the targets and evaluates it, giving exactly
+    ``ThinPlateSpline3D().fit(source, target, ...).transform(queries)`` (the same
+    floating-point operations on the same arrays).
+
+    Parameters
+    ----------
+    source : array_like, shape (k, 3)
+        Control points (mm).
+    queries : array_like, shape (q, 3)
+        Where the spline is evaluated (mm).
+    regularization, min_extent_ratio : float
+        As in :meth:`ThinPlateSpline3D.fit`.
+    """
+
+    def __init__(self, source, queries, regularization: float = 0.0, *, min_extent_ratio: float = 1e-8):
+        source = as_points(source, "TPS source", 3)
+        self.queries = as_points(queries, "TPS points", 3)
+        if len(source) == 0:
+            raise ValueError("TPS: need the same non-zero number of source and target points (got 0 and 0)")
+        if not (np.isfinite(regularization) and regularization >= 0):
+            raise ValueError(f"TPS: regularization must be finite and >= 0 (got {regularization})")
+        self.n_controls = len(source)
+        self._merge = _RepeatMerge(source)
+        self._spline = ThinPlateSpline3D()
+        merged = self._merge.sources
+        self._spline._center = merged.mean(axis=0)
+        self._spline._basis = _affine_hull_basis(merged - self._spline._center, min_extent_ratio)
+        self._system = self._spline._system(merged, regularization)
+        self._kernel = cdist(self.queries, merged)
+        self._poly = self._spline._polynomial(self.queries)
+
+    def apply(self, target) -> np.ndarray:
+        """The queries moved by the spline that takes the controls to ``target`` (k, 3); (q, 3)."""
+        target = as_points(target, "TPS target", 3)
+        if len(target) != self.n_controls:
+            raise ValueError(f"TPS: need the same non-zero number of source and target points "
+                             f"(got {self.n_controls} and {len(target)})")
+        self._spline._solve(self._system, self._merge.sources, self._merge.targets(target))
+        return self._spline._transform_with(self.queries, self._kernel, self._poly)
 
 
 def _affine_hull_basis(centred: np.ndarray, min_extent_ratio: float) -> np.ndarray:
