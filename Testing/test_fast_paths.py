@@ -16,6 +16,8 @@ from FevarPlannerLib import pipeline
 from FevarPlannerLib.deformation import ThinPlateSpline3D, fill_unassigned
 from FevarPlannerLib.deformation import fill as fill_module
 from FevarPlannerLib.deformation.energy import _build_model
+from FevarPlannerLib.deformation import deform_assigned
+from FevarPlannerLib.deformation import solve as solve_module
 from FevarPlannerLib.deformation.solve import _BandedPreconditioner
 from FevarPlannerLib.deformation.tps import FixedControlsTPS
 from FevarPlannerLib.graph import SkeletonGraph, skeleton_graph_2d, smooth_positions
@@ -592,3 +594,40 @@ def test_a_cached_fill_plan_gives_the_uncached_fill_to_the_bit(monkeypatch):
     for size in range(fill_module._PLAN_CACHE_SIZE + 2):                  # the cache stays small
         fill_unassigned(points + size, passes[0], assigned, adjacency)
     assert len(fill_module._plan_cache) == fill_module._PLAN_CACHE_SIZE
+
+
+def _two_view_model(tree, seed):
+    rng = np.random.default_rng(seed)
+    n = len(tree.points)
+    extra = [(carm(40.0 + seed), rng.normal(256.0, 40.0, (n, 2)), rng.random(n))]
+    return _build_model(tree.points, rng.normal(256.0, 40.0, (n, 2)), tree.edges, carm(float(seed)),
+                        500.0, 10.0, None, None, extra)
+
+
+def test_a_kept_band_layout_gives_the_preconditioner_of_a_fresh_one_to_the_bit(monkeypatch):
+    """Solves with the same edges share the node order and band layout; factor and solution unchanged."""
+    tree = vessel_tree(160)
+    monkeypatch.setattr(solve_module, "_layout_cache", type(solve_module._layout_cache)())
+    _BandedPreconditioner(_two_view_model(tree, 1), 0.1)                 # leaves its layout behind
+    assert len(solve_module._layout_cache) == 1
+    warm = _BandedPreconditioner(_two_view_model(tree, 2), 0.1)
+    assert len(solve_module._layout_cache) == 1
+    adjacency = sp.csr_matrix((np.ones(len(tree.edges)), tuple(tree.edges.T)), shape=(len(tree.points),) * 2)
+    order = csgraph.reverse_cuthill_mckee((adjacency + adjacency.T).tocsr(), symmetric_mode=True)
+    np.testing.assert_array_equal(warm.position[order], np.arange(len(tree.points)))
+    solve_module._layout_cache.clear()
+    cold = _BandedPreconditioner(_two_view_model(tree, 2), 0.1)
+    for name in ("factor", "position", "to_permuted", "from_permuted"):
+        np.testing.assert_array_equal(getattr(warm, name), getattr(cold, name))
+    assert warm.band == cold.band
+
+    rng = np.random.default_rng(3)
+    n = len(tree.points)
+    P_lao = carm(50.0)
+    targets = rng.normal(256.0, 30.0, (n, 2))
+    extra = [(P_lao, rng.normal(256.0, 30.0, (n, 2)), None)]
+    solve_module._layout_cache.clear()
+    cold, warm = (deform_assigned(tree.points, targets, tree.edges, carm(0.0), extra_views=extra, max_iter=30)
+                  for _ in range(2))                                      # the second one with the kept layout
+    np.testing.assert_array_equal(cold.points, warm.points)
+    assert cold.n_evaluations == warm.n_evaluations

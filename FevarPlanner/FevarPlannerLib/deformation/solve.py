@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import numpy as np
 import scipy.linalg
 import scipy.linalg.lapack
@@ -13,6 +16,81 @@ from ..projection import projection_jacobian
 from .energy import DEFAULT_ALPHA, DEFAULT_BETA, DeformationResult, _build_model, _displacements_cm, _EnergyModel
 
 __all__ = ["deform_assigned"]
+
+
+class _BandLayout:
+    """Where the entries of the Gauss-Newton Hessian go in band storage: a function of the edges only.
+
+    Nodes in reverse Cuthill-McKee order, the (permuted) row and column of every entry of the
+    Hessian's 3x3 blocks (the diagonal blocks of the nodes first, then ``ii``, ``jj``, ``ij``,
+    ``ji`` of every edge), their upper-band slots and the index maps between the permuted
+    variables and the (3, n) displacements. A frame's solves share their edges, so the
+    layout is kept (:func:`_band_layout`); its arrays are read-only.
+    """
+
+    def __init__(self, edges: np.ndarray, n: int, max_band_nodes: int):
+        order = self._node_order(edges, n)
+        self.position = np.empty(n, dtype=np.int64)
+        self.position[order] = np.arange(n)
+        band_nodes = int(np.abs(np.diff(self.position[edges], axis=1)).max()) if len(edges) else 0
+        self.usable = band_nodes <= max_band_nodes
+        if not self.usable:
+            return
+        self.band = 3 * band_nodes + 2
+        self.rows, self.cols = self._block_entries(edges, n)
+        self.upper = self.rows <= self.cols
+        self.slots = (self.band + self.rows[self.upper] - self.cols[self.upper]) * (3 * n) + self.cols[self.upper]
+        self.to_permuted = (np.arange(3)[None, :] * n + order[:, None]).ravel()   # x index -> (3, n) index
+        self.from_permuted = (3 * self.position[None, :] + np.arange(3)[:, None]).ravel()
+        for array in (self.position, self.rows, self.cols, self.upper, self.slots, self.to_permuted,
+                      self.from_permuted):
+            array.flags.writeable = False
+
+    @staticmethod
+    def _node_order(edges: np.ndarray, n: int) -> np.ndarray:
+        if not len(edges):
+            return np.arange(n)
+        i, j = edges[:, 0], edges[:, 1]
+        adjacency = scipy.sparse.csr_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n, n))
+        return np.asarray(csgraph.reverse_cuthill_mckee(adjacency, symmetric_mode=True), dtype=np.int64)
+
+    def _block_entries(self, edges: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Permuted (row, column) of every entry of the Hessian blocks, in :meth:`_hessian_blocks` order."""
+        pairs = [(np.arange(n), np.arange(n))]
+        if len(edges):
+            i, j = edges[:, 0], edges[:, 1]
+            pairs += [(i, i), (j, j), (i, j), (j, i)]
+        rows, cols = [], []
+        component = np.arange(3)
+        for a, b in pairs:
+            r = 3 * self.position[a][:, None, None] + component[None, :, None]
+            c = 3 * self.position[b][:, None, None] + component[None, None, :]
+            r, c = np.broadcast_arrays(r, c)
+            rows.append(r.ravel())
+            cols.append(c.ravel())
+        return np.concatenate(rows), np.concatenate(cols)
+
+
+#: Band layouts kept (most recently used last): the edge sets of a few frames.
+_LAYOUT_CACHE_SIZE = 8
+_layout_cache: OrderedDict = OrderedDict()
+_layout_lock = threading.Lock()
+
+
+def _band_layout(edges: np.ndarray, n: int, max_band_nodes: int) -> _BandLayout:
+    """The :class:`_BandLayout` of ``edges`` over ``n`` nodes, from a small LRU cache keyed by content."""
+    key = (n, edges.shape, edges.tobytes(), max_band_nodes)
+    with _layout_lock:
+        layout = _layout_cache.get(key)
+        if layout is not None:
+            _layout_cache.move_to_end(key)
+            return layout
+    layout = _BandLayout(edges, n, max_band_nodes)
+    with _layout_lock:
+        _layout_cache[key] = layout
+        while len(_layout_cache) > _LAYOUT_CACHE_SIZE:
+            _layout_cache.popitem(last=False)
+    return layout
 
 
 class _BandedPreconditioner:
@@ -30,35 +108,23 @@ class _BandedPreconditioner:
     MAX_BAND_NODES = 40
 
     def __init__(self, model: _EnergyModel, ridge: float):
-        n, m = len(model.points), len(model.edges)
-        order = self._node_order(model, n)
-        self.position = np.empty(n, dtype=np.int64)
-        self.position[order] = np.arange(n)
-        band_nodes = int(np.abs(np.diff(self.position[model.edges], axis=1)).max()) if m else 0
-        self.usable = band_nodes <= self.MAX_BAND_NODES
+        n = len(model.points)
+        layout = _band_layout(model.edges, n, self.MAX_BAND_NODES)
+        self.position = layout.position
+        self.usable = layout.usable
         if not self.usable:
             return
-        self.band = 3 * band_nodes + 2
-        rows, cols, values = self._hessian_blocks(model, model.points, ridge)
-        upper = rows <= cols
+        self.band = layout.band
+        values = self._hessian_values(model, model.points, ridge)
         # upper band storage; the entries of a place add up in their order (as np.add.at would)
-        slots = (self.band + rows[upper] - cols[upper]) * (3 * n) + cols[upper]
-        ab = np.bincount(slots, values[upper], (self.band + 1) * 3 * n).reshape(self.band + 1, 3 * n)
+        ab = np.bincount(layout.slots, values[layout.upper], (self.band + 1) * 3 * n).reshape(self.band + 1, 3 * n)
         self.factor = scipy.linalg.cholesky_banded(ab, lower=False, check_finite=False)
-        n_nodes = len(order)
-        self.to_permuted = (np.arange(3)[None, :] * n_nodes + order[:, None]).ravel()   # x index -> (3, n) index
-        self.from_permuted = (3 * self.position[None, :] + np.arange(3)[:, None]).ravel()
+        self.to_permuted = layout.to_permuted
+        self.from_permuted = layout.from_permuted
+        self._layout = layout
 
-    @staticmethod
-    def _node_order(model: _EnergyModel, n: int) -> np.ndarray:
-        if not len(model.edges):
-            return np.arange(n)
-        i, j = model.edges[:, 0], model.edges[:, 1]
-        adjacency = scipy.sparse.csr_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n, n))
-        return np.asarray(csgraph.reverse_cuthill_mckee(adjacency, symmetric_mode=True), dtype=np.int64)
-
-    def _hessian_blocks(self, model: _EnergyModel, y: np.ndarray, ridge: float):
-        """COO entries (in permuted variable order) of the GN Hessian of ``n_a * eps`` at ``y``."""
+    def _hessian_values(self, model: _EnergyModel, y: np.ndarray, ridge: float) -> np.ndarray:
+        """The entries of the GN Hessian of ``n_a * eps`` at ``y``, in :class:`_BandLayout` order."""
         n, m = len(y), len(model.edges)
         data = np.zeros((n, 3, 3))
         for view in model.views:       # the data blocks of every view add up
@@ -67,23 +133,18 @@ class _BandedPreconditioner:
         stiffness = np.median(np.trace(data, axis1=1, axis2=2)) / 2.0
         if not stiffness > 0:
             stiffness = 1.0
-        blocks = [(np.arange(n), np.arange(n), data + ridge * stiffness * np.eye(3))]
+        values = [(data + ridge * stiffness * np.eye(3)).ravel()]
         if m:
             i, j = model.edges[:, 0], model.edges[:, 1]
             vec = y[i] - y[j]
             unit = vec / (np.maximum(np.linalg.norm(vec, axis=1), 1e-12) * model.rest_lengths)[:, None]
-            edge = 2.0 * n / m * (model.alpha * np.einsum("ei,ej->eij", unit, unit) + model.beta * np.eye(3))
-            blocks += [(i, i, edge), (j, j, edge), (i, j, -edge), (j, i, -edge)]
-        rows, cols, values = [], [], []
-        component = np.arange(3)
-        for a, b, block in blocks:
-            r = 3 * self.position[a][:, None, None] + component[None, :, None]
-            c = 3 * self.position[b][:, None, None] + component[None, None, :]
-            r, c = np.broadcast_arrays(r, c)
-            rows.append(r.ravel())
-            cols.append(c.ravel())
-            values.append(block.ravel())
-        return np.concatenate(rows), np.concatenate(cols), np.concatenate(values)
+            edge = (2.0 * n / m * (model.alpha * np.einsum("ei,ej->eij", unit, unit) + model.beta * np.eye(3))).ravel()
+            values += [edge, edge, -edge, -edge]         # blocks ii, jj, ij, ji
+        return np.concatenate(values)
+
+    def _hessian_blocks(self, model: _EnergyModel, y: np.ndarray, ridge: float):
+        """COO entries (in permuted variable order) of the GN Hessian of ``n_a * eps`` at ``y``."""
+        return self._layout.rows, self._layout.cols, self._hessian_values(model, y, ridge)
 
     def displacement(self, x: np.ndarray) -> np.ndarray:
         """``phi = R^-1 x`` as a (3, n) array."""
