@@ -16,6 +16,7 @@ from FevarPlannerLib import pipeline
 from FevarPlannerLib.deformation import ThinPlateSpline3D, fill_unassigned
 from FevarPlannerLib.deformation import fill as fill_module
 from FevarPlannerLib.deformation.energy import _build_model
+from FevarPlannerLib.projection import homogeneous_columns, pull_back_columns
 from FevarPlannerLib.deformation import deform_assigned
 from FevarPlannerLib.deformation import solve as solve_module
 from FevarPlannerLib.deformation.solve import _BandedPreconditioner
@@ -631,3 +632,43 @@ def test_a_kept_band_layout_gives_the_preconditioner_of_a_fresh_one_to_the_bit(m
                   for _ in range(2))                                      # the second one with the kept layout
     np.testing.assert_array_equal(cold.points, warm.points)
     assert cold.n_evaluations == warm.n_evaluations
+
+
+def _data_term_as_written(P, targets, weights, y):
+    """eq. 1 and eqs. 7-9 for one view, each factor formed where the formula has it."""
+    h = homogeneous_columns(P, y)
+    sign = 1.0 if np.all(h[2] > 0) else -1.0
+    if np.any(h[2] * sign <= 0):
+        return None
+    inverse_w = 1.0 / h[2]
+    fu, fv = h[0] * inverse_w, h[1] * inverse_w
+    ru, rv = targets[:, 0] - fu, targets[:, 1] - fv
+    scale = -2.0 * weights * inverse_w
+    return float(weights @ (ru * ru + rv * rv)), pull_back_columns(P, fu, fv, scale * ru, scale * rv)
+
+
+@pytest.mark.parametrize("behind", [False, True])
+def test_the_data_term_with_its_factors_kept_equals_the_formula_to_the_bit(behind):
+    """The view keeps -2 w_j and its crossing test; values, gradients and reweighting unchanged."""
+    tree = vessel_tree(120)
+    rng = np.random.default_rng(31)
+    P = carm(25.0)
+    if behind:                                                            # a P with w < 0 in front
+        P = -P
+    n = len(tree.points)
+    targets = rng.normal(256.0, 30.0, (n, 2))
+    model = _build_model(tree.points, targets, tree.edges, P, 500.0, 10.0, rng.random(n), None)
+    view = model.views[0]
+    assert view.depth_sign == (-1.0 if behind else 1.0)
+    for step in range(3):
+        if step == 2:                                                     # as ICP-TPS re-weights its view
+            view.data_weights = rng.random(n) / n
+        y = model._points_cm + rng.normal(0.0, 2.0, (3, n))
+        s_d, grad = view.data_term(y, True)
+        plain_s_d, plain_grad = _data_term_as_written(P, targets, view.data_weights, y)
+        assert s_d == plain_s_d
+        np.testing.assert_array_equal(grad, plain_grad)
+    far = model._points_cm.copy()
+    far[:, 7] -= 5000.0 * np.sign(P[2, :3]) * (-1.0 if behind else 1.0)   # one node through the source plane
+    assert _data_term_as_written(P, targets, view.data_weights, far) is None
+    assert view.data_term(far, True) is None

@@ -73,6 +73,18 @@ class _View:
         self.depth_sign = 1.0 if np.all(w > 0) else -1.0
         if not np.all(w * self.depth_sign > 0):
             raise ValueError("assigned points lie on both sides of (or on) the X-ray source plane of P")
+        # the same test as "w * depth_sign <= 0", without the product
+        self._crossed = np.less_equal if self.depth_sign > 0 else np.greater_equal
+
+    @property
+    def data_weights(self) -> np.ndarray:
+        """``w_j / (n_a * n_views)``; setting it also sets the factor ``-2 w_j / ...`` of eqs. 7-9."""
+        return self._data_weights
+
+    @data_weights.setter
+    def data_weights(self, weights: np.ndarray) -> None:
+        self._data_weights = weights
+        self._gradient_weights = -2.0 * weights
 
     def set_targets(self, targets: np.ndarray) -> None:
         self.targets = targets
@@ -81,16 +93,16 @@ class _View:
     def data_term(self, y: np.ndarray, with_gradient: bool):
         """``(S_D share, its gradient (3, n) or None)``, or None when a point crossed the source plane."""
         h = homogeneous_columns(self.P, y)              # eq. 1: rows [w*u, w*v, w]
-        if np.any(h[2] * self.depth_sign <= 0):
+        if self._crossed(h[2], 0.0).any():
             return None
         inverse_w = 1.0 / h[2]
         fu, fv = h[0] * inverse_w, h[1] * inverse_w
         ru, rv = self.targets_cm[0] - fu, self.targets_cm[1] - fv     # t_j - f(y_j + phi_j)
-        s_d = float(self.data_weights @ (ru * ru + rv * rv))
+        s_d = float(self._data_weights @ (ru * ru + rv * rv))
         if not with_gradient:
             return s_d, None
         # eqs. 7-9: dS_D/dphi_j = -2 w_j / n_a * (d f / d y)^T r_j, with (d f / d y) of eq. 1
-        scale = -2.0 * self.data_weights * inverse_w
+        scale = self._gradient_weights * inverse_w
         return s_d, pull_back_columns(self.P, fu, fv, scale * ru, scale * rv)
 
 
