@@ -209,3 +209,19 @@ def test_two_series_and_junk_in_the_ct_folder_are_named_with_the_choice(tmp_path
     assert any("README.txt (not DICOM)" in m and ".DS_Store" in m for m in messages)
     choice = next(m for m in messages if "DICOM series found" in m)
     assert "using 1.2.3.9.1 (4 slices" in choice and "1.2.3.9.2 (2 slices" in choice and "--ct" in choice
+
+
+def test_plan_runs_one_case_without_starting_the_view_worker(small_case, tmp_path):
+    """A one-case process gains nothing from the view worker (it is not ready before the case
+    is done), so ``plan`` does not start it, and it leaves the caller's setting as it was."""
+    from FevarPlannerLib.pipeline import workers
+
+    workers.shutdown()
+    previous = workers.set_enabled(True)
+    try:
+        assert main(["-q", "plan", str(small_case), "--out", str(tmp_path / "out")]) == 0
+        assert workers._state["worker"] is None
+        assert workers.set_enabled(previous) is True
+    finally:
+        workers.set_enabled(previous)
+        workers.shutdown()

@@ -35,12 +35,14 @@ _state = {"enabled": None, "worker": None, "failures": 0, "in_worker": False}
 _tokens = itertools.count(1)
 
 
-def set_enabled(enabled: bool | None) -> None:
+def set_enabled(enabled: bool | None) -> bool | None:
     """Use the worker (True), never (False), or as ``FEVARPLANNER_VIEW_WORKER`` says (None, the default).
 
-    A running worker stays (idle) while it is off; :func:`shutdown` ends it.
+    A running worker stays (idle) while it is off; :func:`shutdown` ends it. Returns the
+    setting it replaces, so that a caller can put it back.
     """
-    _state["enabled"] = enabled
+    previous, _state["enabled"] = _state["enabled"], enabled
+    return previous
 
 
 def enabled() -> bool:
