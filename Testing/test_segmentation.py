@@ -499,21 +499,28 @@ def test_frame_gate_passes_an_angiogram_and_refuses_noise_wire_only_and_blank(tm
         seg.segment_fluoro(np.full(frame.shape, 1000, np.uint16), prior)
 
 
+def _without_vessels(centreline, vessels) -> Centerline:
+    """``centreline`` with the nodes of ``vessels`` and their edges removed."""
+    keep = np.array([label not in vessels for label in centreline.labels])
+    index = np.cumsum(keep) - 1
+    edges = centreline.edges[keep[centreline.edges].all(axis=1)]
+    return Centerline(centreline.points[keep], index[edges], [l for l, k in zip(centreline.labels, keep) if k])
+
+
 def test_preop_gate_names_the_missing_vessel_and_checks_radii():
     _, truth, case = _phantom_ct()
     centreline = case.preop.to_centerline()
     report = quality.check_preop_tree(centreline, truth)
     assert set(report) == set(quality.MAIN_VESSELS)
     assert 2.0 <= report["renal_left"]["radius_mm"] <= 4.5
-    keep = np.array([label != "renal_left" for label in centreline.labels])
-    index = np.cumsum(keep) - 1
-    edges = centreline.edges[keep[centreline.edges].all(axis=1)]
-    pruned = Centerline(centreline.points[keep], index[edges], [l for l, k in zip(centreline.labels, keep) if k])
     with pytest.raises(quality.QualityError, match="renal_left not found"):
-        quality.check_preop_tree(pruned)
+        quality.check_preop_tree(_without_vessels(centreline, ("renal_left",)))
     thin = truth.with_array(ndi.binary_erosion(truth.array, iterations=4))
     with pytest.raises(quality.QualityError, match="radius"):
         quality.check_preop_tree(centreline, thin)
+    above_bifurcation = _without_vessels(centreline, ("iliac_left", "iliac_right"))
+    with pytest.raises(quality.QualityError, match="iliac_left, iliac_right not found"):
+        quality.check_preop_tree(above_bifurcation, thin)      # named before the thin lumen's radii
 
 
 def test_percentile_among_zeros_matches_the_padded_array():

@@ -268,17 +268,18 @@ def check_preop_tree(centerline, lumen: Volume | None = None, qc: QCData | None 
     Raises
     ------
     QualityError
-        One line naming the first vessel that is missing or out of range, and where.
+        One line naming every vessel that is missing, or else the first one out of range, and where.
     """
     lengths = _vessel_lengths(centerline)
     radii = _radii(centerline, lumen) if lumen is not None else None
     labels = np.asarray(centerline.labels)
+    missing = [vessel for vessel in MAIN_VESSELS if not (labels == vessel).any() or lengths.get(vessel, 0.0) <= 0]
+    if missing:     # every missing vessel is named first: a CT that stops above the bifurcation says so
+        raise QualityError(f"3D segmentation check: {', '.join(missing)} not found in the CT tree; "
+                           f"{_where_aorta_ends(centerline)} (see segmentation_qc.png; give an aorta_mask to override)", qc)
     report = {}
     for vessel in MAIN_VESSELS:
-        length = lengths.get(vessel, 0.0)
-        if not (labels == vessel).any() or length <= 0:
-            raise QualityError(f"3D segmentation check: {vessel} not found in the CT tree; {_where_aorta_ends(centerline)}"
-                               f" (see segmentation_qc.png; give an aorta_mask to override)", qc)
+        length = lengths[vessel]
         lo, hi = LENGTH_RANGE_MM[vessel]
         nodes = centerline.points[labels == vessel]
         where = "LPS ({:.0f}, {:.0f}, {:.0f}) mm".format(*nodes.mean(axis=0))
