@@ -523,6 +523,29 @@ def test_preop_gate_names_the_missing_vessel_and_checks_radii():
         quality.check_preop_tree(above_bifurcation, thin)      # named before the thin lumen's radii
 
 
+def _slices_above(volume: Volume, z_mm: float) -> Volume:
+    """The slices of ``volume`` whose LPS z lies above ``z_mm`` (a scan that stops there)."""
+    z = volume.index_to_lps(np.stack([np.arange(volume.shape[0]), np.zeros(volume.shape[0]),
+                                      np.zeros(volume.shape[0])], axis=1))[:, 2]
+    keep = np.flatnonzero(z > z_mm)
+    first, stop = int(keep.min()), int(keep.max()) + 1
+    return Volume(volume.array[first:stop], volume.spacing, volume.index_to_lps([first, 0, 0]), volume.direction)
+
+
+def test_preop_gate_refuses_a_scan_that_stops_above_the_bifurcation():
+    _, truth, case = _phantom_ct()
+    centreline = case.preop.to_centerline()
+    labels = np.asarray(centreline.labels)
+    bifurcation_z = centreline.points[labels == "aorta", 2].min()
+    quality.check_preop_tree(centreline, _slices_above(truth, bifurcation_z - 60.0))     # iliacs cut: passes
+    cut = _slices_above(truth, bifurcation_z + 25.0)
+    with pytest.raises(quality.QualityError, match="ends above the aortic bifurcation") as refusal:
+        quality.check_preop_tree(centreline, cut)
+    lowest = min(cut.index_to_lps([0, 0, 0])[2], cut.index_to_lps([cut.shape[0] - 1, 0, 0])[2])
+    where = [float(v) for v in str(refusal.value).split("LPS (")[1].split(")")[0].split(",")]
+    assert abs(where[2] - lowest) <= 1.0 + cut.spacing[2]          # named where the aorta is cut
+
+
 def test_percentile_among_zeros_matches_the_padded_array():
     rng = np.random.default_rng(5)
     values = rng.random(300) * (rng.random(300) > 0.3)

@@ -32,6 +32,9 @@ __all__ = ["FluoroPrior", "TYPICAL_RADIUS_MM", "DEFORMATION_MARGIN_MM", "MAIN_VE
            "check_frame_mask", "vessel_contrast_to_noise", "write_segmentation_qc"]
 
 MAIN_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+#: A lumen leaving the scan's most inferior slice as one section this wide (equivalent radius,
+#: mm) is the aorta: the scan stops above the bifurcation.
+AORTA_CUT_RADIUS_MM = 6.0
 #: Centreline length (mm) each main vessel's labelled part may have.
 LENGTH_RANGE_MM = {"aorta": (40.0, 700.0), "renal_left": (5.0, 160.0), "renal_right": (5.0, 160.0),
                    "iliac_left": (10.0, 300.0), "iliac_right": (10.0, 300.0)}
@@ -248,6 +251,33 @@ def _where_aorta_ends(centerline) -> str:
             f"(x={low[0]:.0f}, y={low[1]:.0f})")
 
 
+def _inferior_slice(lumen: Volume) -> int:
+    """Index k of the scan's most inferior slice (lowest LPS z)."""
+    last = lumen.shape[0] - 1
+    return 0 if lumen.index_to_lps([0, 0, 0])[2] <= lumen.index_to_lps([last, 0, 0])[2] else last
+
+
+def _aorta_leaves_scan_below(lumen: Volume) -> str | None:
+    """Where the lumen leaves the scan through its most inferior slice as one aorta-wide
+    cross-section (the CT stops above the aortic bifurcation), as a phrase; else ``None``.
+
+    Two cut iliacs leave as two similar sections; an aorta leaves as one section of at least
+    :data:`AORTA_CUT_RADIUS_MM` (equivalent radius) with nothing half its size beside it.
+    """
+    k = _inferior_slice(lumen)
+    pieces, count = ndi.label(np.asarray(lumen.array[k]) > 0)
+    if count == 0:
+        return None
+    areas = np.bincount(pieces.ravel())[1:] * float(lumen.spacing[0] * lumen.spacing[1])
+    order = np.argsort(areas)[::-1]
+    radius = math.sqrt(areas[order[0]] / math.pi)
+    if radius < AORTA_CUT_RADIUS_MM or (count > 1 and areas[order[1]] >= 0.5 * areas[order[0]]):
+        return None
+    j, i = np.argwhere(pieces == order[0] + 1).mean(axis=0)
+    where = "LPS ({:.0f}, {:.0f}, {:.0f}) mm".format(*lumen.index_to_lps([k, j, i]))
+    return f"the aorta leaves the scan through its lower edge near {where}, {radius:.0f} mm in radius"
+
+
 def check_preop_tree(centerline, lumen: Volume | None = None, qc: QCData | None = None) -> dict:
     """Check the labelled 3D centreline before registering.
 
@@ -268,11 +298,16 @@ def check_preop_tree(centerline, lumen: Volume | None = None, qc: QCData | None 
     Raises
     ------
     QualityError
-        One line naming every vessel that is missing, or else the first one out of range, and where.
+        One line: the scan stops above the bifurcation (the lumen is given), or every vessel
+        that is missing, or else the first one out of range, and where.
     """
     lengths = _vessel_lengths(centerline)
     radii = _radii(centerline, lumen) if lumen is not None else None
     labels = np.asarray(centerline.labels)
+    cut = _aorta_leaves_scan_below(lumen) if lumen is not None else None
+    if cut:     # whatever the tree's labels say, a scan that stops above the bifurcation holds no iliac
+        raise QualityError(f"3D segmentation check: the CT ends above the aortic bifurcation, so the iliacs cannot be "
+                           f"found: {cut} (see segmentation_qc.png; the scan must reach the pelvis)", qc)
     missing = [vessel for vessel in MAIN_VESSELS if not (labels == vessel).any() or lengths.get(vessel, 0.0) <= 0]
     if missing:     # every missing vessel is named first: a CT that stops above the bifurcation says so
         raise QualityError(f"3D segmentation check: {', '.join(missing)} not found in the CT tree; "
