@@ -20,7 +20,7 @@ error of an image-only plan against the same case given as masks (issue 11: with
 Develop on seeds 211-216; report on 201-203 and 221-223.
 
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame_masks.py --out OUT \\
-        --seeds 221 222 223 [--reference main] [--end-to-end] [--pngs] [--cache DIR]
+        --seeds 221 222 223 [--reference main] [--end-to-end] [--pngs] [--cache DIR] [--time-1024 15]
 
 Writes ``bench_frame_masks.json`` and ``bench_frame_masks.png`` into ``--out`` (with ``--pngs``
 also one overlay per frame: true positives white, false negatives red, false positives blue).
@@ -110,7 +110,10 @@ def overlay(mask: np.ndarray, truth: np.ndarray, frame: np.ndarray, path: Path) 
 
 def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[dict]:
     """One row per bench frame of ``seed``: Dice, false-negative and false-positive shares, CPU ms."""
-    _, prior, frames = bench_frames(seed, kinds, cache)
+    case, prior, frames = bench_frames(seed, kinds, cache)
+    # the reference keeps its own prior: the maps a segmenter derives from it are cached on it
+    # (FluoroPrior.derived), and the two revisions may derive them differently
+    reference_prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
     rows = []
     for kind, polarity, frame in frames:
         seg.segment_fluoro(frame.frame, prior)          # warm the prior's derived maps
@@ -120,8 +123,8 @@ def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[di
                "missed": float((truth & ~mask).sum() / max(truth.sum(), 1)),
                "extra": float((mask & ~truth).sum() / max(truth.sum(), 1)), "cpu_ms": ms}
         if reference is not None:
-            reference(frame.frame, prior)
-            old, old_ms = _cpu_ms(reference, frame.frame, prior)
+            reference(frame.frame, reference_prior)
+            old, old_ms = _cpu_ms(reference, frame.frame, reference_prior)
             row |= {"reference_dice": seg.dice(old, truth), "reference_cpu_ms": old_ms}
         if pngs is not None:
             overlay(mask, truth, frame.frame, pngs / f"{seed}_{kind}_{polarity}.png")
@@ -147,6 +150,35 @@ def end_to_end(seed: int, work: Path) -> dict:
     row = evaluate_case(folder, work / "routes")
     print(row, flush=True)
     return row
+
+
+def mask_stage_times(reference, repeats: int, seed: int) -> dict:
+    """Median CPU ms of the mask stage (the prior projected, then ``segment_fluoro``, as
+    ``bench_frame.py`` times it) on the 1024 x 1024 frames of ``bench_frame.py`` (its plain
+    rendered view, and its bench frames unsubtracted and subtracted), this tree's and the
+    reference's calls interleaved so that both see the same load."""
+    from bench_frame import bench_frames as frames_1024
+    from bench_frame import frame_cases
+
+    preop, views = frame_cases(seed, 30.0)
+    _, frame, truth, P = views[0]
+    bench_preop, bench_P, benches = frames_1024(seed)
+    frames = {"rendered": (preop, P, frame, truth)} | {
+        kind: (bench_preop, bench_P, bench.frame, bench.mask) for kind, bench in benches.items()}
+    segmenters = {"dice": seg.segment_fluoro} | ({} if reference is None else {"reference_dice": reference})
+    out = {}
+    for kind, (model, P, image, truth) in frames.items():
+        times = {name: [] for name in segmenters}
+        for _ in range(repeats + 1):
+            for name, segmenter in segmenters.items():
+                start = time.process_time()
+                mask = segmenter(image, quality.FluoroPrior.from_centerline(model.centerline, P))
+                times[name].append(time.process_time() - start)
+                out.setdefault(kind, {})[name] = seg.dice(mask, truth)
+        for name, values in times.items():
+            out[kind][name.replace("dice", "mask_cpu_ms")] = 1e3 * float(np.median(values[1:]))
+        print(kind, out[kind], flush=True)
+    return out
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -187,6 +219,8 @@ def main() -> None:
     parser.add_argument("--pngs", action="store_true", help="an overlay PNG per frame")
     parser.add_argument("--end-to-end", action="store_true", help="plan each seed's 'every' frame by every route")
     parser.add_argument("--no-masks", action="store_true", help="skip the per-frame Dice (with --end-to-end)")
+    parser.add_argument("--time-1024", type=int, default=0, metavar="REPEATS",
+                        help="also time the mask stage on bench_frame.py's 1024 x 1024 frames (its default seed, 3)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.cache is not None:
@@ -205,6 +239,8 @@ def main() -> None:
         if reference is not None:
             payload["mean_reference_dice_unsubtracted"] = float(np.mean([r["reference_dice"] for r in unsubtracted]))
             payload["mean_reference_cpu_ms"] = float(np.mean([r["reference_cpu_ms"] for r in rows]))
+    if args.time_1024:
+        payload["mask_stage_1024"] = mask_stage_times(reference, args.time_1024, 3)
     if args.end_to_end:
         with tempfile.TemporaryDirectory() as tmp:
             payload["end_to_end"] = [end_to_end(s, Path(tmp)) for s in args.seeds]
