@@ -19,6 +19,7 @@ the lowest final energy and 3D implausibility (Algorithm 2 run once per candidat
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +55,11 @@ JUNCTION_SLIDE_MM = 5.0
 MIN_FIT_NODES = 10
 FIT_OUTLIER_PX = 2.0
 FIT_SLOPE_RANGE = (0.8, 1.25)
+#: A branch that continues its trunk through a fork (:func:`_branch_start`): its 2D chain is
+#: counted from this many 2D radii (at the junction) past the junction, and it continues the
+#: trunk when its chain there leaves within this many degrees of the trunk's direction.
+CROTCH_RADII = 1.5
+CONTINUES_DEG = 60.0
 
 
 @dataclass
@@ -397,6 +403,52 @@ def _fitted_knots(g3: SkeletonGraph, g2: SkeletonGraph, segments: list, nodes3: 
     return np.interp(s3, s3[bounds], knots)
 
 
+def _targets_so_far(rows: list, vals: list, cols: list, g2: SkeletonGraph, n3: int) -> dict:
+    """3D node -> its 2D target from the weights added so far (the trunks' eq. 5)."""
+    if not vals:
+        return {}
+    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(len(g2.positions), n3))
+    assigned = np.flatnonzero(np.asarray(M.sum(axis=0)).ravel() > 0)
+    targets = (M.T @ g2.positions)[assigned]
+    return {int(j): t for j, t in zip(assigned, targets)}
+
+
+def _branch_start(g2: SkeletonGraph, nodes2: np.ndarray, junction_target) -> tuple[int, float]:
+    """Where a branch's eq. (4) starts on its 2D chain: ``(first chain node used, its 2D path
+    distance from the 3D junction's target)``.
+
+    Eq. (4) counts a branch's path length from its 2D junction. Thinning puts a fork's 2D
+    junction into the crotch, below where the legs part: on the bench phantom the iliac
+    bifurcation's 2D junction lay 9-18 px down the legs from the projected anatomical
+    bifurcation, where eq. (5) puts the trunk's end (its knot slides back up by up to a
+    radius). Counted from the 2D junction, every target of a leg then lies that far down
+    the leg from its node: the leg is pulled along itself and its depth goes wrong (8-11 mm
+    off on two of four bench cases). A branch that continues the trunk through its junction
+    (its chain leaves the junction away from the junction's target) is therefore counted
+    from the junction's target: from its chain node :data:`CROTCH_RADII` 2D radii down the
+    chain (past the crotch, where the leg's skeleton has joined its centreline), which lies
+    the straight distance from the target; its 3D nodes nearer the junction than that stay
+    unassigned (eq. 6's length and smoothness terms carry them). Otherwise eq. (4) as in the
+    paper: ``(0, 0.0)``.
+    """
+    if junction_target is None or g2.radii is None or len(nodes2) < 3:
+        return 0, 0.0
+    x2 = g2.positions[nodes2]
+    back = x2[0] - np.asarray(junction_target)
+    if np.linalg.norm(back) < 1.0:
+        return 0, 0.0
+    s2 = _cumulative_length(x2)
+    start = int(np.searchsorted(s2, CROTCH_RADII * float(g2.radii[nodes2[0]])))
+    if start >= len(nodes2) - 1:
+        return 0, 0.0
+    ahead = x2[start] - x2[0]
+    cosine = float(ahead @ back) / max(float(np.linalg.norm(ahead) * np.linalg.norm(back)), 1e-9)
+    if cosine < np.cos(np.radians(CONTINUES_DEG)):
+        return 0, 0.0
+    return start, float(np.linalg.norm(x2[start] - junction_target))
+
+
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
                 P: np.ndarray, correspondence: Correspondence) -> SoftAssignment:
     """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
@@ -420,12 +472,17 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
     for segments in _trunk_chains(correspondence.trunk_pairs):
         nodes3, s2 = _sliding_trunk_lengths(g3, g2, segments, P)
         add(nodes3, s2, _joined([n2 for _, n2 in segments]))
+    junction_targets = _targets_so_far(rows, vals, cols, g2, n3)
     chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
+    starts = {i3: _branch_start(g2, np.asarray(nodes2), junction_targets.get(int(c3.branches[i3].nodes[0])))
+              for i3, nodes2 in chains.items()}
+    forks = Counter(int(chains[i3][0]) for i3, (start, _) in starts.items() if start > 0)
     for i3, nodes2 in chains.items():
-        nodes3 = c3.branches[i3].nodes
-        # eq. (4): projected 3D path length equals 2D path length
+        nodes3, nodes2 = np.asarray(c3.branches[i3].nodes), np.asarray(nodes2)
+        start, lead = starts[i3] if forks[int(nodes2[0])] >= 2 else (0, 0.0)
+        # eq. (4): projected 3D path length equals 2D path length, from where eq. (5) put the junction
         s3 = _cumulative_length(project(P, g3.positions[nodes3]))
-        add(np.asarray(nodes3), s3, np.asarray(nodes2))
+        add(nodes3, s3 - lead, nodes2[start:])
 
     if not vals:
         raise ValueError("the correspondence assigns no 3D node")
