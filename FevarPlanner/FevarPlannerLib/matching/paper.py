@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import csgraph
 
 from ..graph import Classification, SkeletonGraph
 from ..projection import image_directions, project
@@ -60,6 +61,17 @@ FIT_SLOPE_RANGE = (0.8, 1.25)
 #: trunk when its chain there leaves within this many degrees of the trunk's direction.
 CROTCH_RADII = 1.5
 CONTINUES_DEG = 60.0
+#: A trunk chain's end at a fork (:func:`_is_fork`: two pieces of skeleton ahead within
+#: ``FORK_DEG`` of the chain) may slide inwards by up to ``FORK_SLIDE_RADII`` 2D radii
+#: (:func:`_end_slide_px`).
+FORK_DEG = 60.0
+FORK_SLIDE_RADII = 2.0
+#: A leg at a fork whose 2D chain ends inside the frame is mapped end to end
+#: (:func:`_leg_scale`) when the ratio of its 2D path length to its projected 3D path
+#: length lies in this range; a 2D end within ``FRAME_MARGIN_RADII`` 2D radii of what the
+#: frame shows is a cut, not the vessel's end.
+LEG_SCALE_RANGE = (0.8, 1.2)
+FRAME_MARGIN_RADII = 1.0
 
 
 @dataclass
@@ -322,11 +334,44 @@ def _projected_length_fit(curve2: np.ndarray, projected: np.ndarray) -> np.ndarr
     return coefficients if low <= coefficients[1] <= high else None
 
 
-def _end_slide_px(g2: SkeletonGraph, node: int, limit_px: float) -> float:
-    """How far a chain end may slide along its 2D partner: ``limit_px``, and no more than the 2D
-    vessel radius at its junction where the graph knows it (a thinned junction lies within
-    about a radius of the branch point)."""
-    return limit_px if g2.radii is None else min(limit_px, float(g2.radii[node]))
+def _end_slide_px(g2: SkeletonGraph, chain: np.ndarray, limit_px: float) -> float:
+    """How far a chain's end ``chain[-1]`` may slide along its 2D partner.
+
+    ``limit_px``, and no more than the 2D vessel radius at its junction where the graph knows
+    it (a thinned junction lies within about a radius of the branch point), except at a fork
+    (:func:`_is_fork`): there thinning puts the junction into the crotch, about
+    ``r (1 - sin t) / (sin t (1 + sin t))`` below the branch point for legs of 2D radius
+    ``r`` leaving ``t`` off the midline (1 radius at 25 degrees, 2.3 at 15; on the bench
+    phantom the iliac fork lay 9-22 px, 1.25 radii at the junction, below the projected
+    bifurcation), and the end may slide by up to :data:`FORK_SLIDE_RADII` radii.
+    """
+    if g2.radii is None:
+        return limit_px
+    radius = float(g2.radii[chain[-1]])
+    if _is_fork(g2, chain, radius):
+        return FORK_SLIDE_RADII * radius
+    return min(limit_px, radius)
+
+
+def _is_fork(g2: SkeletonGraph, chain: np.ndarray, radius: float) -> bool:
+    """Whether the 2D chain ``chain`` runs into a fork at its end: at least two separate pieces of
+    the skeleton 1.5-2.5 ``radius`` from its end node lie ahead, within :data:`FORK_DEG` of the
+    chain's direction there (a side branch off a vessel that goes on leaves at a wider angle)."""
+    x = g2.positions[chain]
+    back = _cumulative_length(x[::-1])
+    if radius <= 0 or back[-1] <= 0:
+        return False
+    behind = x[::-1][min(int(np.searchsorted(back, radius)), len(x) - 1)]
+    direction = x[-1] - behind
+    offset = g2.positions - x[-1]
+    distance = np.linalg.norm(offset, axis=1)
+    ahead = (distance >= 1.5 * radius) & (distance <= 2.5 * radius) & \
+        (offset @ direction >= np.cos(np.radians(FORK_DEG)) * distance * np.linalg.norm(direction))
+    ring = np.flatnonzero(ahead)
+    if len(ring) < 2:
+        return False
+    pieces, _ = csgraph.connected_components(g2.adjacency[ring][:, ring], directed=False)
+    return pieces >= 2
 
 
 def _sliding_trunk_lengths(g3: SkeletonGraph, g2: SkeletonGraph, segments: list,
@@ -392,8 +437,8 @@ def _fitted_knots(g3: SkeletonGraph, g2: SkeletonGraph, segments: list, nodes3: 
     expected = fit[0] + fit[1] * _cumulative_length(projected)[bounds]
     knots2 = np.concatenate([[0.0], np.cumsum([_cumulative_length(g2.positions[n2])[-1] for _, n2 in segments])])
     slide = slide.copy()
-    slide[0] = _end_slide_px(g2, int(nodes2[0]), slide[0])
-    slide[-1] = _end_slide_px(g2, int(nodes2[-1]), slide[-1])
+    slide[0] = _end_slide_px(g2, nodes2[::-1], slide[0])
+    slide[-1] = _end_slide_px(g2, nodes2, slide[-1])
     low, high = -slide, slide.copy()
     low[0], high[-1] = 0.0, 0.0          # the ends only inwards: thinning puts a junction outwards
     knots = knots2 + np.clip(expected - knots2, low, high)
@@ -449,12 +494,44 @@ def _branch_start(g2: SkeletonGraph, nodes2: np.ndarray, junction_target) -> tup
     return start, float(np.linalg.norm(x2[start] - junction_target))
 
 
+def _leg_scale(g2: SkeletonGraph, chain2: np.ndarray, lead: float, length3: float, shows) -> float:
+    """How much longer than its projected 3D path a leg at a fork lies along its 2D chain: the
+    2D path from its junction's target (``lead`` to ``chain2[0]``, then along ``chain2``) over
+    the projected 3D path ``length3``; 1 where that is not to be trusted.
+
+    Eq. (4) assumes a branch keeps its projected length. A leg that turns towards or away
+    from the view's plane, or moves in depth under a short pinhole (0.4-0.6 % of
+    magnification per mm), does not: on the bench phantom the iliacs' true projections were
+    4-15 % shorter or longer than the pre-operative ones, and the targets drifted along the
+    leg by that share of it. A leg at a fork has its start placed (:func:`_branch_start`),
+    so where its 2D chain ends at the vessel's end both its ends are known and the leg is
+    mapped end to end (eq. 5's equal proportion; the two thinnings retract a tip by about a
+    radius each). A 2D end that lies within :data:`FRAME_MARGIN_RADII` radii of the edge of
+    what the frame ``shows`` (a callable of (n, 2) points) is the frame's cut, not the
+    vessel's end; without ``shows`` the ends are not trusted. A ratio outside
+    :data:`LEG_SCALE_RANGE` is not trusted either.
+    """
+    if shows is None or length3 <= 0 or g2.radii is None:
+        return 1.0
+    end = g2.positions[chain2[-1]]
+    margin = FRAME_MARGIN_RADII * float(g2.radii[chain2[-1]]) + 2.0
+    around = end + margin * np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    if not np.all(shows(around)):
+        return 1.0
+    ratio = (lead + _cumulative_length(g2.positions[chain2])[-1]) / length3
+    low, high = LEG_SCALE_RANGE
+    return ratio if low <= ratio <= high else 1.0
+
+
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
-                P: np.ndarray, correspondence: Correspondence) -> SoftAssignment:
+                P: np.ndarray, correspondence: Correspondence, shows=None) -> SoftAssignment:
     """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
 
     A node assigned by several chains (a junction) keeps its first assignment: trunks
-    first, so junctions follow the aortic chain.
+    first, so junctions follow the aortic chain. The legs of a fork (the iliacs) start where
+    eq. (5) put their junction, past the crotch (:func:`_branch_start`), and, where
+    ``shows`` (a callable telling which (n, 2) image points the frame shows) says their 2D
+    chains end inside the frame, run end to end (:func:`_leg_scale`).
     """
     n2, n3 = len(g2.positions), len(g3.positions)
     rows, cols, vals = [], [], []
@@ -482,6 +559,8 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         start, lead = starts[i3] if forks[int(nodes2[0])] >= 2 else (0, 0.0)
         # eq. (4): projected 3D path length equals 2D path length, from where eq. (5) put the junction
         s3 = _cumulative_length(project(P, g3.positions[nodes3]))
+        if start > 0:
+            s3 = s3 * _leg_scale(g2, nodes2[start:], lead, s3[-1], shows)
         add(nodes3, s3 - lead, nodes2[start:])
 
     if not vals:

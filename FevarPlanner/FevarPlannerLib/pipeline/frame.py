@@ -97,7 +97,7 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
     g3, c3 = preop.graph, preop.classification
     candidates = matching.candidate_correspondences(g3, c3, g2, c2, P)
     candidate = candidates[0]
-    assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate)
+    assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows)
     projected = project(P, g3.positions)
     regions, targets = {}, {}
     for name, nodes in _stable_regions(preop).items():
@@ -171,7 +171,8 @@ class _ViewState:
         """
         key = id(correspondence)
         if key not in self.assignments:     # the correspondence is kept with it: its id stays unique
-            found = matching.soft_assign(preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence)
+            found = matching.soft_assign(preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence,
+                                         shows=self.visibility.shows)
             held = _held_upper_aorta(preop, self.g2, self.c2, self.P, self.visibility, found)
             self.assignments[key] = (correspondence, held)
         return self.assignments[key][1]
