@@ -12,6 +12,7 @@ bench cases whose iliacs ended 9-11 mm off had their targets 9-24 px down the le
 import functools
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from FevarPlannerLib import graph, matching
@@ -154,3 +155,22 @@ def test_a_leg_cut_by_the_frame_keeps_its_projected_length():
     assert error < 1.5, error
     squeezed, _ = mean_error(rows=215, shown_rows=SHAPE[0])     # told the frame shows the tips
     assert squeezed > 5.0                                       # 11.1 px
+
+
+def test_leg_scale_trusts_only_a_free_2d_end_and_cuts_a_stretch():
+    from FevarPlannerLib.matching import paper
+
+    positions = np.stack([np.full(101, 100.0), np.linspace(100.0, 200.0, 101)], axis=1)
+    adjacency = SkeletonGraph._weighted_adjacency(positions, np.stack([np.arange(100), np.arange(1, 101)], axis=1))
+    chain = SkeletonGraph(positions, adjacency, radii=np.full(101, 5.0))
+    nodes = np.arange(101)
+
+    def scale(length3, rows=400, largest=np.inf):
+        return paper._leg_scale(chain, nodes, 10.0, length3, frame_shows(rows), largest)
+
+    assert scale(100.0) == pytest.approx(1.1)              # 10 px lead + 100 px chain over 100 px
+    assert scale(100.0, largest=1.04) == pytest.approx(1.04)
+    assert scale(100.0, largest=0.97) == 1.0               # never below eq. (4) for being cut
+    assert scale(80.0) == 1.0                              # 1.375: outside LEG_SCALE_RANGE
+    assert scale(100.0, rows=205) == 1.0                   # the end within a radius of the frame's edge
+    assert paper._leg_scale(chain, nodes, 10.0, 100.0, None) == 1.0
