@@ -471,9 +471,9 @@ def _branch_start(g2: SkeletonGraph, nodes2: np.ndarray, junction_target) -> tup
     junction into the crotch, below where the legs part: on the bench phantom the iliac
     bifurcation's 2D junction lay 9-22 px down the legs from the projected anatomical
     bifurcation, where eq. (5) puts the trunk's end (its knot slides back up by up to
-    :data:`FORK_SLIDE_RADII` radii, :func:`_end_slide_px`). Counted from the 2D junction, every target of a leg then lies that far down
-    the leg from its node: the leg is pulled along itself and its depth goes wrong (8-11 mm
-    off on two of four bench cases). A branch that continues the trunk through its junction
+    :data:`FORK_SLIDE_RADII` radii, :func:`_end_slide_px`). Counted from the 2D junction,
+    every target of a leg then lies that far down the leg from its node: the leg is pulled
+    along itself and its depth goes wrong (9-11 mm off on two of four bench cases). A branch that continues the trunk through its junction
     (its chain leaves the junction away from the junction's target) is therefore counted
     from the junction's target: from its chain node :data:`CROTCH_RADII` 2D radii down the
     chain (past the crotch, where the leg's skeleton has joined its centreline), which lies
