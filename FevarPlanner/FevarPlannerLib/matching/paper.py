@@ -543,6 +543,14 @@ def _leg_scale(g2: SkeletonGraph, chain2: np.ndarray, lead: float, length3: floa
     return min(ratio, max(largest, 1.0)) if low <= ratio <= high else 1.0
 
 
+def _through_crotch(s3: np.ndarray, lead: float, crotch: float) -> np.ndarray:
+    """2D path positions along a fork leg's whole chain of its 3D nodes at (scaled) projected path
+    ``s3`` from the junction: past ``lead`` (:func:`_branch_start`) as far beyond the chain
+    node that lies ``crotch`` along it, before it in proportion along the crotch's part of
+    the chain (near the legs, so that the nodes keep a target)."""
+    return np.where(s3 >= lead, crotch + s3 - lead, s3 * crotch / max(lead, 1e-9))
+
+
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
                 P: np.ndarray, correspondence: Correspondence, shows=None) -> SoftAssignment:
     """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
@@ -582,7 +590,8 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         if start > 0:
             s3 = s3 * _leg_scale(g2, nodes2[start:], lead, s3[-1], shows,
                                  _largest_leg_scale(g3.positions[nodes3], P, s3[-1]))
-        add(nodes3, s3 - lead, nodes2[start:])
+            s3 = _through_crotch(s3, lead, _cumulative_length(g2.positions[nodes2])[start])
+        add(nodes3, s3, nodes2)
 
     if not vals:
         raise ValueError("the correspondence assigns no 3D node")
