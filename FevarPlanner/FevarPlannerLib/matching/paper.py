@@ -473,13 +473,13 @@ def _branch_start(g2: SkeletonGraph, nodes2: np.ndarray, junction_target) -> tup
     bifurcation, where eq. (5) puts the trunk's end (its knot slides back up by up to
     :data:`FORK_SLIDE_RADII` radii, :func:`_end_slide_px`). Counted from the 2D junction,
     every target of a leg then lies that far down the leg from its node: the leg is pulled
-    along itself and its depth goes wrong (9-11 mm off on two of four bench cases). A branch that continues the trunk through its junction
-    (its chain leaves the junction away from the junction's target) is therefore counted
-    from the junction's target: from its chain node :data:`CROTCH_RADII` 2D radii down the
-    chain (past the crotch, where the leg's skeleton has joined its centreline), which lies
-    the straight distance from the target; its 3D nodes nearer the junction than that stay
-    unassigned (eq. 6's length and smoothness terms carry them). Otherwise eq. (4) as in the
-    paper: ``(0, 0.0)``.
+    along itself and its depth goes wrong (9-11 mm off on two of four bench cases). A branch
+    that continues the trunk through its junction (its chain leaves the junction away from
+    the junction's target) is therefore counted from the junction's target: from its chain
+    node :data:`CROTCH_RADII` 2D radii down the chain (past the crotch, where the leg's
+    skeleton has joined its centreline), which lies the straight distance from the target;
+    its 3D nodes nearer the junction than that are spread in proportion over the chain's
+    crotch part (:func:`_through_crotch`). Otherwise eq. (4) as in the paper: ``(0, 0.0)``.
     """
     if junction_target is None or g2.radii is None or len(nodes2) < 3:
         return 0, 0.0
@@ -547,7 +547,9 @@ def _through_crotch(s3: np.ndarray, lead: float, crotch: float) -> np.ndarray:
     """2D path positions along a fork leg's whole chain of its 3D nodes at (scaled) projected path
     ``s3`` from the junction: past ``lead`` (:func:`_branch_start`) as far beyond the chain
     node that lies ``crotch`` along it, before it in proportion along the crotch's part of
-    the chain (near the legs, so that the nodes keep a target)."""
+    the chain. Those targets lie up to a few px off the legs, but without them the 3D nodes
+    there had no data term in the main view, and a second view's nearest-point passes pulled
+    them onto the other leg where the legs cross (test_overlap's crossing iliacs)."""
     return np.where(s3 >= lead, crotch + s3 - lead, s3 * crotch / max(lead, 1e-9))
 
 
