@@ -1,0 +1,281 @@
+"""Wrong-frame benchmark (issue 11): does ``plan`` refuse a frame that is not this case's, and
+only such frames?
+
+Right case folders: the scenario family's quick sets (one case per kind, every kind but
+image_only, ``--scenario-seeds``) and random paper-phantom cases (``--phantom-seed``,
+``--phantoms``). From each right case it writes wrong ones beside it:
+
+* ``swap``: the frame (every view's ``fluoro_mask.png``) of another case, filed in this
+  folder, with this case's geometry;
+* ``swap_geometry``: another case's frame with that case's own geometry (a whole frame of
+  another patient);
+* ``mirror``: this case's frame flipped left-right (the wrong side convention);
+* ``angle``: this case's frame with the geometry of a view 40 degrees away (LAO 40 labelled as
+  the given view: the projection rotated about the patient's long axis through the tree);
+* ``late``: this case's frame taken after the bolus, the renal arteries gone (their pixels,
+  those nearest to the true projection of the renal nodes, erased).
+
+Each folder runs through ``pipeline.plan_case`` (the CLI's route, proposed method). A refusal
+is a :class:`files.InputError` (exit code 2 in the CLI). Reported per kind: the refusal rate,
+and for the answers given the 3D error against the truth of the CT's own deformation
+(``gt.json`` of the case whose CT it is). Right frames refused are false refusals.
+
+Outputs in ``--out``: ``wrong_frames.json`` (every run with its message and the gate's
+numbers), ``wrong_frames.png`` (refusal rate per kind) and the case folders under ``cases/``.
+
+    .venv/bin/python Testing/benchmarks/bench_wrong_frames.py --out OUT [--scenario-seeds 0 1] [--phantom-seed 7]
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from common import argument_parser, single_threaded_blas
+
+single_threaded_blas()
+
+import numpy as np  # noqa: E402  (after the BLAS threads are set)
+
+WRONG_KINDS = ("swap", "swap_geometry", "mirror", "angle", "late")
+#: The angle kind: the given geometry is that of a view this far (degrees) about the patient's long axis.
+ANGLE_DEG = 40.0
+RENALS = ("renal_left", "renal_right")
+
+
+def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_phantoms: int) -> list:
+    """Write (or reuse) the right cases; ``[(family, kind, folder)]``."""
+    from FevarPlannerLib.benchmark.independent import independent_case_folders
+    from FevarPlannerLib.phantom import write_phantom_set
+
+    cases = []
+    for seed in scenario_seeds:
+        for kind, folder in independent_case_folders(root / f"scenarios_seed{seed}", quick=True, seed=seed):
+            cases.append((f"scenarios_seed{seed}", kind, Path(folder)))
+    if phantom_seed is not None and n_phantoms > 0:
+        where = root / f"phantom_seed{phantom_seed}"
+        folders = sorted(where.glob("*/gt.json"))
+        if len(folders) < n_phantoms:
+            write_phantom_set(where, n=n_phantoms, seed=phantom_seed, preset="random", mask_only=True)
+        for folder in sorted(p for p in where.iterdir() if (p / "gt.json").is_file())[:n_phantoms]:
+            cases.append((f"phantom_seed{phantom_seed}", "phantom", folder))
+    return cases
+
+
+def _frame_folders(case: Path) -> dict:
+    """View name -> the folder holding that view's frame files (``main``: the case folder)."""
+    found = {"main": case}
+    views = case / "views"
+    if views.is_dir():
+        found.update({p.name: p for p in sorted(views.iterdir()) if (p / "fluoro_mask.png").is_file()})
+    return found
+
+
+def _truth(case: Path) -> dict:
+    return json.loads((case / "gt.json").read_text())
+
+
+def _true_P(truth: dict, view: str) -> np.ndarray:
+    if view != "main" and "views" in truth:
+        return np.asarray(truth["views"][view]["projection_matrix_true"], dtype=float)
+    return np.asarray(truth["projection_matrix_true"], dtype=float)
+
+
+def _read_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return np.asarray(image).copy()
+
+
+def _write_png(path: Path, array: np.ndarray) -> None:
+    from PIL import Image
+
+    Image.fromarray(array).save(path)
+
+
+def _copy_case(source: Path, target: Path) -> Path:
+    if target.exists():
+        shutil.rmtree(target)
+    shutil.copytree(source, target)
+    return target
+
+
+def _swapped(case: Path, other: Path, target: Path, with_geometry: bool) -> Path:
+    """``case`` with ``other``'s frames (and geometry when ``with_geometry``); a view ``other``
+    lacks is dropped."""
+    folder = _copy_case(case, target)
+    theirs = _frame_folders(other)
+    for name, where in _frame_folders(folder).items():
+        if name not in theirs:
+            shutil.rmtree(where)
+            continue
+        shutil.copy2(theirs[name] / "fluoro_mask.png", where / "fluoro_mask.png")
+        if with_geometry:
+            shutil.copy2(theirs[name] / "geometry.json", where / "geometry.json")
+    return folder
+
+
+def _mirrored(case: Path, target: Path) -> Path:
+    folder = _copy_case(case, target)
+    for where in _frame_folders(folder).values():
+        _write_png(where / "fluoro_mask.png", _read_png(where / "fluoro_mask.png")[:, ::-1].copy())
+    return folder
+
+
+def _rotation_about_long_axis(P: np.ndarray, centre: np.ndarray, degrees: float) -> np.ndarray:
+    """``P`` of a C-arm turned by ``degrees`` about the LPS z axis through ``centre``."""
+    a = np.radians(degrees)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    move = np.eye(4)
+    move[:3, :3] = R
+    move[:3, 3] = centre - R @ centre
+    return np.asarray(P, dtype=float) @ move
+
+
+def _angled(case: Path, target: Path, degrees: float = ANGLE_DEG) -> Path:
+    folder = _copy_case(case, target)
+    centre = np.asarray(_truth(case)["preop_centerline"]["points"], dtype=float).mean(axis=0)
+    geometry_path = folder / "geometry.json"
+    geometry = json.loads(geometry_path.read_text())
+    geometry["projection_matrix"] = _rotation_about_long_axis(geometry["projection_matrix"], centre, degrees).tolist()
+    geometry_path.write_text(json.dumps(geometry))
+    return folder
+
+
+def _late(case: Path, target: Path) -> Path:
+    """The frame with every pixel nearest to a renal node of the true projected tree erased."""
+    from scipy.spatial import cKDTree
+
+    from FevarPlannerLib.projection import project
+
+    folder = _copy_case(case, target)
+    truth = _truth(case)
+    intra = truth["intraop_centerline"]
+    points, labels = np.asarray(intra["points"], dtype=float), np.asarray(intra["labels"])
+    for name, where in _frame_folders(folder).items():
+        mask = _read_png(where / "fluoro_mask.png")
+        vessel = (mask if mask.ndim == 2 else mask[..., 0]) > 0
+        rows, cols = np.nonzero(vessel)
+        _, nearest = cKDTree(project(_true_P(truth, name), points)).query(np.c_[cols, rows])
+        renal = np.isin(labels[nearest], RENALS)
+        mask[rows[renal], cols[renal]] = 0
+        _write_png(where / "fluoro_mask.png", mask)
+    return folder
+
+
+def wrong_case_folders(rights: list, root: Path) -> list:
+    """Every wrong kind of every right case; ``[(family, wrong kind, folder, right folder)]``.
+
+    The frame swapped in comes from the next right case of the list (another anatomy: each
+    scenario kind and each phantom draws its own tree)."""
+    made = []
+    for n, (family, kind, case) in enumerate(rights):
+        other = rights[(n + 1) % len(rights)][2]
+        base = root / family / case.name
+        builders = {"swap": lambda t: _swapped(case, other, t, False),
+                    "swap_geometry": lambda t: _swapped(case, other, t, True),
+                    "mirror": lambda t: _mirrored(case, t), "angle": lambda t: _angled(case, t),
+                    "late": lambda t: _late(case, t)}
+        for wrong, build in builders.items():
+            made.append((family, wrong, build(base / wrong), case))
+    return made
+
+
+def run_plan(folder: Path) -> dict:
+    """``plan_case`` on a folder: refused (the message) or answered (3D error, the gate's numbers)."""
+    from FevarPlannerLib import plausibility
+    from FevarPlannerLib.files import InputError
+    from FevarPlannerLib.pipeline import plan_case, workers
+
+    previous = workers.set_enabled(False)
+    t0 = time.perf_counter()
+    try:
+        result = plan_case(folder, None, method="proposed")
+    except InputError as exc:
+        return {"refused": True, "message": str(exc).splitlines()[0], "wall_s": time.perf_counter() - t0}
+    finally:
+        workers.set_enabled(previous)
+    errors = result.errors or {}
+    row = {"refused": False, "wall_s": time.perf_counter() - t0,
+           "3d_mm": (errors.get("3d_mm") or {}).get("mean"), "2d_px": (errors.get("2d_px") or {}).get("mean")}
+    signals = getattr(plausibility, "registration_signals", None)
+    if signals is not None:
+        row["signals"] = signals(result.preop, result.deformed, result.P, result.skeleton2d_points,
+                                 result.skeleton2d_edges)
+    return row
+
+
+def _rate(rows: list) -> dict:
+    refused = sum(r["refused"] for r in rows)
+    answered = [r["3d_mm"] for r in rows if not r["refused"] and r.get("3d_mm") is not None]
+    return {"runs": len(rows), "refused": refused, "refusal_rate": refused / max(len(rows), 1),
+            "answered_3d_mm_median": float(np.median(answered)) if answered else None,
+            "answered_3d_mm_max": float(np.max(answered)) if answered else None}
+
+
+def summarise(runs: list) -> dict:
+    """Refusal rate per wrong kind and per family of right frames (false refusals)."""
+    summary = {"wrong": {}, "right": {}}
+    for kind in WRONG_KINDS:
+        summary["wrong"][kind] = _rate([r for r in runs if r["kind"] == kind])
+    right = [r for r in runs if r["kind"] == "right"]
+    for family in sorted({r["family"] for r in right}):
+        summary["right"][family] = _rate([r for r in right if r["family"] == family])
+    summary["right"]["all"] = _rate(right)
+    summary["right"]["refused"] = [(r["family"], r["case"], r["message"]) for r in right if r["refused"]]
+    return summary
+
+
+def figure(path: Path, summary: dict) -> None:
+    from common import pyplot, save_figure
+
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8, 3.6))
+    names = list(summary["wrong"]) + ["right: " + f for f in summary["right"] if f not in ("all", "refused")]
+    rates = [summary["wrong"][k]["refusal_rate"] for k in summary["wrong"]] + \
+            [summary["right"][f]["refusal_rate"] for f in summary["right"] if f not in ("all", "refused")]
+    colours = ["tab:green"] * len(summary["wrong"]) + ["tab:red"] * (len(names) - len(summary["wrong"]))
+    ax.bar(range(len(names)), rates, color=colours)
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylim(0, 1.05)
+    ax.set_ylabel("refused (exit 2)")
+    ax.set_title("Wrong frames refused (green: higher is better); right frames refused (red: false refusals)",
+                 fontsize=9)
+    save_figure(fig, path)
+
+
+def main(argv=None) -> int:
+    parser = argument_parser(__doc__)
+    parser.add_argument("--scenario-seeds", type=int, nargs="*", default=[0])
+    parser.add_argument("--phantom-seed", type=int, default=7)
+    parser.add_argument("--phantoms", type=int, default=4)
+    parser.add_argument("--cases", type=Path, default=None, help="where the case folders go (default OUT/cases)")
+    args = parser.parse_args(argv)
+    cases = args.cases or args.out / "cases"
+    started = time.perf_counter()
+    rights = right_case_folders(cases / "right", args.scenario_seeds, args.phantom_seed, args.phantoms)
+    wrongs = wrong_case_folders(rights, cases / "wrong")
+    runs = []
+    jobs = [(family, "right", folder, folder) for family, _, folder in rights] + wrongs
+    for n, (family, kind, folder, origin) in enumerate(jobs):
+        row = {"family": family, "kind": kind, "case": origin.name, "folder": str(folder)} | run_plan(folder)
+        runs.append(row)
+        print(f"[{n + 1}/{len(jobs)}] {family} {origin.name} {kind}: "
+              f"{'REFUSED ' + row['message'][:150] if row['refused'] else 'answered 3D %.1f mm' % (row['3d_mm'] or -1)}",
+              file=sys.stderr, flush=True)
+    summary = summarise(runs)
+    args.out.mkdir(parents=True, exist_ok=True)
+    report = {"version": 1, "scenario_seeds": args.scenario_seeds, "phantom_seed": args.phantom_seed,
+              "wall_s": time.perf_counter() - started, "summary": summary, "runs": runs}
+    (args.out / "wrong_frames.json").write_text(json.dumps(report, indent=1))
+    figure(args.out / "wrong_frames.png", summary)
+    print(json.dumps({k: v for k, v in summary.items()}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
