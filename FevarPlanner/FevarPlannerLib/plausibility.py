@@ -235,3 +235,169 @@ def result_warnings(preop, deformed, frame, method: str = "proposed") -> list[st
         notes.append(f"a node moved {worst:.0f} mm from the pre-operative tree (over {WARN_NODE_SHIFT_MM:.0f} mm): "
                      f"check the overlay")
     return notes
+
+
+
+# --- The registration gate (issue 11): a frame that is not this patient's, this side or this view.
+#
+# A frame of another patient (or filed in the wrong case folder), mirrored, or taken at another
+# angle than its geometry says still passes the frame check (its vessels lie within the 20-35 mm
+# deformation margins of the projected tree) and the registration still fits it: the length
+# term keeps the lengths and the fallback keeps every vessel no worse than SV. What gives it
+# away is what the fit needed. Thresholds from the wrong-frame benchmark
+# (Testing/benchmarks/bench_wrong_frames.py, development seeds: scenario quick sets 0-3, random
+# phantoms seed 7, paper phantoms seed 3); "right max" is the largest value on any right frame.
+
+#: The registered tree must lie on the frame's vessels: mean distance (mm at the tree's depth)
+#: of its projected nodes inside the frame to the 2D skeleton. Right max 2.2 mm; a wrong frame
+#: the fallback kept rigid: 1.9-16 mm.
+MAX_MEAN_FIT_MM = 3.5
+#: ... and explain them: at most this fraction of the 2D skeleton farther than
+#: :data:`EXPLAINED_WITHIN_MM` from the projected registered tree (frame-only tubes: distal
+#: forks, lumbar stubs, the SMA, account for the rest). Right max 0.15.
+MAX_UNEXPLAINED_FRACTION = 0.25
+EXPLAINED_WITHIN_MM = 5.0
+#: The renal arteries hang from an aorta the wire barely moves: before any deformation (the
+#: pre-operative tree through the registration's pose) they must already lie near the frame's
+#: vessels. Mean over both renals of their nodes' mean distance to the 2D skeleton, mm. Right max 4.1.
+MAX_RENAL_RIGID_MISFIT_MM = 5.0
+#: How far the aorta had to bend beyond a rigid motion of the whole tree (90th percentile of its
+#: nodes' distance to the rigidly moved pre-operative tree, mm). Right max 5.9.
+MAX_AORTA_BEND_MM = 7.5
+#: How far a renal ostium moved beyond that rigid motion, mm (the ostia are nearly fixed). Right max 3.8.
+MAX_OSTIUM_MOVE_MM = 5.0
+
+
+def _rigid_residual(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Per node, the distance from ``after`` to ``before`` moved by the rigid motion that best
+    lays it onto ``after`` (least squares, Kabsch)."""
+    a0, b0 = before - before.mean(axis=0), after - after.mean(axis=0)
+    u, _, vt = np.linalg.svd(a0.T @ b0)
+    rotation = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    return np.linalg.norm(a0 @ rotation - b0, axis=1)
+
+
+def _ostia(labels: np.ndarray, edges: np.ndarray) -> dict:
+    """Renal label -> its node joined to an aorta node (the ostium)."""
+    found = {}
+    for a, b in edges:
+        for x, y in ((a, b), (b, a)):
+            if labels[y] == "aorta" and labels[x] in ("renal_left", "renal_right"):
+                found.setdefault(str(labels[x]), int(x))
+    return found
+
+
+def _in_frame(uv: np.ndarray, frame_shape) -> np.ndarray:
+    rows, cols = frame_shape[:2]
+    return (uv[:, 0] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= rows - 1)
+
+
+def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape) -> dict:
+    """What a registration needed to fit its frame, in mm at the tree's depth (issue 11).
+
+    Parameters
+    ----------
+    preop, deformed : Centerline
+        The same nodes before and after registration (labelled).
+    P : (3, 4)
+        The registration's projection (after any pose correction), eq. 1.
+    skeleton_points : (k, 2), skeleton_edges : (m, 2)
+        The frame's 2D skeleton graph.
+    frame_shape : (rows, cols)
+
+    Returns
+    -------
+    dict
+        ``fit_mm`` (mean over the registered nodes inside the frame of their distance to the
+        skeleton, and the worst vessel's), ``unexplained`` (share of skeleton nodes farther than
+        :data:`EXPLAINED_WITHIN_MM` from the projected registered tree), ``renal_misfit_mm``
+        (per renal, the pre-operative nodes' mean distance through ``P``), ``aorta_bend_mm``,
+        ``ostium_move_mm`` (per renal), each with the pixel ``where`` it is worst.
+    """
+    from .evaluation.distances import point_to_graph
+    from .projection import pixels_per_mm
+
+    labels = np.asarray(preop.labels)
+    edges = np.asarray(preop.edges, dtype=np.int64).reshape(-1, 2)
+    sk = np.asarray(skeleton_points, dtype=float).reshape(-1, 2)
+    sk_edges = np.asarray(skeleton_edges, dtype=np.int64).reshape(-1, 2)
+    mm_per_px = 1.0 / float(np.median(pixels_per_mm(P, preop.points)))
+    uv, uv0 = project(P, deformed.points), project(P, preop.points)
+    shown, shown0 = _in_frame(uv, frame_shape), _in_frame(uv0, frame_shape)
+    fit = np.full(len(uv), np.nan)
+    fit[shown] = point_to_graph(uv[shown], sk, sk_edges) * mm_per_px
+    misfit = np.full(len(uv0), np.nan)
+    misfit[shown0] = point_to_graph(uv0[shown0], sk, sk_edges) * mm_per_px
+    unexplained = point_to_graph(sk, uv, edges) * mm_per_px > EXPLAINED_WITHIN_MM
+    residual = _rigid_residual(preop.points, deformed.points)
+    vessel_fit = {v: float(np.nanmean(fit[labels == v])) for v in BRANCH_VESSELS if np.any(shown & (labels == v))}
+    renal = {v: float(np.nanmean(misfit[labels == v])) for v in ("renal_left", "renal_right")
+             if np.any(shown0 & (labels == v))}
+    aorta = np.flatnonzero(labels == "aorta")
+    ostia = _ostia(labels, edges)
+    return {
+        "fit_mm": float(np.nanmean(fit)) if shown.any() else 0.0, "vessel_fit_mm": vessel_fit,
+        "unexplained": float(unexplained.mean()) if len(sk) else 0.0,
+        "unexplained_where": sk[unexplained].mean(axis=0).tolist() if unexplained.any() else None,
+        "renal_misfit_mm": renal,
+        "renal_where": {v: uv0[labels == v].mean(axis=0).tolist() for v in renal},
+        "aorta_bend_mm": float(np.percentile(residual[aorta], 90)) if len(aorta) else 0.0,
+        "aorta_where": uv[aorta[np.argmax(residual[aorta])]].tolist() if len(aorta) else None,
+        "ostium_move_mm": {v: float(residual[i]) for v, i in ostia.items()},
+        "ostium_where": {v: uv[i].tolist() for v, i in ostia.items()},
+    }
+
+
+BRANCH_VESSELS = ("aorta", "renal_left", "renal_right", "iliac_left", "iliac_right")
+
+
+def _at(where) -> str:
+    return f"near pixel (u={where[0]:.0f}, v={where[1]:.0f})" if where is not None else "in the frame"
+
+
+def registration_verdict(signals: dict) -> str | None:
+    """The first reason :func:`check_registration` refuses ``signals`` (one line), or None."""
+    tail = "this frame is not this case's anatomy, side or view (another patient, mirrored, a wrong geometry?)"
+    if signals["fit_mm"] > MAX_MEAN_FIT_MM:
+        vessel = max(signals["vessel_fit_mm"], key=signals["vessel_fit_mm"].get)
+        return (f"the registered tree does not fit the frame: on average {signals['fit_mm']:.1f} mm from its vessels "
+                f"(over {MAX_MEAN_FIT_MM:g} mm), {vessel} worst ({signals['vessel_fit_mm'][vessel]:.1f} mm); {tail}")
+    if signals["unexplained"] > MAX_UNEXPLAINED_FRACTION:
+        return (f"{100 * signals['unexplained']:.0f}% of the frame's vessels lie over {EXPLAINED_WITHIN_MM:g} mm from "
+                f"the registered tree (largely {_at(signals['unexplained_where'])}; at most "
+                f"{100 * MAX_UNEXPLAINED_FRACTION:.0f}% allowed); {tail}")
+    renal = signals["renal_misfit_mm"]
+    if renal and np.mean(list(renal.values())) > MAX_RENAL_RIGID_MISFIT_MM:
+        vessel = max(renal, key=renal.get)
+        return (f"{vessel} not found where the CT puts it: before deformation it lies {renal[vessel]:.1f} mm from the "
+                f"frame's vessels {_at(signals['renal_where'][vessel])} (renals {np.mean(list(renal.values())):.1f} mm "
+                f"on average, over {MAX_RENAL_RIGID_MISFIT_MM:g} mm); {tail}")
+    if signals["aorta_bend_mm"] > MAX_AORTA_BEND_MM:
+        return (f"aorta: the fit bent it {signals['aorta_bend_mm']:.1f} mm beyond a rigid motion {_at(signals['aorta_where'])} "
+                f"(over {MAX_AORTA_BEND_MM:g} mm); {tail}")
+    ostia = signals["ostium_move_mm"]
+    if ostia and max(ostia.values()) > MAX_OSTIUM_MOVE_MM:
+        vessel = max(ostia, key=ostia.get)
+        return (f"{vessel}: the fit moved its ostium {ostia[vessel]:.1f} mm beyond a rigid motion "
+                f"{_at(signals['ostium_where'][vessel])} (over {MAX_OSTIUM_MOVE_MM:g} mm); {tail}")
+    return None
+
+
+def check_registration(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape, frame, qc=None) -> dict:
+    """Refuse a registration that needed what no right frame needs (issue 11); returns the signals.
+
+    Raises
+    ------
+    quality.QualityError
+        One line naming ``frame``, the vessel or problem and where; ``qc`` (the case's
+        :class:`quality.QCData`, given the registered tree's projection) for the QC picture.
+    """
+    from .quality import QualityError
+
+    signals = registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape)
+    verdict = registration_verdict(signals)
+    if verdict is not None:
+        if qc is not None:
+            qc.registered = (project(P, deformed.points), np.asarray(deformed.edges, dtype=np.int64).reshape(-1, 2))
+        raise QualityError(f"{display_path(frame)}: registration check: {verdict} (see segmentation_qc.png)", qc)
+    return signals

@@ -196,7 +196,9 @@ class PriorBand:
 
 @dataclass
 class QCData:
-    """What the QC picture shows: any of the CT and its lumen, the frame, its mask, the prior."""
+    """What the QC picture shows: any of the CT and its lumen, the frame, its mask, the prior,
+    and ``registered``: the registered tree's projection ``(uv (n, 2), edges (m, 2))`` when the
+    registration check (:func:`plausibility.check_registration`) refused it."""
 
     ct: Volume | None = None
     lumen: Volume | None = None
@@ -204,6 +206,7 @@ class QCData:
     mask2d: np.ndarray | None = None
     prior: object | None = None
     notes: list = field(default_factory=list)
+    registered: tuple | None = None
 
 
 class QualityError(InputError):
@@ -650,7 +653,7 @@ def _ct_panels(fig, grid, ct: Volume, lumen: Volume | None):
     plt.setp(ax.spines.values(), visible=False)
 
 
-def _frame_panel(ax, frame: np.ndarray, mask2d, prior) -> None:
+def _frame_panel(ax, frame: np.ndarray, mask2d, prior, registered=None) -> None:
     grey = np.asarray(frame, dtype=np.float32)
     if grey.ndim == 3 and grey.shape[-1] not in (3, 4):
         grey = grey[0]
@@ -662,9 +665,15 @@ def _frame_panel(ax, frame: np.ndarray, mask2d, prior) -> None:
     if prior is not None:
         for a, b in prior.edges:
             ax.plot(prior.uv[[a, b], 0], prior.uv[[a, b], 1], color=PALETTE["preop"], linewidth=0.8)
+    title = "frame: mask red, projected pre-op tree orange"
+    if registered is not None:
+        uv, edges = registered
+        for a, b in edges:
+            ax.plot(uv[[a, b], 0], uv[[a, b], 1], color=PALETTE["deformed"], linewidth=0.8)
+        title += ", registered cyan"
     ax.set_xlim(0, grey.shape[1])
     ax.set_ylim(grey.shape[0], 0)
-    ax.set_title("frame: mask red, projected pre-op tree orange", fontsize=8)
+    ax.set_title(title, fontsize=8)
     ax.axis("off")
 
 
@@ -683,7 +692,7 @@ def write_segmentation_qc(path, qc: QCData, message: str | None = None) -> Path:
     if qc.ct is not None:
         _ct_panels(fig, [grid[0, n] for n in range(4)], qc.ct, qc.lumen)
     if qc.frame is not None:
-        _frame_panel(fig.add_subplot(grid[0, 5]), qc.frame, qc.mask2d, qc.prior)
+        _frame_panel(fig.add_subplot(grid[0, 5]), qc.frame, qc.mask2d, qc.prior, qc.registered)
     fig.suptitle(message or "segmentation passed the quality gate", fontsize=9,
                  color="darkred" if message else "black")
     with atomic_path(path, suffix=".png") as tmp:

@@ -202,10 +202,9 @@ def run_plan(folder: Path) -> dict:
     errors = result.errors or {}
     row = {"refused": False, "wall_s": time.perf_counter() - t0,
            "3d_mm": (errors.get("3d_mm") or {}).get("mean"), "2d_px": (errors.get("2d_px") or {}).get("mean")}
-    signals = getattr(plausibility, "registration_signals", None)
-    if signals is not None:
-        row["signals"] = signals(result.preop, result.deformed, result.P, result.skeleton2d_points,
-                                 result.skeleton2d_edges)
+    row["signals"] = plausibility.registration_signals(result.preop, result.deformed, result.P,
+                                                      result.skeleton2d_points, result.skeleton2d_edges,
+                                                      np.shape(result.fluoro_image))
     return row
 
 

@@ -247,18 +247,22 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     for recorded in caught:      # passed on as they came: the CLI shows ours as notes
         warnings.warn_explicit(recorded.message, recorded.category, recorded.filename, recorded.lineno)
     plausibility.check_anatomy_in_view(case.P, _anatomy_points(case), case.fluoro.shape, case.paths.get("geometry", case_dir))
+    frame_path = case.paths.get("fluoro_mask", case.paths.get("fluoro"))
     try:
         result = run_case(case, method=method, progress=progress,
                           **{k: v for k, v in overrides.items() if k not in load_keys})
+        plausibility.check_anatomy_in_view(result.P, result.preop.points, case.fluoro.shape,
+                                           case.paths.get("geometry", case_dir))
+        plausibility.check_vessel_tree(result.skeleton2d_points, result.skeleton2d_edges, result.P,
+                                       result.preop.points, frame_path)
+        gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
+        if method == "proposed":      # issue 11: a frame not this case's anatomy, side or view
+            plausibility.check_registration(result.preop, result.deformed, result.P, result.skeleton2d_points,
+                                            result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)
     except quality.QualityError as failure:    # the QC picture first, so the user sees why
         if out_dir is not None and failure.qc is not None:
             _write_failure_qc(Path(out_dir), failure)
         raise
-    frame_path = case.paths.get("fluoro_mask", case.paths.get("fluoro"))
-    plausibility.check_anatomy_in_view(result.P, result.preop.points, case.fluoro.shape, case.paths.get("geometry", case_dir))
-    plausibility.check_vessel_tree(result.skeleton2d_points, result.skeleton2d_edges, result.P, result.preop.points,
-                                   frame_path)
-    gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
     for note in gate_notes:
         warnings.warn(note, InputWarning, stacklevel=2)
     result.warnings.extend(notes + gate_notes)
