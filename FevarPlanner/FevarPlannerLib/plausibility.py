@@ -268,6 +268,18 @@ MAX_RENAL_RIGID_MISFIT_MM = 5.0
 MAX_AORTA_BEND_MM = 7.5
 #: How far a renal ostium moved beyond that rigid motion, mm (the ostia are nearly fixed). Right max 3.8.
 MAX_OSTIUM_MOVE_MM = 5.0
+#: A frame mirrored left-right (the wrong side convention): the pre-operative tree, projected
+#: through the registration's pose and mirrored about its own vertical midline, each shifted
+#: in-plane onto the frame's vessels, fits it better than unmirrored: its mean distance is under
+#: this fraction of the unmirrored one and at least :data:`MIRROR_GAIN_MM` smaller. Right frames:
+#: ratio 0.68 and up (a 20 degree out-of-plane bend; 0.89 and up otherwise); mirrored ones 0.2-1.5.
+MAX_MIRROR_RATIO = 0.6
+MIRROR_GAIN_MM = 1.5
+#: The side check fits about this many pre-operative nodes, by this many translation-only ICP steps.
+SIDE_NODES = 100
+SIDE_ICP_STEPS = 4
+#: ... looking this far for each node's nearest vessel (a farther node counts at this distance), mm.
+SIDE_REACH_MM = 25.0
 
 
 def _rigid_residual(before: np.ndarray, after: np.ndarray) -> np.ndarray:
@@ -313,6 +325,37 @@ def _kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
 
+def _shifted_fits(tree: cKDTree, sets: list, reach_px: float) -> list:
+    """Per point set (each (n, 2)), the mean distance (px, each clipped at ``reach_px``) to the
+    points of ``tree`` after the in-plane translation that lays it on them (ICP, translation
+    only: each of :data:`SIDE_ICP_STEPS` steps moves a set by the median offset of its points
+    to their nearest ones within ``reach_px``; the sets are queried together)."""
+    points = np.vstack(sets)
+    owner = np.repeat(np.arange(len(sets)), [len(uv) for uv in sets])
+    shifts = np.zeros((len(sets), 2))
+    data = np.vstack([tree.data, np.full((1, 2), np.nan)])      # index n: nothing within reach
+    for _ in range(SIDE_ICP_STEPS):
+        moved = points + shifts[owner]
+        _, nearest = tree.query(moved, distance_upper_bound=reach_px)
+        offsets = data[nearest] - moved
+        for k in range(len(sets)):
+            found = offsets[(owner == k) & (nearest < tree.n)]
+            if len(found):
+                shifts[k] += np.median(found, axis=0)
+    distance = np.minimum(tree.query(points + shifts[owner], distance_upper_bound=reach_px)[0], reach_px)
+    return [float(distance[owner == k].mean()) for k in range(len(sets))]
+
+
+def _side_fits(tree: cKDTree, P, points: np.ndarray, mm_per_px: float) -> list:
+    """[unmirrored, mirrored] :func:`_shifted_fits` (mm, each node's distance clipped at
+    :data:`SIDE_REACH_MM`) of ``points`` projected through ``P``, the mirrored set flipped
+    about the projection's mean column."""
+    uv = project(P, points[::max(1, len(points) // SIDE_NODES)])
+    mirrored = uv.copy()
+    mirrored[:, 0] = 2.0 * uv[:, 0].mean() - uv[:, 0]
+    return [fit * mm_per_px for fit in _shifted_fits(tree, [uv, mirrored], SIDE_REACH_MM / mm_per_px)]
+
+
 def _in_frame(uv: np.ndarray, frame_shape) -> np.ndarray:
     rows, cols = frame_shape[:2]
     return (uv[:, 0] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= rows - 1)
@@ -353,8 +396,10 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     uv, uv0 = project(P, deformed.points), project(P, preop.points[renals])
     shown = np.r_[_in_frame(uv, frame_shape), _in_frame(uv0, frame_shape)]
     # distances to the graphs drawn every 2 px (KD-trees: the gate costs about a millisecond a frame)
+    skeleton_tree = _kd_tree(_drawn(sk, sk_edges))
     both = np.full(len(shown), np.nan)
-    both[shown] = _kd_tree(_drawn(sk, sk_edges)).query(np.vstack([uv, uv0])[shown])[0] * mm_per_px
+    both[shown] = skeleton_tree.query(np.vstack([uv, uv0])[shown])[0] * mm_per_px
+    side = _side_fits(skeleton_tree, P, preop.points, mm_per_px)
     fit, misfit = both[:len(uv)], np.full(len(uv), np.nan)
     misfit[renals] = both[len(uv):]
     sample = sk[::UNEXPLAINED_STRIDE]
@@ -369,6 +414,7 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
         "fit_mm": float(np.nanmean(fit)) if np.isfinite(fit).any() else 0.0, "vessel_fit_mm": vessel_fit,
         "unexplained": float(unexplained.mean()) if len(sample) else 0.0,
         "unexplained_where": sample[unexplained].mean(axis=0).tolist() if unexplained.any() else None,
+        "side_fit_mm": side,
         "renal_misfit_mm": renal,
         "renal_where": {v: project(P, preop.points[members[v]]).mean(axis=0).tolist() for v in renal},
         "aorta_bend_mm": float(np.percentile(residual[aorta], 90)) if len(aorta) else 0.0,
@@ -396,6 +442,11 @@ def registration_verdict(signals: dict) -> str | None:
         return (f"{100 * signals['unexplained']:.0f}% of the frame's vessels lie over {EXPLAINED_WITHIN_MM:g} mm from "
                 f"the registered tree (largely {_at(signals['unexplained_where'])}; at most "
                 f"{100 * MAX_UNEXPLAINED_FRACTION:.0f}% allowed); {tail}")
+    direct, mirrored = signals["side_fit_mm"]
+    if mirrored < MAX_MIRROR_RATIO * direct and direct - mirrored >= MIRROR_GAIN_MM:
+        return (f"the frame looks mirrored left-right: the pre-operative tree fits it {mirrored:.1f} mm on average when "
+                f"mirrored, {direct:.1f} mm as it is (renal_left expected {_at(signals['renal_where'].get('renal_left'))}); "
+                f"check the side convention of the frame, or {tail}")
     renal = signals["renal_misfit_mm"]
     if renal and np.mean(list(renal.values())) > MAX_RENAL_RIGID_MISFIT_MM:
         vessel = max(renal, key=renal.get)
