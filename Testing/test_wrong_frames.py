@@ -156,3 +156,15 @@ def test_the_right_frames_of_the_same_generator_are_answered(scenario_pair, tmp_
         result = plan_case(case, tmp_path / kind)
         assert json.loads((tmp_path / kind / "result.json").read_text())["method"] == "proposed"
         assert result.errors["3d_mm"]["mean"] < 6.0, kind
+
+
+def test_a_mirrored_frame_is_refused_as_mirrored_and_its_tree_unmirrored_is_not():
+    """Renal ostia 25 mm apart in height: the frame drawn mirrored left-right is refused as such."""
+    tree = moved(moved(hand_tree(), "renal_left", (0.0, 0.0, 12.0)), "renal_right", (0.0, 0.0, -13.0))
+    mirror = np.diag([-1.0, 1.0, 1.0])
+    mirrored = tree.with_points(tree.points @ mirror)
+    frame = Centerline(mirrored.points, mirrored.edges, list(tree.labels))
+    with pytest.raises(quality.QualityError, match="the frame looks mirrored left-right"):
+        check(tree, frame, frame)
+    direct, flipped = check(tree, tree, tree)["side_fit_mm"]
+    assert direct < 0.5 < flipped

@@ -268,12 +268,14 @@ MAX_RENAL_RIGID_MISFIT_MM = 5.0
 MAX_AORTA_BEND_MM = 7.5
 #: How far a renal ostium moved beyond that rigid motion, mm (the ostia are nearly fixed). Right max 3.8.
 MAX_OSTIUM_MOVE_MM = 5.0
-#: A frame mirrored left-right (the wrong side convention): the pre-operative tree, projected
-#: through the registration's pose and mirrored about its own vertical midline, each shifted
-#: in-plane onto the frame's vessels, fits it better than unmirrored: its mean distance is under
-#: this fraction of the unmirrored one and at least :data:`MIRROR_GAIN_MM` smaller. Right frames:
-#: ratio 0.68 and up (a 20 degree out-of-plane bend; 0.89 and up otherwise); mirrored ones 0.2-1.5.
-MAX_MIRROR_RATIO = 0.6
+#: A frame mirrored left-right (the wrong side convention): the pre-operative aorta and renals
+#: (the part the wire moves least), projected through the registration's pose and mirrored
+#: about their own vertical midline, each shifted in-plane onto the frame's vessels, fit it
+#: better than unmirrored: a mean distance under this fraction of the unmirrored one and at least
+#: :data:`MIRROR_GAIN_MM` smaller. Right frames (given pose): every one with a ratio under 1
+#: gains at most 0.8 mm; mirrored ones mostly gain 1.7-7.5 mm. The whole tree would not do:
+#: straightened iliacs fit a right frame better mirrored (ratio 0.50, 2.5 mm).
+MAX_MIRROR_RATIO = 0.7
 MIRROR_GAIN_MM = 1.5
 #: The side check fits about this many pre-operative nodes, by this many translation-only ICP steps.
 SIDE_NODES = 100
@@ -399,7 +401,9 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     skeleton_tree = _kd_tree(_drawn(sk, sk_edges))
     both = np.full(len(shown), np.nan)
     both[shown] = skeleton_tree.query(np.vstack([uv, uv0])[shown])[0] * mm_per_px
-    side = _side_fits(skeleton_tree, P, preop.points, mm_per_px)
+    steady = np.flatnonzero(members.get("aorta", False) | members.get("renal_left", False)
+                            | members.get("renal_right", False))
+    side = _side_fits(skeleton_tree, P, preop.points[steady], mm_per_px) if len(steady) else [0.0, 0.0]
     fit, misfit = both[:len(uv)], np.full(len(uv), np.nan)
     misfit[renals] = both[len(uv):]
     sample = sk[::UNEXPLAINED_STRIDE]
@@ -444,8 +448,8 @@ def registration_verdict(signals: dict) -> str | None:
                 f"{100 * MAX_UNEXPLAINED_FRACTION:.0f}% allowed); {tail}")
     direct, mirrored = signals["side_fit_mm"]
     if mirrored < MAX_MIRROR_RATIO * direct and direct - mirrored >= MIRROR_GAIN_MM:
-        return (f"the frame looks mirrored left-right: the pre-operative tree fits it {mirrored:.1f} mm on average when "
-                f"mirrored, {direct:.1f} mm as it is (renal_left expected {_at(signals['renal_where'].get('renal_left'))}); "
+        return (f"the frame looks mirrored left-right: the pre-operative aorta and renals fit it {mirrored:.1f} mm on "
+                f"average when mirrored, {direct:.1f} mm as they are (renal_left expected {_at(signals['renal_where'].get('renal_left'))}); "
                 f"check the side convention of the frame, or {tail}")
     renal = signals["renal_misfit_mm"]
     if renal and np.mean(list(renal.values())) > MAX_RENAL_RIGID_MISFIT_MM:

@@ -2,8 +2,11 @@
 only such frames?
 
 Right case folders: the scenario family's quick sets (one case per kind, every kind but
-image_only, ``--scenario-seeds``) and random paper-phantom cases (``--phantom-seed``,
-``--phantoms``). From each right case it writes wrong ones beside it:
+image_only, ``--scenario-seeds``; two_views and bench_pinhole included), random paper-phantom
+cases (``--phantom-seed``, ``--phantoms``) and paper-protocol cases (``--paper-seed``,
+``--papers``: states of one phantom, right frames only). The paper benchmark
+(``fevar-planner benchmark``) calls the registration directly and never meets these gates;
+here its cases go through ``plan`` like any case folder. From each right case it writes wrong ones beside it:
 
 * ``swap``: the frame (every view's ``fluoro_mask.png``) of another case, filed in this
   folder, with this case's geometry;
@@ -24,6 +27,7 @@ Outputs in ``--out``: ``wrong_frames.json`` (every run with its message and the 
 numbers), ``wrong_frames.png`` (refusal rate per kind) and the case folders under ``cases/``.
 
     .venv/bin/python Testing/benchmarks/bench_wrong_frames.py --out OUT [--scenario-seeds 0 1] [--phantom-seed 7]
+        [--phantoms 4] [--paper-seed 3] [--papers 4]
 """
 
 from __future__ import annotations
@@ -46,8 +50,10 @@ ANGLE_DEG = 40.0
 RENALS = ("renal_left", "renal_right")
 
 
-def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_phantoms: int) -> list:
-    """Write (or reuse) the right cases; ``[(family, kind, folder)]``."""
+def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_phantoms: int,
+                       paper_seed: int | None = None, n_papers: int = 0) -> list:
+    """Write (or reuse) the right cases; ``[(family, kind, folder)]``. Paper-protocol phantoms
+    (kind ``paper``: several intra-operative states of one phantom) are right frames only."""
     from FevarPlannerLib.benchmark.independent import independent_case_folders
     from FevarPlannerLib.phantom import write_phantom_set
 
@@ -62,6 +68,12 @@ def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_p
             write_phantom_set(where, n=n_phantoms, seed=phantom_seed, preset="random", mask_only=True)
         for folder in sorted(p for p in where.iterdir() if (p / "gt.json").is_file())[:n_phantoms]:
             cases.append((f"phantom_seed{phantom_seed}", "phantom", folder))
+    if paper_seed is not None and n_papers > 0:
+        where = root / f"paper_seed{paper_seed}"
+        if len(list(where.glob("*/gt.json"))) < n_papers:
+            write_phantom_set(where, n=n_papers, seed=paper_seed, preset="paper", mask_only=True)
+        for folder in sorted(p for p in where.iterdir() if (p / "gt.json").is_file())[:n_papers]:
+            cases.append((f"paper_seed{paper_seed}", "paper", folder))
     return cases
 
 
@@ -167,22 +179,34 @@ def _late(case: Path, target: Path) -> Path:
     return folder
 
 
-def wrong_case_folders(rights: list, root: Path) -> list:
+def wrong_case_folders(rights: list, root: Path, kinds=WRONG_KINDS) -> list:
     """Every wrong kind of every right case; ``[(family, wrong kind, folder, right folder)]``.
 
     The frame swapped in comes from the next right case of the list (another anatomy: each
-    scenario kind and each phantom draws its own tree)."""
+    scenario kind and each random phantom draws its own tree); paper-protocol cases (states of
+    one phantom) take no part."""
     made = []
-    for n, (family, kind, case) in enumerate(rights):
-        other = rights[(n + 1) % len(rights)][2]
+    sources = [right for right in rights if right[1] != "paper"]
+    for n, (family, kind, case) in enumerate(sources):
+        other = sources[(n + 1) % len(sources)][2]
         base = root / family / case.name
         builders = {"swap": lambda t: _swapped(case, other, t, False),
                     "swap_geometry": lambda t: _swapped(case, other, t, True),
                     "mirror": lambda t: _mirrored(case, t), "angle": lambda t: _angled(case, t),
                     "late": lambda t: _late(case, t)}
-        for wrong, build in builders.items():
+        for wrong in kinds:
+            build = builders[wrong]
             made.append((family, wrong, build(base / wrong), case))
     return made
+
+
+#: Which gate a refusal came from, by the words of its message.
+GATES = (("registration check", "registration check (issue 11)"), ("frame check", "frame check"),
+         ("implausible registration", "length / node-shift check"))
+
+
+def _gate_of(message: str) -> str:
+    return next((name for words, name in GATES if words in message), "other")
 
 
 def run_plan(folder: Path) -> dict:
@@ -196,7 +220,8 @@ def run_plan(folder: Path) -> dict:
     try:
         result = plan_case(folder, None, method="proposed")
     except InputError as exc:
-        return {"refused": True, "message": str(exc).splitlines()[0], "wall_s": time.perf_counter() - t0}
+        message = str(exc).splitlines()[0]
+        return {"refused": True, "message": message, "gate": _gate_of(message), "wall_s": time.perf_counter() - t0}
     finally:
         workers.set_enabled(previous)
     errors = result.errors or {}
@@ -211,7 +236,11 @@ def run_plan(folder: Path) -> dict:
 def _rate(rows: list) -> dict:
     refused = sum(r["refused"] for r in rows)
     answered = [r["3d_mm"] for r in rows if not r["refused"] and r.get("3d_mm") is not None]
-    return {"runs": len(rows), "refused": refused, "refusal_rate": refused / max(len(rows), 1),
+    gates = {}
+    for r in rows:
+        if r["refused"]:
+            gates[r["gate"]] = gates.get(r["gate"], 0) + 1
+    return {"runs": len(rows), "refused": refused, "refusal_rate": refused / max(len(rows), 1), "by_gate": gates,
             "answered_3d_mm_median": float(np.median(answered)) if answered else None,
             "answered_3d_mm_max": float(np.max(answered)) if answered else None}
 
@@ -220,7 +249,8 @@ def summarise(runs: list) -> dict:
     """Refusal rate per wrong kind and per family of right frames (false refusals)."""
     summary = {"wrong": {}, "right": {}}
     for kind in WRONG_KINDS:
-        summary["wrong"][kind] = _rate([r for r in runs if r["kind"] == kind])
+        if any(r["kind"] == kind for r in runs):
+            summary["wrong"][kind] = _rate([r for r in runs if r["kind"] == kind])
     right = [r for r in runs if r["kind"] == "right"]
     for family in sorted({r["family"] for r in right}):
         summary["right"][family] = _rate([r for r in right if r["family"] == family])
@@ -252,12 +282,17 @@ def main(argv=None) -> int:
     parser.add_argument("--scenario-seeds", type=int, nargs="*", default=[0])
     parser.add_argument("--phantom-seed", type=int, default=7)
     parser.add_argument("--phantoms", type=int, default=4)
+    parser.add_argument("--paper-seed", type=int, default=3, help="paper-protocol phantoms (right frames only)")
+    parser.add_argument("--papers", type=int, default=4)
+    parser.add_argument("--wrong-kinds", nargs="*", choices=WRONG_KINDS, default=list(WRONG_KINDS),
+                        help="wrong kinds to build (none: right frames only)")
     parser.add_argument("--cases", type=Path, default=None, help="where the case folders go (default OUT/cases)")
     args = parser.parse_args(argv)
     cases = args.cases or args.out / "cases"
     started = time.perf_counter()
-    rights = right_case_folders(cases / "right", args.scenario_seeds, args.phantom_seed, args.phantoms)
-    wrongs = wrong_case_folders(rights, cases / "wrong")
+    rights = right_case_folders(cases / "right", args.scenario_seeds, args.phantom_seed, args.phantoms,
+                                args.paper_seed, args.papers)
+    wrongs = wrong_case_folders(rights, cases / "wrong", args.wrong_kinds)
     runs = []
     jobs = [(family, "right", folder, folder) for family, _, folder in rights] + wrongs
     for n, (family, kind, folder, origin) in enumerate(jobs):
