@@ -9,7 +9,13 @@ of what was read:
 * before the result is written: a frame that shows a vessel tree at the scale of the
   projected pre-operative one (not noise); the registered vessels about as long as the
   pre-operative ones; no node further from the pre-operative tree than the deformation
-  model moves anatomy.
+  model moves anatomy;
+* for the proposed method, the registration gate (issue 11, :func:`check_registration`): a
+  frame of another patient, a mirrored one, or one whose geometry belongs to another view
+  still gets fitted; what the fit needed gives it away (the registered tree off or short of
+  the frame's vessels, the renals off before any deformation, the aorta bent or an ostium
+  moved beyond a rigid motion, the aorta and renals fitting better mirrored). It raises a
+  :class:`quality.QualityError`, so that the QC picture is written.
 
 A failed gate raises :class:`files.InputError` (exit code 2 in the CLI) with the file and
 the reason; a doubtful result that can still be used gives a warning (a string), which
@@ -35,6 +41,9 @@ __all__ = [
     "check_anatomy_in_view",
     "check_vessel_tree",
     "result_warnings",
+    "registration_signals",
+    "registration_verdict",
+    "check_registration",
 ]
 
 #: Voxel sizes of a human CT, mm: finer is a micro-CT, coarser is not an image of vessels.
