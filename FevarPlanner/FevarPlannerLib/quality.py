@@ -18,6 +18,7 @@ MIP with the lumen), which callers write before reporting the error.
 from __future__ import annotations
 
 import math
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -693,8 +694,9 @@ def write_segmentation_qc(path, qc: QCData, message: str | None = None) -> Path:
         _ct_panels(fig, [grid[0, n] for n in range(4)], qc.ct, qc.lumen)
     if qc.frame is not None:
         _frame_panel(fig.add_subplot(grid[0, 5]), qc.frame, qc.mask2d, qc.prior, qc.registered)
-    fig.suptitle(message or "segmentation passed the quality gate", fontsize=9,
-                 color="darkred" if message else "black")
+    title = textwrap.fill(message, 190) if message else "segmentation passed the quality gate"
+    fig.suptitle(title, fontsize=9, color="darkred" if message else "black")
+    fig.subplots_adjust(top=0.88 - 0.05 * title.count("\n"))      # a long verdict wraps above the panels
     with atomic_path(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=80, format="png")
     plt.close(fig)
