@@ -202,6 +202,7 @@ def wrong_case_folders(rights: list, root: Path, kinds=WRONG_KINDS) -> list:
 
 #: Which gate a refusal came from, by the words of its message.
 GATES = (("registration check", "registration check (issue 11)"), ("frame check", "frame check"),
+         ("no usable vessel tree", "vessel-tree check"),
          ("implausible registration", "length / node-shift check"))
 
 
@@ -227,9 +228,10 @@ def run_plan(folder: Path) -> dict:
     errors = result.errors or {}
     row = {"refused": False, "wall_s": time.perf_counter() - t0,
            "3d_mm": (errors.get("3d_mm") or {}).get("mean"), "2d_px": (errors.get("2d_px") or {}).get("mean")}
-    row["signals"] = plausibility.registration_signals(result.preop, result.deformed, result.P,
-                                                      result.skeleton2d_points, result.skeleton2d_edges,
-                                                      np.shape(result.fluoro_image))
+    signals = getattr(plausibility, "registration_signals", None)     # absent before issue 11: a baseline run
+    if signals is not None:
+        row["signals"] = signals(result.preop, result.deformed, result.P, result.skeleton2d_points,
+                                 result.skeleton2d_edges, np.shape(result.fluoro_image))
     return row
 
 
