@@ -75,7 +75,8 @@ def test_a_right_fit_passes_with_its_numbers():
 
 
 def test_renals_of_another_anatomy_are_refused_by_name_and_place():
-    """The frame's left renal 25 mm lower than the CT's: the fit can reach it, the gate names it."""
+    """The frame's renals 20-25 mm lower than the CT's: the fit can reach them, but only by moving
+    the ostia, and the renals lie off before deformation: two doubts refuse, naming the left renal."""
     tree = hand_tree()
     other = moved(tree, "renal_left", (0.0, 0.0, -25.0))
     other = moved(other, "renal_right", (0.0, 0.0, -20.0))
@@ -84,15 +85,18 @@ def test_renals_of_another_anatomy_are_refused_by_name_and_place():
     message = str(caught.value)
     assert "\n" not in message and "renal_left not found where the CT puts it" in message
     assert "near pixel (u=282, v=155)" in message           # the CT's left renal, projected
+    assert plausibility.registration_warnings(check(tree, tree, tree)) == []
 
 
-def test_an_aorta_bent_beyond_the_anatomy_is_refused():
+def test_an_aorta_bent_beyond_the_anatomy_alone_is_a_warning():
+    """One doubt is answered with a warning: right frames with large deformations bend the aorta
+    that far too (random phantoms at twice the deformation: 7.6 and 8.8 mm)."""
     tree = hand_tree()
     bent = tree
     for label in ("aorta", "iliac_left", "iliac_right"):
         bent = moved(bent, label, (30.0, 0.0, 0.0), below_z=20.0)
-    with pytest.raises(quality.QualityError, match="aorta: the fit bent it"):
-        check(tree, bent, bent)
+    notes = plausibility.registration_warnings(check(tree, bent, bent))
+    assert len(notes) == 1 and "aorta: the fit bent it" in notes[0] and "check the overlay" in notes[0]
     assert check(tree, moved(tree, "aorta", (0.0, 0.0, 0.0)), tree)["aorta_bend_mm"] < 1e-6
 
 
@@ -106,12 +110,12 @@ def test_frame_vessels_the_registered_tree_does_not_explain_are_refused():
         plausibility.check_registration(tree, tree, P, points, edges, SHAPE, "frame.png")
 
 
-def test_the_refusal_draws_the_registered_tree_in_the_qc_picture(tmp_path):
+def test_a_tree_off_the_frame_is_refused_and_drawn_in_the_qc_picture(tmp_path):
     tree = hand_tree()
-    other = moved(moved(tree, "renal_left", (0.0, 0.0, -25.0)), "renal_right", (0.0, 0.0, -20.0))
+    other = tree.with_points(tree.points + [12.0, 0.0, 0.0])      # the registered tree 12 mm beside the frame's
     qc = quality.QCData(frame=np.zeros(SHAPE))
-    with pytest.raises(quality.QualityError) as caught:
-        plausibility.check_registration(tree, other, P, *skeleton_of(other), SHAPE, "frame.png", qc)
+    with pytest.raises(quality.QualityError, match="the registered tree does not fit the frame") as caught:
+        plausibility.check_registration(other, other, P, *skeleton_of(tree), SHAPE, "frame.png", qc)
     uv, edges = caught.value.qc.registered
     assert np.allclose(uv, project(P, other.points)) and len(edges) == len(other.edges)
     path = quality.write_segmentation_qc(tmp_path / "qc.png", caught.value.qc, str(caught.value))
@@ -159,7 +163,8 @@ def test_the_right_frames_of_the_same_generator_are_answered(scenario_pair, tmp_
 
 
 def test_a_mirrored_frame_is_refused_as_mirrored_and_its_tree_unmirrored_is_not():
-    """Renal ostia 25 mm apart in height: the frame drawn mirrored left-right is refused as such."""
+    """Renal ostia 25 mm apart in height: the frame drawn mirrored left-right is refused as such
+    (its renals also lie off before deformation: two doubts)."""
     tree = moved(moved(hand_tree(), "renal_left", (0.0, 0.0, 12.0)), "renal_right", (0.0, 0.0, -13.0))
     mirror = np.diag([-1.0, 1.0, 1.0])
     mirrored = tree.with_points(tree.points @ mirror)

@@ -4,7 +4,8 @@ only such frames?
 Right case folders: the scenario family's quick sets (one case per kind, every kind but
 image_only, ``--scenario-seeds``; two_views and bench_pinhole included), random paper-phantom
 cases (``--phantom-seed``, ``--phantoms``) and paper-protocol cases (``--paper-seed``,
-``--papers``: states of one phantom, right frames only). The paper benchmark
+``--papers``: states of one phantom, right frames only), and right frames of random phantoms
+deformed ``--large-scale`` times the usual (``--large``). The paper benchmark
 (``fevar-planner benchmark``) calls the registration directly and never meets these gates;
 here its cases go through ``plan`` like any case folder. From each right case it writes wrong ones beside it:
 
@@ -20,7 +21,7 @@ here its cases go through ``plan`` like any case folder. From each right case it
 
 Each folder runs through ``pipeline.plan_case`` (the CLI's route, proposed method). A refusal
 is a :class:`files.InputError` (exit code 2 in the CLI). Reported per kind: the refusal rate,
-and for the answers given the 3D error against the truth of the CT's own deformation
+how many answers carry a registration warning, and for the answers given the 3D error against the truth of the CT's own deformation
 (``gt.json`` of the case whose CT it is). Right frames refused are false refusals.
 
 Outputs in ``--out``: ``wrong_frames.json`` (every run with its message and the gate's
@@ -48,6 +49,8 @@ WRONG_KINDS = ("swap", "swap_geometry", "mirror", "angle", "late")
 #: The angle kind: the given geometry is that of a view this far (degrees) about the patient's long axis.
 ANGLE_DEG = 40.0
 RENALS = ("renal_left", "renal_right")
+#: Kinds of right case that get no wrong frames built from them.
+RIGHT_ONLY = ("paper", "large")
 
 
 def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_phantoms: int,
@@ -74,6 +77,24 @@ def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_p
             write_phantom_set(where, n=n_papers, seed=paper_seed, preset="paper", mask_only=True)
         for folder in sorted(p for p in where.iterdir() if (p / "gt.json").is_file())[:n_papers]:
             cases.append((f"paper_seed{paper_seed}", "paper", folder))
+    return cases
+
+
+def large_deformation_folders(root: Path, first_seed: int, n: int, scale: float) -> list:
+    """Right frames of random phantoms whose deformation is ``scale`` times the usual (the
+    authors' real phantom pair moves about 9 mm, twice our sets); ``[(family, "large", folder)]``."""
+    from dataclasses import replace
+
+    from FevarPlannerLib import phantom
+
+    family = f"large_x{scale:g}_seed{first_seed}"
+    cases = []
+    for seed in range(first_seed, first_seed + n):
+        folder = root / family / f"case_{seed}"
+        if not (folder / "gt.json").is_file():
+            params = replace(phantom.random_params(np.random.default_rng(seed)), deformation_scale=scale)
+            phantom.write_case(phantom.generate_case(params, name=folder.name), folder, mask_only=True)
+        cases.append((family, "large", folder))
     return cases
 
 
@@ -184,9 +205,9 @@ def wrong_case_folders(rights: list, root: Path, kinds=WRONG_KINDS) -> list:
 
     The frame swapped in comes from the next right case of the list (another anatomy: each
     scenario kind and each random phantom draws its own tree); paper-protocol cases (states of
-    one phantom) take no part."""
+    one phantom) and large-deformation phantoms take no part."""
     made = []
-    sources = [right for right in rights if right[1] != "paper"]
+    sources = [right for right in rights if right[1] not in RIGHT_ONLY]
     for n, (family, kind, case) in enumerate(sources):
         other = sources[(n + 1) % len(sources)][2]
         base = root / family / case.name
@@ -227,7 +248,8 @@ def run_plan(folder: Path) -> dict:
         workers.set_enabled(previous)
     errors = result.errors or {}
     row = {"refused": False, "wall_s": time.perf_counter() - t0,
-           "3d_mm": (errors.get("3d_mm") or {}).get("mean"), "2d_px": (errors.get("2d_px") or {}).get("mean")}
+           "3d_mm": (errors.get("3d_mm") or {}).get("mean"), "2d_px": (errors.get("2d_px") or {}).get("mean"),
+           "warnings": [note for note in result.warnings if note.startswith("registration check")]}
     signals = getattr(plausibility, "registration_signals", None)     # absent before issue 11: a baseline run
     if signals is not None:
         cpu = time.process_time()
@@ -244,7 +266,9 @@ def _rate(rows: list) -> dict:
     for r in rows:
         if r["refused"]:
             gates[r["gate"]] = gates.get(r["gate"], 0) + 1
+    warned = sum(bool(r.get("warnings")) for r in rows if not r["refused"])
     return {"runs": len(rows), "refused": refused, "refusal_rate": refused / max(len(rows), 1), "by_gate": gates,
+            "answered_with_registration_warning": warned,
             "answered_3d_mm_median": float(np.median(answered)) if answered else None,
             "answered_3d_mm_max": float(np.max(answered)) if answered else None}
 
@@ -292,12 +316,18 @@ def main(argv=None) -> int:
     parser.add_argument("--papers", type=int, default=4)
     parser.add_argument("--wrong-kinds", nargs="*", choices=WRONG_KINDS, default=list(WRONG_KINDS),
                         help="wrong kinds to build (none: right frames only)")
+    parser.add_argument("--large", type=int, default=0,
+                        help="right frames of this many random phantoms with a larger deformation")
+    parser.add_argument("--large-seed", type=int, default=600)
+    parser.add_argument("--large-scale", type=float, default=2.0, help="their deformation_scale")
     parser.add_argument("--cases", type=Path, default=None, help="where the case folders go (default OUT/cases)")
     args = parser.parse_args(argv)
     cases = args.cases or args.out / "cases"
     started = time.perf_counter()
     rights = right_case_folders(cases / "right", args.scenario_seeds, args.phantom_seed, args.phantoms,
                                 args.paper_seed, args.papers)
+    if args.large:
+        rights += large_deformation_folders(cases / "right", args.large_seed, args.large, args.large_scale)
     wrongs = wrong_case_folders(rights, cases / "wrong", args.wrong_kinds)
     runs = []
     jobs = [(family, "right", folder, folder) for family, _, folder in rights] + wrongs

@@ -257,8 +257,9 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
                                        result.preop.points, frame_path)
         gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
         if method == "proposed":      # issue 11: a frame not this case's anatomy, side or view
-            plausibility.check_registration(result.preop, result.deformed, result.P, result.skeleton2d_points,
-                                            result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)
+            signals = plausibility.check_registration(result.preop, result.deformed, result.P, result.skeleton2d_points,
+                                                      result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)
+            gate_notes += plausibility.registration_warnings(signals)
     except quality.QualityError as failure:    # the QC picture first, so the user sees why
         if out_dir is not None and failure.qc is not None:
             _write_failure_qc(Path(out_dir), failure)
