@@ -101,6 +101,28 @@ def test_track_refuses_a_frame_that_is_not_an_angiogram_and_keeps_the_others(run
     assert all(r.fit_2d_px is not None and r.fit_2d_px < 6.0 for r in (result.records[0], result.records[2]))
 
 
+def test_track_refuses_a_frame_of_another_anatomy_by_the_registration_check(run_case_dir, cache_dir, tmp_path):
+    """A run holding one frame of another phantom (seed 8, rendered through this case's C-arm):
+    it passes the frame check and registers, but leaves over a quarter of its vessels
+    unexplained; that frame is refused, the others answered."""
+    folder, generated = run_case_dir
+    case = tmp_path / "case"
+    shutil.copytree(folder, case)
+    good = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                  np.random.default_rng(seed))[0] for seed in (0, 1)]
+    other = phantom.generate_case(phantom.random_params(np.random.default_rng(8), misalign_shift_px=(0.0, 0.0),
+                                                        misalign_rotation_deg=0.0), name="other")
+    foreign = phantom.render_fluoro(other.intraop, generated.P_true, generated.carm, generated.params,
+                                    np.random.default_rng(2))[0]
+    io.write_fluoro_dicom(case / "fluoro.dcm", np.stack([good[0], foreign.astype(good[0].dtype), good[1]]),
+                          generated.carm)
+    result = track_case(case)
+    refused = result.records[1]
+    assert refused.fit_2d_px is None and len(refused.warnings) == 1
+    assert "fluoro.dcm (frame 1): registration check" in refused.warnings[0]
+    assert all(r.fit_2d_px is not None and r.fit_2d_px < 6.0 for r in (result.records[0], result.records[2]))
+
+
 def test_bad_option_values_fail_before_any_work(run_case_dir, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "untouched"))
     with pytest.raises(ValueError, match="target vessel must be one of"):

@@ -99,7 +99,8 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     The frame is read (the loaded one when it is ``case.fluoro``'s), segmented with the
     projected pre-operative tree as prior, checked by the same gates as ``plan`` (the
     frame's mask against the projected tree, its vessel tree, the result's lengths and
-    displacements: a frame that fails raises InputError), registered and its path planned;
+    displacements, and for the proposed method the registration check: a frame that fails
+    raises InputError), registered and its path planned;
     ``errors`` hold the fit to its own skeleton and ``warnings`` the result's notes. Used by
     :func:`track_case` and by the workstation to play a run back.
 
@@ -125,16 +126,23 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     t = time.perf_counter()
     frame = register_frame(preop, mask, case.P, method=method)
     times["registration"] = time.perf_counter() - t
-    plausibility.check_vessel_tree(frame.skeleton2d.positions, frame.skeleton2d.edges(), frame.P,
-                                   preop.centerline.points, frame_path)
+    edges_2d = frame.skeleton2d.edges()
+    plausibility.check_vessel_tree(frame.skeleton2d.positions, edges_2d, frame.P, preop.centerline.points, frame_path)
     notes = plausibility.result_warnings(preop.centerline, frame.deformed, frame_path, method=method)
+    if method == "proposed":      # issue 11: a frame not this case's anatomy, side or view
+        try:
+            signals = plausibility.check_registration(preop.centerline, frame.deformed, frame.P,
+                                                      frame.skeleton2d.positions, edges_2d, fluoro.image.shape,
+                                                      frame_path)
+        except quality.QualityError as exc:
+            raise InputError(str(exc).replace(" (see segmentation_qc.png)", "")) from None
+        notes += plausibility.registration_warnings(signals)
     t = time.perf_counter()
     path = planning.plan_path(frame.deformed, start=start, target=target)
     times["planning"] = time.perf_counter() - t
-    edges = frame.skeleton2d.edges()
-    fit = evaluation.evaluate(frame.deformed, None, frame.P, frame.skeleton2d.positions, edges)
+    fit = evaluation.evaluate(frame.deformed, None, frame.P, frame.skeleton2d.positions, edges_2d)
     times["total"] = sum(times.values())
-    result = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions, edges,
+    result = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions, edges_2d,
                         fluoro.image, {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
                         {"fluoro": str(case.fluoro.path), "frame": index},
                         geometry=case.geometry.to_dict() if case.geometry is not None else None)
