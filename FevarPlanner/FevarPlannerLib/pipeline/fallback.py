@@ -367,7 +367,12 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
             if why is None and fit < best_fit:
                 best, best_fit, best_name = moved, fit, name
         if best is None:            # SV moved with its junction may fit worse than SV in place
-            best, best_name = _replaced(result, sv, vessel), SV_NAME
+            moved = _replaced(result, sv, vessel)
+            if _fit_px(moved, vessel.nodes, views, preop.kept) > max(fits[k][0], sv_fit + FIT_TOLERANCE_PX):
+                warnings.append(f"{vessel.label}: {reason}; kept: {SV_NAME} moved with its junction fits the "
+                                f"frame worse still")
+                continue
+            best, best_name = moved, SV_NAME
         result, fits = best, None
         warnings.append(f"{vessel.label}: {reason}; replaced by {best_name}")
     return result, warnings
