@@ -135,3 +135,40 @@ def test_a_bad_piece_no_option_may_repair_is_kept_with_a_warning(preop, register
     assert warnings[0].endswith("no alternative repairs it there, kept")
     assert f"{piece.start_mm:.0f}-{piece.end_mm:.0f} mm from its root: length changed by +" in warnings[0]
     np.testing.assert_array_equal(kept, stretched)
+
+
+def _along_own_rays(points, nodes, P, amplitude_mm, period_mm, arc):
+    """``points`` with ``nodes`` moved along their own rays (each keeps its pixel, eq. 1) by a
+    sine of ``arc``: a depth zig-zag that stretches the vessel without changing its 2D fit."""
+    centre = np.linalg.svd(P)[2][-1]
+    centre = centre[:3] / centre[3]
+    rays = points[nodes] - centre
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    moved = points.copy()
+    moved[nodes] += amplitude_mm * np.sin(2.0 * np.pi * arc / period_mm)[:, None] * rays
+    return moved
+
+
+def test_a_stretched_vessel_is_not_replaced_by_sv_moved_off_the_frame(case, preop):
+    """Issue 10 (patient_like seed 2 case 02): the right iliac is stretched along the rays (+25 %
+    length, 2D fit unchanged) while its junction lies 8 mm from SV's in the frame plane; SV moved
+    with the junction is then 8 mm off its vessel in the image, a worse fit than both the
+    registered iliac and SV in place. The guard must keep the registered iliac (warned), not put
+    the vessel 8 mm away from where the frame shows it."""
+    sv = preop.centerline.points
+    iliac = _vessel(preop, "iliac_right")
+    lateral = np.cross(case.P_true[2, :3], [0.0, 0.0, 1.0])
+    shift = 8.0 * lateral / np.linalg.norm(lateral)
+    truth = sv + shift
+    truth[iliac.nodes] = sv[iliac.nodes]             # the iliac where SV has it, its junction moved
+    mask = drawn_mask(preop.centerline.with_points(truth), case.P_true, (case.carm.rows, case.carm.cols))
+    view = pipeline._prepare_view(preop, mask, case.P_true, "main", None, "proposed", False, {})
+    arc = fallback._arc_from_root(iliac, sv)
+    result = _along_own_rays(truth, iliac.nodes, case.P_true, 4.0, 15.0, arc)
+    assert fallback._length(result, iliac.edges) / fallback._length(sv, iliac.edges) - 1 > 0.1
+    fixed, warnings = fallback._never_worse_than_sv(result, lambda: [], preop, [view])
+    error = np.linalg.norm(fixed[iliac.nodes] - truth[iliac.nodes], axis=1).mean()
+    sv_moved_error = np.linalg.norm(shift)
+    assert error < 0.5 * sv_moved_error                 # 8 mm with SV moved with its junction
+    iliac_warnings = [w for w in warnings if w.startswith("iliac_right: ")]
+    assert len(iliac_warnings) == 1 and "kept" in iliac_warnings[0] and "replaced by" not in iliac_warnings[0]
