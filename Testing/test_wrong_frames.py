@@ -173,3 +173,21 @@ def test_a_mirrored_frame_is_refused_as_mirrored_and_its_tree_unmirrored_is_not(
         check(tree, frame, frame)
     direct, flipped = check(tree, tree, tree)["side_fit_mm"]
     assert direct < 0.5 < flipped
+
+
+def test_a_second_view_of_another_case_is_refused_by_its_own_check(tmp_path):
+    """Two views: the LAO 30 view's frame swapped for another case's. The main view still fits;
+    the check of the second view refuses, naming its file, with the QC picture of that view."""
+    from FevarPlannerLib.pipeline import plan_case
+    from FevarPlannerLib.scenarios import plan_scenarios, write_scenario
+
+    plans = plan_scenarios("two_views", 4, 0)
+    case, other = write_scenario(plans[0], tmp_path / "case"), write_scenario(plans[1], tmp_path / "other")
+    view = next((case / "views").iterdir())
+    swapped = tmp_path / "swapped"
+    shutil.copytree(case, swapped)
+    shutil.copy2(next((other / "views").iterdir()) / "fluoro_mask.png", swapped / "views" / view.name / "fluoro_mask.png")
+    with pytest.raises(quality.QualityError, match=rf"views/{view.name}/fluoro_mask.png: registration check"):
+        plan_case(swapped, tmp_path / "out")
+    assert (tmp_path / "out" / "segmentation_qc.png").stat().st_size > 1000
+    assert plan_case(case, tmp_path / "right").errors["3d_mm"]["mean"] < 1.5

@@ -666,7 +666,7 @@ def _frame_panel(ax, frame: np.ndarray, mask2d, prior, registered=None) -> None:
     if prior is not None:
         for a, b in prior.edges:
             ax.plot(prior.uv[[a, b], 0], prior.uv[[a, b], 1], color=PALETTE["preop"], linewidth=0.8)
-    title = "frame: mask red, projected pre-op tree orange"
+    title = "frame: mask red" + (", projected pre-op tree orange" if prior is not None else "")
     if registered is not None:
         uv, edges = registered
         for a, b in edges:
@@ -688,13 +688,17 @@ def write_segmentation_qc(path, qc: QCData, message: str | None = None) -> Path:
     from matplotlib.gridspec import GridSpec
 
     path = Path(path)
-    fig = plt.figure(figsize=(15, 4.2))
-    grid = GridSpec(1, 6, figure=fig, width_ratios=[1, 1, 1, 1, 0.05, 1.6])
     if qc.ct is not None:
+        fig = plt.figure(figsize=(15, 4.2))
+        grid = GridSpec(1, 6, figure=fig, width_ratios=[1, 1, 1, 1, 0.05, 1.6])
         _ct_panels(fig, [grid[0, n] for n in range(4)], qc.ct, qc.lumen)
+        frame_place, width = grid[0, 5], 190
+    else:       # the frame alone (a case given as masks): no empty CT panels beside it
+        fig = plt.figure(figsize=(7, 7.5))
+        frame_place, width = 111, 85
     if qc.frame is not None:
-        _frame_panel(fig.add_subplot(grid[0, 5]), qc.frame, qc.mask2d, qc.prior, qc.registered)
-    title = textwrap.fill(message, 190) if message else "segmentation passed the quality gate"
+        _frame_panel(fig.add_subplot(frame_place), qc.frame, qc.mask2d, qc.prior, qc.registered)
+    title = textwrap.fill(message, width) if message else "segmentation passed the quality gate"
     fig.suptitle(title, fontsize=9, color="darkred" if message else "black")
     fig.subplots_adjust(top=0.88 - 0.05 * title.count("\n"))      # a long verdict wraps above the panels
     with atomic_path(path, suffix=".png") as tmp:

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 import warnings
@@ -257,9 +258,7 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
                                        result.preop.points, frame_path)
         gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
         if method == "proposed":      # issue 11: a frame not this case's anatomy, side or view
-            signals = plausibility.check_registration(result.preop, result.deformed, result.P, result.skeleton2d_points,
-                                                      result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)
-            gate_notes += plausibility.registration_warnings(signals)
+            gate_notes += _registration_check(case, result, frame_path)
     except quality.QualityError as failure:    # the QC picture first, so the user sees why
         if out_dir is not None and failure.qc is not None:
             _write_failure_qc(Path(out_dir), failure)
@@ -270,6 +269,32 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     if out_dir is not None:
         write_outputs(result, out_dir)
     return result
+
+
+def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
+    """:func:`plausibility.check_registration` on every view the registration used (the
+    refusal's QC picture shows that view's frame); the warnings of those it lets pass."""
+    views = {view.name: view for view in getattr(case, "views", None) or []}
+    checks = [(result.P, result.skeleton2d_points, result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)]
+    for frame in result.view_frames[1:]:
+        view = views.get(frame.name)
+        if view is not None:
+            checks.append((frame.P, frame.skeleton2d.positions, frame.skeleton2d.edges(), view.fluoro.shape,
+                           view.paths.get("fluoro_mask", view.paths.get("fluoro", frame.name)),
+                           _view_qc(result.qc, view, quality.FluoroPrior.from_centerline(result.preop, frame.P))))
+    notes = []
+    for P, points, edges, shape, path, qc in checks:
+        signals = plausibility.check_registration(result.preop, result.deformed, P, points, edges, shape, path, qc)
+        notes += plausibility.registration_warnings(signals)
+    return notes
+
+
+def _view_qc(qc: quality.QCData | None, view: View, prior: quality.FluoroPrior) -> quality.QCData:
+    """The QC data of ``view``: the case's CT panels (``qc``'s), this view's frame, mask and
+    projected pre-operative tree (``prior``)."""
+    if qc is None:
+        return quality.QCData(frame=view.fluoro.image, mask2d=view.fluoro_mask, prior=prior)
+    return dataclasses.replace(qc, frame=view.fluoro.image, mask2d=view.fluoro_mask, prior=prior, notes=list(qc.notes))
 
 
 #: Foreground voxels sampled to check the anatomy's projection before any work.
