@@ -255,12 +255,6 @@ def _where_aorta_ends(centerline) -> str:
             f"(x={low[0]:.0f}, y={low[1]:.0f})")
 
 
-def _inferior_slice(lumen: Volume) -> int:
-    """Index k of the scan's most inferior slice (lowest LPS z)."""
-    last = lumen.shape[0] - 1
-    return 0 if lumen.index_to_lps([0, 0, 0])[2] <= lumen.index_to_lps([last, 0, 0])[2] else last
-
-
 def _aorta_leaves_scan_below(lumen: Volume) -> str | None:
     """Where the lumen leaves the scan through its most inferior slice as one aorta-wide
     cross-section (the CT stops above the aortic bifurcation), as a phrase; else ``None``.
@@ -268,7 +262,7 @@ def _aorta_leaves_scan_below(lumen: Volume) -> str | None:
     Two cut iliacs leave as two similar sections; an aorta leaves as one section of at least
     :data:`AORTA_CUT_RADIUS_MM` (equivalent radius) with nothing half its size beside it.
     """
-    k = _inferior_slice(lumen)
+    k = 0 if lumen.superior_step > 0 else lumen.shape[0] - 1       # the most inferior slice
     pieces, count = ndi.label(np.asarray(lumen.array[k]) > 0)
     if count == 0:
         return None

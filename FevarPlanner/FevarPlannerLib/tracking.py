@@ -92,6 +92,11 @@ def _frame_range(n_frames: int, first: int, count: int | None, path) -> range:
     return range(first, last)
 
 
+def _without_qc_picture(failure: quality.QualityError, prefix: str = "") -> InputError:
+    """``failure`` as an InputError without its pointer to the QC picture: track writes none per frame."""
+    return InputError(prefix + str(failure).replace(" (see segmentation_qc.png)", ""))
+
+
 def register_run_frame(preop, case, index: int, *, method: str = "proposed", start: str = "iliac_right",
                        target: str = "renal_left", prior=None):
     """Frame ``index`` of the case's run registered against ``preop``: ``(PlanResult, times in s)``.
@@ -121,8 +126,8 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     times["segmentation"] = time.perf_counter() - t
     try:
         quality.check_frame_mask(mask, prior, frame=fluoro.image)
-    except quality.QualityError as exc:      # track writes no QC picture per frame
-        raise InputError(f"{frame_path}: {str(exc).replace(' (see segmentation_qc.png)', '')}") from None
+    except quality.QualityError as exc:
+        raise _without_qc_picture(exc, f"{frame_path}: ") from None
     t = time.perf_counter()
     frame = register_frame(preop, mask, case.P, method=method)
     times["registration"] = time.perf_counter() - t
@@ -135,7 +140,7 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
                                                       frame.skeleton2d.positions, edges_2d, fluoro.image.shape,
                                                       frame_path)
         except quality.QualityError as exc:
-            raise InputError(str(exc).replace(" (see segmentation_qc.png)", "")) from None
+            raise _without_qc_picture(exc) from None
         notes += plausibility.registration_warnings(signals)
     t = time.perf_counter()
     path = planning.plan_path(frame.deformed, start=start, target=target)

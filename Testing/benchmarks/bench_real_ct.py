@@ -126,8 +126,8 @@ def abdominal_slices(ct: io.Volume, labels: np.ndarray) -> np.ndarray:
     ks = np.arange(ct.shape[0])
     if len(t12) == 0:
         return ks
-    top = t12.max() if seg._superior_step(ct) > 0 else t12.min()
-    return ks[ks <= top] if seg._superior_step(ct) > 0 else ks[ks >= top]
+    top = t12.max() if ct.superior_step > 0 else t12.min()
+    return ks[ks <= top] if ct.superior_step > 0 else ks[ks >= top]
 
 
 def overlap(result: np.ndarray, truth: np.ndarray) -> dict:

@@ -104,6 +104,11 @@ class Volume:
         ijk = np.linalg.solve(A, (np.asarray(points, dtype=float) - self.origin).T).T
         return ijk[..., ::-1]
 
+    @property
+    def superior_step(self) -> int:
+        """+1 when increasing k goes superior (towards +z in LPS), else -1."""
+        return 1 if (self.direction @ np.array([0.0, 0.0, 1.0]))[2] >= 0 else -1
+
     def center_lps(self) -> np.ndarray:
         """LPS position of the centre of the grid."""
         return self.index_to_lps((np.array(self.shape) - 1) / 2.0)

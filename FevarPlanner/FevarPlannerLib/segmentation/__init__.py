@@ -32,7 +32,7 @@ from .surface import (mask_surface, write_surface_vtp)
 from .fluoro import (_downsample, _percentile_among_zeros, _upsample, frame_contrast_in_prior, segment_fluoro,
     select_frame, vesselness)
 from .classical import (AORTA_RADIUS_MM, BONE_HU, BRANCH_REACH_MM, BRANCH_SIGMAS_MM, CONTRAST_HU,
-    ILIAC_MIN_RADIUS_MM, SOFT_TISSUE_HU, _superior_step, find_aorta_in_slices, grow_branches,
+    ILIAC_MIN_RADIUS_MM, SOFT_TISSUE_HU, find_aorta_in_slices, grow_branches,
     segment_ct_classical, trace_aorta)
 
 __all__ = [

@@ -109,11 +109,6 @@ def _slice_axes_mm(ct: Volume) -> tuple[float, float]:
     return float(ct.spacing[1]), float(ct.spacing[0])
 
 
-def _superior_step(ct: Volume) -> int:
-    """+1 when increasing k goes superior (towards +z in LPS), else -1."""
-    return 1 if (ct.direction @ np.array([0.0, 0.0, 1.0]))[2] >= 0 else -1
-
-
 def _posterior_sign_j(ct: Volume) -> float:
     """+1 when increasing j goes posterior (towards +y in LPS), else -1 (or 0 if oblique)."""
     return float(np.sign(ct.direction[1, 1]))
@@ -143,7 +138,7 @@ def chest_slices(ct: Volume, lung_fraction: float = CHEST_LUNG_FRACTION, step_mm
         area = int(body.sum())
         lungs = int((body & (hu <= -500.0)).sum())
         chest[k] = area > 0 and lungs >= lung_fraction * area
-    return _run_from_the_top(chest, _superior_step(ct))
+    return _run_from_the_top(chest, ct.superior_step)
 
 
 def _run_from_the_top(flags: np.ndarray, up: int) -> np.ndarray:
@@ -515,7 +510,7 @@ def _follow(trace: _Trace, ct: Volume, out: np.ndarray, label: int, progress=Non
         hu_slice = np.asarray(ct.array[k])
         found = _lumen_in_slice(hu_slice, trace.centre, trace.radius, spacing_ji, trace.lumen_hu,
                                 trace.min_radius, previous=trace.previous, reference_radius=float(np.median(recent)),
-                                detect_split=trace.name == "aorta" and trace.step != _superior_step(ct))
+                                detect_split=trace.name == "aorta" and trace.step != ct.superior_step)
         if found is None:
             return []
         mask, offset, centre, radius, split = found
@@ -669,7 +664,7 @@ def _trace_from_seed(ct: Volume, k0: int, centre, radius: float, radius_mm, coun
     labels = np.zeros(ct.shape, dtype=np.uint8)
     mask, offset, centre, radius, _ = first
     labels[k0, offset[0]:offset[0] + mask.shape[0], offset[1]:offset[1] + mask.shape[1]][mask] = 1
-    up = _superior_step(ct)
+    up = ct.superior_step
     traces = []
     for step in (up, -up):
         trace = _Trace("aorta", k0, centre, radius, step, radius_mm[0] * 0.6, lumen_hu)
