@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from .centerline import ANATOMY_LABELS
@@ -296,6 +296,30 @@ MAX_OSTIUM_MOVE_MM = 5.0
 #: straightened iliacs fit a right frame better mirrored (ratio 0.50, 2.5 mm).
 MAX_MIRROR_RATIO = 0.7
 MIRROR_GAIN_MM = 1.5
+#: A mirrored frame beyond doubt: the mirrored fit under this fraction of the unmirrored one (and
+#: :data:`MIRROR_GAIN_MM` better) refuses on its own. Development right frames (106 cases, every
+#: view; scenario seeds 0 and 1, random phantoms seed 7, large deformations 600-611 at scale 1 and
+#: 2, the two-view seeds 0, 36, 39, 42): lowest ratio 0.63 (gaining 0.3 mm), 0.79 (1.2 mm);
+#: mirrored frames: 0.11-0.27 in the eight lowest.
+MIRROR_CERTAIN_RATIO = 0.35
+#: A renal artery the frame shows longer than the CT's projects through ``P``: the frame's vessel
+#: goes on beyond the registered renal's end (the longest path along the frame's 2D skeleton,
+#: away from the end, through pixels farther than :data:`EXPLAINED_WITHIN_MM` from the
+#: registered tree), mm. The length term keeps the renal's length, so the registration cannot
+#: make up a renal that ``P`` foreshortens more than the frame does: a geometry of another view
+#: (a wrong C-arm angle: the tree turned about the patient's long axis foreshortens each renal
+#: differently) or another patient's renals. A renal's 2D length changes between CT and frame
+#: only as far as the kidney turns it towards the image plane. Development right frames (as
+#: above): at most 6.4 mm (5.4 in the first view; 5 mm is where it starts to be seen, the edge
+#: of the explained band); a geometry 40 degrees off: 11.4-43.4 mm on the renal it shortens.
+#: From :data:`RENAL_CONTINUATION_DOUBT_MM` (1.4 times the right maximum) a renal is a doubt
+#: (:func:`_doubts`, each renal one); from :data:`RENAL_CONTINUATION_REFUSE_MM` (1.9 times) it
+#: refuses on its own.
+RENAL_CONTINUATION_DOUBT_MM = 9.0
+RENAL_CONTINUATION_REFUSE_MM = 12.0
+#: ... counted from frame pixels within this of the registered renal's projected end, mm (the
+#: first pixel beyond the explained band, and a few more for the skeleton's pixel steps).
+RENAL_END_REACH_MM = EXPLAINED_WITHIN_MM + 3.0
 #: How many doubts together refuse a registration.
 DOUBTS_TO_REFUSE = 2
 #: The side check fits about this many pre-operative nodes, by this many translation-only ICP steps.
@@ -326,6 +350,52 @@ def _ostia(codes: np.ndarray, edges: np.ndarray, code: dict) -> dict:
             if len(hit):
                 found[vessel] = int(renal[hit[0]])
                 break
+    return found
+
+
+def _weighted_graph(n: int, edges: np.ndarray, weights: np.ndarray):
+    """The undirected sparse graph of ``edges`` (each of at least a tiny positive weight: a zero
+    would read as no edge)."""
+    weights = np.maximum(weights, 1e-9)
+    rows, cols = np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]]
+    return coo_matrix((np.r_[weights, weights], (rows, cols)), shape=(n, n)).tocsr()
+
+
+def _renal_ends(points: np.ndarray, edges: np.ndarray, codes: np.ndarray, code: dict, ostia: dict) -> dict:
+    """Renal label -> its node farthest along the renal's own edges from its ostium (its end)."""
+    ends = {}
+    for vessel, ostium in ostia.items():
+        nodes = np.flatnonzero(codes == code[vessel])
+        inner = edges[np.isin(edges[:, 0], nodes) & np.isin(edges[:, 1], nodes)]
+        lengths = np.linalg.norm(points[inner[:, 0]] - points[inner[:, 1]], axis=1)
+        along = dijkstra(_weighted_graph(len(points), inner, lengths), indices=ostium)
+        reached = nodes[np.isfinite(along[nodes])]
+        ends[vessel] = int(reached[np.argmax(along[reached])])
+    return ends
+
+
+def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_uv: dict, mm_per_px: float) -> dict:
+    """Per vessel end (label -> projected end, px): how far (mm) the frame's 2D skeleton goes on
+    beyond it, and the pixel where it stops (None when it does not).
+
+    ``far`` marks the skeleton nodes farther than :data:`EXPLAINED_WITHIN_MM` from the registered
+    tree. From those next to an explained node within :data:`RENAL_END_REACH_MM` of the end, the
+    longest shortest path through far nodes only; the first far node counts as
+    :data:`EXPLAINED_WITHIN_MM` from the end (the band it had to leave)."""
+    inner = sk_edges[far[sk_edges[:, 0]] & far[sk_edges[:, 1]]]
+    graph = _weighted_graph(len(sk), inner, np.linalg.norm(sk[inner[:, 0]] - sk[inner[:, 1]], axis=1) * mm_per_px)
+    crossing = sk_edges[far[sk_edges[:, 0]] != far[sk_edges[:, 1]]]
+    crossing = np.where(far[crossing[:, :1]], crossing[:, ::-1], crossing)       # (explained, far)
+    found = {}
+    for vessel, end in ends_uv.items():
+        close = np.linalg.norm(sk[crossing[:, 0]] - end, axis=1) * mm_per_px <= RENAL_END_REACH_MM
+        if not close.any():
+            found[vessel] = (0.0, None)
+            continue
+        along = dijkstra(graph, indices=np.unique(crossing[close, 1]), min_only=True)
+        reached = np.flatnonzero(np.isfinite(along))
+        last = reached[np.argmax(along[reached])]
+        found[vessel] = (float(along[last]) + EXPLAINED_WITHIN_MM, sk[last].tolist())
     return found
 
 
@@ -404,7 +474,9 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
         skeleton, and the worst vessel's), ``unexplained`` (share of skeleton nodes farther than
         :data:`EXPLAINED_WITHIN_MM` from the projected registered tree), ``renal_misfit_mm``
         (per renal, the pre-operative nodes' mean distance through ``P``), ``aorta_bend_mm``,
-        ``ostium_move_mm`` (per renal), each with the pixel ``where`` it is worst.
+        ``ostium_move_mm`` (per renal), ``renal_continuation_mm`` (per renal, how far the frame's
+        vessel goes on beyond the registered renal's end, :data:`RENAL_CONTINUATION_DOUBT_MM`),
+        each with the pixel ``where`` it is worst.
     """
     from .projection import pixels_per_mm
 
@@ -427,14 +499,16 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     side = _side_fits(skeleton_tree, P, preop.points[steady], mm_per_px) if len(steady) else [0.0, 0.0]
     fit, misfit = both[:len(uv)], np.full(len(uv), np.nan)
     misfit[renals] = both[len(uv):]
-    sample = sk[::UNEXPLAINED_STRIDE]
-    unexplained = _kd_tree(_drawn(uv, edges)).query(sample)[0] * mm_per_px > EXPLAINED_WITHIN_MM
+    far = _kd_tree(_drawn(uv, edges)).query(sk)[0] * mm_per_px > EXPLAINED_WITHIN_MM
+    sample, unexplained = sk[::UNEXPLAINED_STRIDE], far[::UNEXPLAINED_STRIDE]
     residual = _rigid_residual(preop.points, deformed.points)
     vessel_fit = {v: float(np.nanmean(fit[m])) for v, m in members.items() if np.isfinite(fit[m]).any()}
     renal = {v: float(np.nanmean(misfit[members[v]])) for v in ("renal_left", "renal_right")
              if v in members and np.isfinite(misfit[members[v]]).any()}
     aorta = np.flatnonzero(members["aorta"]) if "aorta" in members else np.zeros(0, dtype=int)
     ostia = _ostia(codes, edges, code)
+    ends = _renal_ends(preop.points, edges, codes, code, ostia)
+    beyond = _continuations(sk, sk_edges, far, {v: uv[i] for v, i in ends.items()}, mm_per_px)
     return {
         "fit_mm": float(np.nanmean(fit)) if np.isfinite(fit).any() else 0.0, "vessel_fit_mm": vessel_fit,
         "unexplained": float(unexplained.mean()) if len(sample) else 0.0,
@@ -446,6 +520,8 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
         "aorta_where": uv[aorta[np.argmax(residual[aorta])]].tolist() if len(aorta) else None,
         "ostium_move_mm": {v: float(residual[i]) for v, i in ostia.items()},
         "ostium_where": {v: uv[i].tolist() for v, i in ostia.items()},
+        "renal_continuation_mm": {v: mm for v, (mm, _) in beyond.items()},
+        "renal_continuation_where": {v: where for v, (_, where) in beyond.items()},
     }
 
 
@@ -463,9 +539,9 @@ _MAY_NOT_BE_THIS_FRAME = ("check the overlay: the frame may not be this case's a
 
 def registration_verdict(signals: dict) -> str | None:
     """Why :func:`check_registration` refuses ``signals`` (one line), or None: the registered
-    tree does not lie on the frame's vessels, or leaves too many of them unexplained, or the fit
-    needed :data:`DOUBTS_TO_REFUSE` or more of the things a right frame seldom needs
-    (:func:`_doubts`)."""
+    tree does not lie on the frame's vessels, or leaves too many of them unexplained, or one
+    thing no right frame shows (:func:`_decisive`), or the fit needed :data:`DOUBTS_TO_REFUSE`
+    or more of the things a right frame seldom needs (:func:`_doubts`)."""
     if signals["fit_mm"] > MAX_MEAN_FIT_MM:
         vessel = max(signals["vessel_fit_mm"], key=signals["vessel_fit_mm"].get)
         return (f"the registered tree does not fit the frame: on average {signals['fit_mm']:.1f} mm from its vessels "
@@ -475,6 +551,9 @@ def registration_verdict(signals: dict) -> str | None:
         return (f"{100 * signals['unexplained']:.0f}% of the frame's vessels lie over {EXPLAINED_WITHIN_MM:g} mm from "
                 f"the registered tree (largely {_at(signals['unexplained_where'])}; at most "
                 f"{100 * MAX_UNEXPLAINED_FRACTION:.0f}% allowed); {_NOT_THIS_FRAME}")
+    decisive = _decisive(signals)
+    if decisive is not None:
+        return f"{decisive}; {_NOT_THIS_FRAME}"
     doubts = _doubts(signals)
     if len(doubts) >= DOUBTS_TO_REFUSE:
         return f"{'; and '.join(doubts)}; {_NOT_THIS_FRAME}"
@@ -486,21 +565,45 @@ def registration_warnings(signals: dict) -> list[str]:
     pass: fewer than :data:`DOUBTS_TO_REFUSE`, which right frames with large deformations
     show too. They go to ``result.json`` as warnings."""
     doubts = _doubts(signals)
-    if len(doubts) >= DOUBTS_TO_REFUSE:
+    if len(doubts) >= DOUBTS_TO_REFUSE or _decisive(signals) is not None:
         return []
     return [f"registration check: {doubt}; {_MAY_NOT_BE_THIS_FRAME}" for doubt in doubts]
+
+
+def _mirrored(signals: dict, ratio: float) -> str | None:
+    """The mirror phrase when the aorta and renals fit the frame mirrored under ``ratio`` of their
+    unmirrored fit and :data:`MIRROR_GAIN_MM` better, else None."""
+    direct, mirrored = signals["side_fit_mm"]
+    if mirrored < ratio * direct and direct - mirrored >= MIRROR_GAIN_MM:
+        return (f"the frame looks mirrored left-right: the pre-operative aorta and renals fit it {mirrored:.1f} mm "
+                f"on average when mirrored, {direct:.1f} mm as they are (renal_left expected "
+                f"{_at(signals['renal_where'].get('renal_left'))}); check the side convention of the frame")
+    return None
+
+
+def _continuation(vessel: str, signals: dict) -> str:
+    """The phrase of a renal the frame shows longer than the CT's under the registration's ``P``."""
+    return (f"{vessel} is longer in the frame than the CT's projects through this geometry: the frame's vessel "
+            f"goes on {signals['renal_continuation_mm'][vessel]:.0f} mm beyond its end, to "
+            f"{_at(signals['renal_continuation_where'][vessel])} (a wrong C-arm angle foreshortens it differently)")
+
+
+def _decisive(signals: dict) -> str | None:
+    """One thing no right frame shows, as a phrase, or None: a renal the frame shows
+    :data:`RENAL_CONTINUATION_REFUSE_MM` or more longer than the CT's projects, or the aorta and
+    renals fitting mirrored under :data:`MIRROR_CERTAIN_RATIO` of their unmirrored fit."""
+    beyond = signals.get("renal_continuation_mm") or {}
+    if beyond and max(beyond.values()) >= RENAL_CONTINUATION_REFUSE_MM:
+        return _continuation(max(beyond, key=beyond.get), signals)
+    return _mirrored(signals, MIRROR_CERTAIN_RATIO)
 
 
 def _doubts(signals: dict) -> list[str]:
     """What the fit needed that a right frame seldom needs, one phrase each: the aorta and
     renals fitting better mirrored, the renals off before deformation, the aorta bent or a
-    renal ostium moved beyond a rigid motion."""
-    doubts = []
-    direct, mirrored = signals["side_fit_mm"]
-    if mirrored < MAX_MIRROR_RATIO * direct and direct - mirrored >= MIRROR_GAIN_MM:
-        doubts.append(f"the frame looks mirrored left-right: the pre-operative aorta and renals fit it {mirrored:.1f} mm "
-                      f"on average when mirrored, {direct:.1f} mm as they are (renal_left expected "
-                      f"{_at(signals['renal_where'].get('renal_left'))}); check the side convention of the frame")
+    renal ostium moved beyond a rigid motion, each renal the frame shows longer than the CT's
+    projects (:data:`RENAL_CONTINUATION_DOUBT_MM`)."""
+    doubts = [phrase for phrase in [_mirrored(signals, MAX_MIRROR_RATIO)] if phrase]
     renal = signals["renal_misfit_mm"]
     if renal and np.mean(list(renal.values())) > MAX_RENAL_RIGID_MISFIT_MM:
         vessel = max(renal, key=renal.get)
@@ -515,6 +618,9 @@ def _doubts(signals: dict) -> list[str]:
         vessel = max(ostia, key=ostia.get)
         doubts.append(f"{vessel}: the fit moved its ostium {ostia[vessel]:.1f} mm beyond a rigid motion "
                       f"{_at(signals['ostium_where'][vessel])} (over {MAX_OSTIUM_MOVE_MM:g} mm)")
+    beyond = signals.get("renal_continuation_mm") or {}
+    doubts += [_continuation(vessel, signals) for vessel, mm in sorted(beyond.items())
+               if mm >= RENAL_CONTINUATION_DOUBT_MM]
     return doubts
 
 
