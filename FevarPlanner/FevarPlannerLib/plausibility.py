@@ -303,18 +303,19 @@ MIRROR_GAIN_MM = 1.5
 #: mirrored frames: 0.11-0.27 in the eight lowest.
 MIRROR_CERTAIN_RATIO = 0.35
 #: A renal artery the frame shows longer than the CT's projects through ``P``: the frame's vessel
-#: goes on beyond the registered renal's end (the longest path along the frame's 2D skeleton,
-#: away from the end, through pixels farther than :data:`EXPLAINED_WITHIN_MM` from the
-#: registered tree), mm. The length term keeps the renal's length, so the registration cannot
-#: make up a renal that ``P`` foreshortens more than the frame does: a geometry of another view
-#: (a wrong C-arm angle: the tree turned about the patient's long axis foreshortens each renal
-#: differently) or another patient's renals. A renal's 2D length changes between CT and frame
-#: only as far as the kidney turns it towards the image plane. Development right frames (as
-#: above): at most 6.4 mm (5.4 in the first view; 5 mm is where it starts to be seen, the edge
-#: of the explained band); a geometry 40 degrees off: 11.4-43.4 mm on the renal it shortens.
-#: From :data:`RENAL_CONTINUATION_DOUBT_MM` (1.4 times the right maximum) a renal is a doubt
-#: (:func:`_doubts`, each renal one); from :data:`RENAL_CONTINUATION_REFUSE_MM` (1.9 times) it
-#: refuses on its own.
+#: goes on beyond the registered renal's projected end (:func:`_continuations`: the longest path
+#: from the end along the frame's 2D skeleton, through pixels farther than
+#: :data:`EXPLAINED_WITHIN_MM` from the registered tree, to one farther from the ostium than the
+#: end), mm. The length term keeps the renal's length, so the registration cannot make up a
+#: renal that ``P`` foreshortens more than the frame does: a geometry of another view (a wrong
+#: C-arm angle: the tree turned about the patient's long axis foreshortens each renal
+#: differently) or another patient's renals. Between CT and frame a renal's 2D length changes
+#: only as far as the kidney turns it towards the image plane. Development right frames (106
+#: cases, every view, as above): at most 5.7 mm (5.6 in the first view; it is first seen at 5 mm,
+#: the edge of the explained band); a geometry 40 degrees off: 11.4-43.7 mm on the renal it
+#: shortens (the other 0-15 mm). From :data:`RENAL_CONTINUATION_DOUBT_MM` (1.6 times the right
+#: maximum) a renal is a doubt (:func:`_doubts`, each renal one); from
+#: :data:`RENAL_CONTINUATION_REFUSE_MM` (2.1 times) it refuses on its own.
 RENAL_CONTINUATION_DOUBT_MM = 9.0
 RENAL_CONTINUATION_REFUSE_MM = 12.0
 #: ... counted from frame pixels within this of the registered renal's projected end, mm (the
@@ -374,28 +375,38 @@ def _renal_ends(points: np.ndarray, edges: np.ndarray, codes: np.ndarray, code: 
     return ends
 
 
-def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_uv: dict, mm_per_px: float) -> dict:
+def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_uv: dict, ostia_uv: dict,
+                   mm_per_px: float) -> dict:
     """Per vessel end (label -> projected end, px): how far (mm) the frame's 2D skeleton goes on
     beyond it, and the pixel where it stops (None when it does not).
 
     ``far`` marks the skeleton nodes farther than :data:`EXPLAINED_WITHIN_MM` from the registered
-    tree. From those next to an explained node within :data:`RENAL_END_REACH_MM` of the end, the
-    longest shortest path through far nodes only; the first far node counts as
-    :data:`EXPLAINED_WITHIN_MM` from the end (the band it had to leave)."""
+    tree. The longest of the shortest paths from the end, first straight to a far node next to
+    an explained one within :data:`RENAL_END_REACH_MM` of the end, then through far nodes only,
+    to a node beyond the end: farther from the vessel's projected ostium (``ostia_uv``) than the
+    end is (a frame's renal that leaves the aorta elsewhere and joins the registered one at its
+    end runs back towards the ostium: not a longer renal)."""
     inner = sk_edges[far[sk_edges[:, 0]] & far[sk_edges[:, 1]]]
-    graph = _weighted_graph(len(sk), inner, np.linalg.norm(sk[inner[:, 0]] - sk[inner[:, 1]], axis=1) * mm_per_px)
     crossing = sk_edges[far[sk_edges[:, 0]] != far[sk_edges[:, 1]]]
     crossing = np.where(far[crossing[:, :1]], crossing[:, ::-1], crossing)       # (explained, far)
+    lengths = np.linalg.norm(sk[inner[:, 0]] - sk[inner[:, 1]], axis=1) * mm_per_px
     found = {}
     for vessel, end in ends_uv.items():
         close = np.linalg.norm(sk[crossing[:, 0]] - end, axis=1) * mm_per_px <= RENAL_END_REACH_MM
         if not close.any():
             found[vessel] = (0.0, None)
             continue
-        along = dijkstra(graph, indices=np.unique(crossing[close, 1]), min_only=True)
-        reached = np.flatnonzero(np.isfinite(along))
-        last = reached[np.argmax(along[reached])]
-        found[vessel] = (float(along[last]) + EXPLAINED_WITHIN_MM, sk[last].tolist())
+        starts = np.unique(crossing[close, 1])       # joined to the end (node len(sk)) straight
+        edges = np.vstack([inner, np.c_[np.full(len(starts), len(sk)), starts]])
+        weights = np.r_[lengths, np.linalg.norm(sk[starts] - end, axis=1) * mm_per_px]
+        along = dijkstra(_weighted_graph(len(sk) + 1, edges, weights), indices=len(sk))[:-1]
+        reach = np.linalg.norm(end - ostia_uv[vessel])
+        beyond = np.flatnonzero(np.isfinite(along) & (np.linalg.norm(sk - ostia_uv[vessel], axis=1) > reach))
+        if not len(beyond):
+            found[vessel] = (0.0, None)
+            continue
+        last = beyond[np.argmax(along[beyond])]
+        found[vessel] = (float(along[last]), sk[last].tolist())
     return found
 
 
@@ -508,7 +519,8 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     aorta = np.flatnonzero(members["aorta"]) if "aorta" in members else np.zeros(0, dtype=int)
     ostia = _ostia(codes, edges, code)
     ends = _renal_ends(preop.points, edges, codes, code, ostia)
-    beyond = _continuations(sk, sk_edges, far, {v: uv[i] for v, i in ends.items()}, mm_per_px)
+    beyond = _continuations(sk, sk_edges, far, {v: uv[i] for v, i in ends.items()},
+                            {v: uv[i] for v, i in ostia.items()}, mm_per_px)
     return {
         "fit_mm": float(np.nanmean(fit)) if np.isfinite(fit).any() else 0.0, "vessel_fit_mm": vessel_fit,
         "unexplained": float(unexplained.mean()) if len(sample) else 0.0,
