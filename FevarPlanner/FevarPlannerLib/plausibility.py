@@ -14,11 +14,13 @@ of what was read:
   frame of another patient, a mirrored one, or one whose geometry belongs to another view
   still gets fitted; what the fit needed gives it away. A registered tree off the frame's
   vessels, or leaving many of them unexplained, is refused with a
-  :class:`quality.QualityError`, so that the QC picture is written. So are two or more of
-  these doubts together: the renals off before any deformation, the aorta bent or an ostium
-  moved beyond a rigid motion, the aorta and renals fitting better mirrored; one alone is a
-  warning (:func:`registration_warnings`), since right frames with large deformations show
-  one too.
+  :class:`quality.QualityError`, so that the QC picture is written. So is a renal the frame
+  shows much longer than the CT's renal projects through ``P`` (the length term cannot make
+  it up: a geometry of another view, a wrong C-arm angle), a frame that fits far better
+  mirrored, and two or more of these doubts together: the renals off before any deformation,
+  the aorta bent or an ostium moved beyond a rigid motion, the aorta and renals fitting better
+  mirrored, a renal somewhat longer in the frame; one alone is a warning
+  (:func:`registration_warnings`), since right frames with large deformations show one too.
 
 A failed gate raises :class:`files.InputError` (exit code 2 in the CLI) with the file and
 the reason; a doubtful result that can still be used gives a warning (a string), which
