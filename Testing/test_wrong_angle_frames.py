@@ -2,7 +2,8 @@
 
 The length term keeps each vessel's length, so the registration cannot lengthen a renal that
 the given ``P`` foreshortens more than the frame does: the frame's renal goes on beyond the
-registered one's end. One renal 12 mm or more beyond refuses on its own, each from 9 mm is a
+registered one's end. One renal 12 mm or more beyond, as one vessel, refuses on its own (one
+going on into the kidney's branches does not), each from 9 mm is a
 doubt (:func:`plausibility._doubts`); a frame that fits mirrored at under 0.35 of its direct
 fit is refused on its own too. Tested on the hand-made tree of ``test_wrong_frames`` (an affine
 P of 1 px per mm) and end to end on a scenario case whose geometry is turned 40 degrees about
@@ -77,6 +78,36 @@ def test_a_renal_10_mm_longer_is_a_warning_and_4_mm_is_nothing():
     quiet = frame_check(tree, lengthened(tree, "renal_right", 4.0))
     assert quiet["renal_continuation_mm"]["renal_right"] < 9.0 and plausibility.registration_warnings(quiet) == []
     assert frame_check(tree, tree)["renal_continuation_mm"] == {"renal_left": 0.0, "renal_right": 0.0}
+
+
+def with_kidney_branches(tree: Centerline, label: str, mm: float = 12.0) -> Centerline:
+    """``tree`` with three branches of ``mm`` fanning out in the image plane (-35, 0, +35 degrees)
+    from the end of ``label``: the kidney's own arterial tree, as a DSA frame shows it."""
+    points, edges, labels = tree.points.copy(), [tuple(e) for e in np.asarray(tree.edges)], list(tree.labels)
+    nodes = np.flatnonzero(np.asarray(labels) == label)
+    end = points[nodes[-1]]
+    ahead = (end - points[nodes[-2]]) / np.linalg.norm(end - points[nodes[-2]])
+    extra = []
+    for degrees in (-35.0, 0.0, 35.0):
+        step = Rotation.from_euler("y", degrees, degrees=True).apply(ahead)
+        chain = [nodes[-1]] + list(range(len(points) + len(extra), len(points) + len(extra) + 3))
+        extra += [end + step * mm * k / 3 for k in (1, 2, 3)]
+        edges += list(zip(chain[:-1], chain[1:]))
+    return Centerline(np.vstack([points, extra]), np.array(edges), labels + [label] * len(extra))
+
+
+def test_a_renal_going_on_into_the_kidneys_branches_is_a_doubt_not_a_refusal():
+    """A real CT's renal, segmented to near the hilum, ends before the frame's: a DSA frame shows
+    the renal on and the kidney's arterial tree beyond. As long as a wrong geometry's, but branched."""
+    tree = hand_tree()
+    kidney = with_kidney_branches(lengthened(tree, "renal_left", 8.0), "renal_left")
+    signals = frame_check(tree, kidney)
+    assert signals["renal_continuation_mm"]["renal_left"] >= plausibility.RENAL_CONTINUATION_REFUSE_MM
+    assert signals["renal_continuation_branches_mm"]["renal_left"] > plausibility.RENAL_CONTINUATION_BRANCHES_MM
+    notes = plausibility.registration_warnings(signals)
+    assert len(notes) == 1 and "renal_left is longer in the frame" in notes[0]
+    single = plausibility.registration_signals(tree, tree, P, *skeleton_of(lengthened(tree, "renal_left", 20.0)), SHAPE)
+    assert single["renal_continuation_branches_mm"]["renal_left"] < 2.0
 
 
 def test_both_renals_10_mm_longer_are_two_doubts_and_refused():

@@ -320,6 +320,12 @@ MIRROR_CERTAIN_RATIO = 0.35
 #: :data:`RENAL_CONTINUATION_REFUSE_MM` (2.1 times) it refuses on its own.
 RENAL_CONTINUATION_DOUBT_MM = 9.0
 RENAL_CONTINUATION_REFUSE_MM = 12.0
+#: ... but only an unbranched one refuses on its own: beyond a real CT's renal (segmented to
+#: near the hilum) a DSA frame may show the kidney's own arterial tree, a right frame's. The
+#: frame's skeleton reached beyond the end holds more than this many mm besides the longest
+#: path (:func:`_continuations`' ``branches_mm``): a tree, which stays a doubt. A renal that
+#: a wrong geometry foreshortens goes on as one vessel (thinning's spurs add a few mm).
+RENAL_CONTINUATION_BRANCHES_MM = 8.0
 #: ... counted from frame pixels within this of the registered renal's projected end, mm (the
 #: first pixel beyond the explained band, and a few more for the skeleton's pixel steps).
 RENAL_END_REACH_MM = EXPLAINED_WITHIN_MM + 3.0
@@ -380,7 +386,8 @@ def _renal_ends(points: np.ndarray, edges: np.ndarray, codes: np.ndarray, code: 
 def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_uv: dict, ostia_uv: dict,
                    mm_per_px: float) -> dict:
     """Per vessel end (label -> projected end, px): how far (mm) the frame's 2D skeleton goes on
-    beyond it, and the pixel where it stops (None when it does not).
+    beyond it, the pixel where it stops (None when it does not) and how many mm of skeleton
+    the reached part holds besides that path (its branches).
 
     ``far`` marks the skeleton nodes farther than :data:`EXPLAINED_WITHIN_MM` from the registered
     tree. The longest of the shortest paths from the end, first straight to a far node next to
@@ -396,7 +403,7 @@ def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_u
     for vessel, end in ends_uv.items():
         close = np.linalg.norm(sk[crossing[:, 0]] - end, axis=1) * mm_per_px <= RENAL_END_REACH_MM
         if not close.any():
-            found[vessel] = (0.0, None)
+            found[vessel] = (0.0, None, 0.0)
             continue
         starts = np.unique(crossing[close, 1])       # joined to the end (node len(sk)) straight
         edges = np.vstack([inner, np.c_[np.full(len(starts), len(sk)), starts]])
@@ -405,10 +412,11 @@ def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_u
         reach = np.linalg.norm(end - ostia_uv[vessel])
         beyond = np.flatnonzero(np.isfinite(along) & (np.linalg.norm(sk - ostia_uv[vessel], axis=1) > reach))
         if not len(beyond):
-            found[vessel] = (0.0, None)
+            found[vessel] = (0.0, None, 0.0)
             continue
         last = beyond[np.argmax(along[beyond])]
-        found[vessel] = (float(along[last]), sk[last].tolist())
+        reached = np.isfinite(along[inner]).all(axis=1)
+        found[vessel] = (float(along[last]), sk[last].tolist(), float(lengths[reached].sum() - along[last]))
     return found
 
 
@@ -534,8 +542,9 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
         "aorta_where": uv[aorta[np.argmax(residual[aorta])]].tolist() if len(aorta) else None,
         "ostium_move_mm": {v: float(residual[i]) for v, i in ostia.items()},
         "ostium_where": {v: uv[i].tolist() for v, i in ostia.items()},
-        "renal_continuation_mm": {v: mm for v, (mm, _) in beyond.items()},
-        "renal_continuation_where": {v: where for v, (_, where) in beyond.items()},
+        "renal_continuation_mm": {v: mm for v, (mm, _, _) in beyond.items()},
+        "renal_continuation_where": {v: where for v, (_, where, _) in beyond.items()},
+        "renal_continuation_branches_mm": {v: branches for v, (_, _, branches) in beyond.items()},
     }
 
 
@@ -604,11 +613,14 @@ def _continuation(vessel: str, signals: dict) -> str:
 
 def _decisive(signals: dict) -> str | None:
     """One thing no right frame shows, as a phrase, or None: a renal the frame shows
-    :data:`RENAL_CONTINUATION_REFUSE_MM` or more longer than the CT's projects, or the aorta and
+    :data:`RENAL_CONTINUATION_REFUSE_MM` or more longer than the CT's projects, as one vessel
+    (:data:`RENAL_CONTINUATION_BRANCHES_MM`), or the aorta and
     renals fitting mirrored under :data:`MIRROR_CERTAIN_RATIO` of their unmirrored fit."""
     beyond = signals.get("renal_continuation_mm") or {}
-    if beyond and max(beyond.values()) >= RENAL_CONTINUATION_REFUSE_MM:
-        return _continuation(max(beyond, key=beyond.get), signals)
+    branches = signals.get("renal_continuation_branches_mm") or {}
+    single = {v: mm for v, mm in beyond.items() if branches.get(v, 0.0) <= RENAL_CONTINUATION_BRANCHES_MM}
+    if single and max(single.values()) >= RENAL_CONTINUATION_REFUSE_MM:
+        return _continuation(max(single, key=single.get), signals)
     return _mirrored(signals, MIRROR_CERTAIN_RATIO)
 
 
