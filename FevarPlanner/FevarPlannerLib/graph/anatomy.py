@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse import csgraph
 
 from ..conventions import BRANCH_LABELS
-from .skeleton_graph import Classification, SkeletonGraph
+from .skeleton_graph import Branch, Classification, SkeletonGraph, _path_length, _walk_back
 
 def _unit(vector, dim: int, name: str) -> np.ndarray:
     vector = np.asarray(vector, dtype=float).reshape(-1)
@@ -96,6 +98,94 @@ def _widest_of_the_best(order: list, score: np.ndarray, lateral: np.ndarray, siz
     return max(tied, key=lambda i: (float(sizes[i]), -tied.index(i)))
 
 
+#: Smallest radius (graph units) in the flow resistance of :func:`_flow_adjacency`, so that a
+#: node whose lumen radius came out 0 does not make its edges impassable.
+MIN_FLOW_RADIUS = 0.5
+
+
+def _flow_adjacency(graph: SkeletonGraph) -> sp.csr_matrix:
+    """Edge weights of the route blood takes: Poiseuille resistance ``length / r^4``, ``r``
+    the mean lumen radius of the edge's two nodes; the plain length without radii.
+
+    On a tree every route is the only one; where the skeleton closes a cycle (an internal
+    iliac whose tip touches the external iliac in the mask) the wide vessel is the route and
+    the narrow one a side branch.
+    """
+    if graph.radii is None:
+        return graph.adjacency
+    coo = graph.adjacency.tocoo()
+    radius = np.maximum(0.5 * (graph.radii[coo.row] + graph.radii[coo.col]), MIN_FLOW_RADIUS)
+    return sp.csr_matrix((coo.data / radius ** 4, (coo.row, coo.col)), shape=coo.shape)
+
+
+def _main_routes(graph: SkeletonGraph, source: int, targets) -> list:
+    """The least-resistance route (:func:`_flow_adjacency`) from ``source`` to each target, source first."""
+    dist, pred = csgraph.dijkstra(_flow_adjacency(graph), directed=True, indices=int(source),
+                                  return_predecessors=True)
+    routes = []
+    for target in targets:
+        if not np.isfinite(dist[target]):
+            raise ValueError(f"labelling: the upper aorta's end {source} and the iliac end {target} "
+                             "are not connected in the skeleton graph")
+        routes.append(_walk_back(pred, int(target))[::-1])
+    return routes
+
+
+def _parting_index(first: np.ndarray, second: np.ndarray) -> int:
+    """Index of the last node two routes from the same source share (where they part)."""
+    common = min(len(first), len(second))
+    differs = np.flatnonzero(first[:common] != second[:common])
+    return int(differs[0] - 1) if len(differs) else common - 1
+
+
+def aortic_bifurcation(classification: Classification) -> int | None:
+    """The aortic bifurcation of a labelled classification: the junction both iliac branches
+    leave (:func:`label_anatomy` makes it so), or None before labelling or when they differ."""
+    try:
+        left, right = classification.branch("iliac_left"), classification.branch("iliac_right")
+    except KeyError:
+        return None
+    return int(left.junction) if left.junction == right.junction else None
+
+
+def _on_route(trunk, route_nodes: set) -> bool:
+    return all(int(node) in route_nodes for node in trunk.nodes)
+
+
+def _hang_iliacs_from_the_bifurcation(graph: SkeletonGraph, classification: Classification) -> np.ndarray:
+    """Make the iliac branches leave the aortic bifurcation; return the aorta's route (top end first).
+
+    The bifurcation is where the routes from the upper aorta's end to the two iliac ends
+    part (:func:`_main_routes`), not the lowest junction Algorithm 1 left on the way: a
+    common iliac that forks into internal and external iliac (or an internal iliac whose tip
+    touches the external one in the mask) keeps a junction of its own, and a trunk from the
+    bifurcation to it is common iliac, not aorta. Each iliac branch becomes its whole route
+    below the bifurcation; trunks off the aorta's route are dropped (their nodes below the
+    bifurcation are iliac, the others side vessels), and so are junctions that no longer
+    join a trunk or a preserved branch.
+    """
+    aorta = classification.branch("aorta")
+    iliacs = [classification.branch("iliac_left"), classification.branch("iliac_right")]
+    routes = _main_routes(graph, aorta.end, [b.end for b in iliacs])
+    parting = _parting_index(*routes)
+    bifurcation = int(routes[0][parting])
+    for branch, route in zip(iliacs, routes):
+        nodes = route[parting:]
+        if not np.array_equal(nodes, branch.nodes):
+            branch.nodes, branch.junction = nodes, bifurcation
+            branch.length = _path_length(graph.positions, nodes)
+    aorta_route = routes[0][:parting + 1]
+    on_route = set(aorta_route.tolist())
+    kept_junctions = {int(b.junction) for b in classification.branches}
+    trunks = [t for t in classification.trunks
+              if _on_route(t, on_route) or kept_junctions & {int(t.nodes[0]), int(t.nodes[-1])} - on_route]
+    classification.trunks = trunks
+    kept_junctions |= {int(j) for t in trunks for j in (t.nodes[0], t.nodes[-1])}
+    classification.junction_nodes = np.array(
+        sorted(j for j in np.asarray(classification.junction_nodes).tolist() if j in kept_junctions), dtype=np.int64)
+    return aorta_route
+
+
 def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left, superior,
                   anterior=None) -> Classification:
     """Name the five preserved branches and the trunks; fill ``node_labels`` (in place).
@@ -114,12 +204,17 @@ def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left,
         The patient's anterior direction (3D only: ``(0, -1, 0)`` in LPS).
 
     Rule: :func:`anatomical_roles` on the five branch ends (the most superior end is the
-    upper aorta; iliacs low and on their side; renals lateral and high). Trunks are aorta.
+    upper aorta; iliacs low and on their side; renals lateral and high). The aortic
+    bifurcation is where the routes from the upper aorta's end to the two iliac ends part
+    (:func:`_hang_iliacs_from_the_bifurcation`, which also makes each iliac branch its
+    whole route from there, so :func:`aortic_bifurcation` reads it off the branches). The
+    aorta is its route from its end to the bifurcation (with any trunk that leads to a
+    preserved branch off that route); nodes elsewhere are 'other'.
 
     Returns
     -------
     Classification
-        The same object, labelled.
+        The same object, labelled (its iliac branches, trunks and junctions as above).
     """
     branches = classification.branches
     if len(branches) != len(BRANCH_LABELS):
@@ -130,6 +225,7 @@ def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left,
                              anterior=anterior)
     for label, index in roles.items():
         branches[index].label = label
+    aorta_route = _hang_iliacs_from_the_bifurcation(graph, classification)
     labels = ["other"] * len(graph)
     for branch in branches:
         for node in branch.nodes[1:]:
@@ -138,6 +234,8 @@ def label_anatomy(graph: SkeletonGraph, classification: Classification, *, left,
         trunk.label = "aorta"
         for node in trunk.nodes:
             labels[node] = "aorta"
+    for node in aorta_route:
+        labels[node] = "aorta"
     for branch in branches:
         labels[branch.junction] = "aorta"
     for node in classification.deleted_nodes:

@@ -28,6 +28,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csgraph
 
 from ..graph import Classification, SkeletonGraph
+from ..graph.anatomy import aortic_bifurcation
 from ..projection import image_directions, pixels_per_mm, project
 
 __all__ = [
@@ -166,10 +167,18 @@ def _oriented_trunk(graph: SkeletonGraph, trunk, superior: np.ndarray) -> np.nda
 
 
 def _backbone(graph: SkeletonGraph, classification: Classification, superior: np.ndarray) -> np.ndarray:
-    """The aortic chain from the most superior junction to the most inferior one."""
+    """The aortic chain from the most superior junction to the aortic bifurcation.
+
+    The bifurcation is the junction both labelled iliac branches leave
+    (:func:`graph.anatomy.aortic_bifurcation`: where the routes to the iliac ends part),
+    not the lowest junction, which may be a common iliac's own fork; the lowest junction
+    only for an unlabelled classification.
+    """
     junctions = np.asarray(classification.junction_nodes)
     heights = graph.positions[junctions] @ superior
-    top, bottom = junctions[np.argmax(heights)], junctions[np.argmin(heights)]
+    top = junctions[np.argmax(heights)]
+    bottom = aortic_bifurcation(classification)
+    bottom = junctions[np.argmin(heights)] if bottom is None else bottom
     return np.asarray(graph.shortest_path(top, bottom))
 
 
