@@ -166,7 +166,9 @@ def _hang_iliacs_from_the_bifurcation(graph: SkeletonGraph, classification: Clas
     """
     aorta = classification.branch("aorta")
     iliacs = [classification.branch("iliac_left"), classification.branch("iliac_right")]
-    routes = _main_routes(graph, aorta.end, [b.end for b in iliacs])
+    # the repaired graph (gaps bridged, loops broken), whatever positions ``graph`` gives its nodes
+    repaired = graph if classification.graph is None else classification.graph
+    routes = _main_routes(repaired, aorta.end, [b.end for b in iliacs])
     parting = _parting_index(*routes)
     bifurcation = int(routes[0][parting])
     for branch, route in zip(iliacs, routes):
