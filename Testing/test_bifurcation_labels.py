@@ -166,3 +166,21 @@ def test_without_the_touch_the_internal_iliac_is_an_omitted_branch_and_nothing_m
     assert np.linalg.norm(g.positions[aortic_bifurcation(c)] - BIFURCATION) <= 1.0
     assert _labels_of(c, _interior(vessels["common_iliac_left"])) == {"iliac_left"}
     assert _labels_of(c, _interior(vessels["internal_iliac_left"])) == {"other"}
+
+
+def test_a_short_cycle_is_broken_on_the_narrow_internal_iliac_not_on_the_longer_external_one():
+    t, vessels = _tree()
+    g = t.graph()
+    c = _labelled(g, max_loop=100.0)         # the 73 mm cycle is broken before Algorithm 1
+    assert len(c.loop_nodes) > 0
+    assert set(c.loop_nodes.tolist()) <= set(vessels["internal_iliac_left"])
+    assert _labels_of(c, _interior(vessels["external_iliac_left"])) == {"iliac_left"}
+    assert c.branch("iliac_left").length == pytest.approx(44.7 + 14.9 + 26.6 + 58.9, abs=1.0)
+
+
+def test_without_radii_the_short_cycle_loses_its_longest_arc_as_before():
+    t, vessels = _tree()
+    g = t.graph(with_radii=False)
+    c = _labelled(g, max_loop=100.0)
+    # the external arc (41 mm) is longer than the internal one (31 mm)
+    assert set(c.loop_nodes.tolist()) <= set(vessels["external_iliac_left"])
