@@ -13,7 +13,11 @@ turn, and the share of the projected branch that the path does not cover (less
 3D tree lacks continues along the arm that continues the projection best. The Hungarian
 assignment (``linear_sum_assignment``) pairs 3D branches with distinct 2D ends, with a
 "no partner" column per 3D branch at :data:`NO_PARTNER_PX`; 2D ends left over stay
-unmatched. The junctions, trunks and branch chains are then read off the 2D tree spanned
+unmatched. The 3D tree's omitted branches (side vessels the CT shows: internal iliacs,
+accessory renals, visceral and lumbar branches) take part in the assignment as rivals: a
+2D end that one of them explains better goes to it, not to a main vessel (a patient's
+external iliac, swung by the wire onto where the frame's internal iliac ends, kept the
+internal one's end). The junctions, trunks and branch chains are then read off the 2D tree spanned
 by the matched ends, so a 2D branch hanging off the wrong junction costs the stretch of
 aorta between the two junctions. These candidates join the paper's
 (:func:`matching.candidates.candidate_correspondences`).
@@ -223,7 +227,7 @@ class _ContractedGraph:
         return chain if a < b else chain[::-1]
 
 
-def _branch_starts(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray) -> dict:
+def _branch_starts(g3: SkeletonGraph, branches: list, g2: SkeletonGraph, P: np.ndarray) -> dict:
     """3D branch junction -> the 2D junction node nearest its projection (where its 2D paths start).
 
     Any kept node where the 2D graph has no junction.
@@ -231,12 +235,13 @@ def _branch_starts(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: 
     forks = np.flatnonzero(g2.degrees >= 3)
     pool = forks if len(forks) else np.flatnonzero(g2.degrees > 0)
     return {j3: _nearest(g2, pool, project(P, g3.positions[[j3]])[0])
-            for j3 in sorted({int(b.junction) for b in c3.branches})}
+            for j3 in sorted({int(b.junction) for b in branches})}
 
 
-def _branch_costs(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: np.ndarray, ends2: np.ndarray,
+def _branch_costs(g3: SkeletonGraph, branches3: list, g2: SkeletonGraph, P: np.ndarray, ends2: np.ndarray,
                   starts: dict, contracted: _ContractedGraph):
-    """Cost (px) of pairing each 3D branch with the 2D path to each 2D end, shape (branches, ends).
+    """Cost (px) of pairing each 3D branch of ``branches3`` with the 2D path to each 2D end,
+    shape (branches, ends).
 
     The path runs from ``starts[junction]``, the 2D node nearest the projected 3D junction.
     Cost: the mean of the closest distance (:func:`_curve_distances`) and of the distance
@@ -254,12 +259,12 @@ def _branch_costs(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, P: n
     chain_row = {key: k for k, key in enumerate(keys)}
     # each projected branch moved to start where its 2D paths start: a bend of the aorta
     # carries a whole junction with its branches across the frame
-    branches = [project(P, g3.positions[b.nodes]) for b in c3.branches]
-    branches = [q - q[0] + g2.positions[starts[int(b.junction)]] for q, b in zip(branches, c3.branches)]
+    branches = [project(P, g3.positions[b.nodes]) for b in branches3]
+    branches = [q - q[0] + g2.positions[starts[int(b.junction)]] for q, b in zip(branches, branches3)]
     bundle = _Polylines(branches + chains)
     n3 = len(branches)
     radii = g2.radii if g2.radii is not None else np.zeros(len(g2.positions))
-    pairs = [(i3, column, n3 + chain_row[(starts[int(b.junction)], int(end))]) for i3, b in enumerate(c3.branches)
+    pairs = [(i3, column, n3 + chain_row[(starts[int(b.junction)], int(end))]) for i3, b in enumerate(branches3)
              for column, end in enumerate(ends2.tolist())
              if (starts[int(b.junction)], int(end)) in chain_row and bundle.lengths[i3] > 0]
     costs = np.full((n3, len(ends2)), np.inf)
@@ -373,7 +378,9 @@ def match_by_projection(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph
 
     See the module docstring. Every 2D end node of the kept 2D graph (Algorithm 1's spurs
     removed; its omitted branches kept) is a candidate partner of each 3D branch, at the
-    cost of :func:`_branch_costs`, and :data:`NO_PARTNER_PX` buys no partner. The 3D
+    cost of :func:`_branch_costs`, and :data:`NO_PARTNER_PX` buys no partner; the 3D
+    omitted branches compete for the same ends, and the ends they take are no main
+    branch's (nor a variant's). The 3D
     junctions map to the junctions of the 2D tree spanned by the matched ends (nearest to
     their projection), trunks to the 2D paths between those.
 
@@ -390,13 +397,18 @@ def match_by_projection(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph
     n3 = len(c3.branches)
     if len(ends2) == 0 or n3 == 0:
         return []
-    starts = _branch_starts(g3, c3, g2, P)
+    candidates = list(c3.branches) + list(c3.omitted)
+    starts = _branch_starts(g3, candidates, g2, P)
     contracted = _ContractedGraph(g2, forced=list(starts.values()))
-    costs = _branch_costs(g3, c3, g2, P, ends2, starts, contracted)
-    no_partner = np.full((n3, n3), _FORBIDDEN)
+    costs = _branch_costs(g3, candidates, g2, P, ends2, starts, contracted)
+    no_partner = np.full((len(candidates), len(candidates)), _FORBIDDEN)
     np.fill_diagonal(no_partner, NO_PARTNER_PX)
     rows, cols = linear_sum_assignment(np.hstack([np.where(np.isfinite(costs), costs, _FORBIDDEN), no_partner]))
-    columns = {int(r): int(c) for r, c in zip(rows, cols) if c < len(ends2) and costs[r, c] < NO_PARTNER_PX}
+    matched = {int(r): int(c) for r, c in zip(rows, cols) if c < len(ends2) and costs[r, c] < NO_PARTNER_PX}
+    # the 2D ends that the 3D tree's own side branches explain best are no main vessel's
+    columns = {r: c for r, c in matched.items() if r < n3}
+    costs = costs[:n3]
+    costs[:, [c for r, c in matched.items() if r >= n3]] = np.inf
     variants = [columns] + [{**columns, i3: other} for i3, other in _close_seconds(costs, columns)]
     found = [_from_matched_ends(g3, c3, g2, c2, P, {i3: int(ends2[c]) for i3, c in v.items()}, contracted)
              for v in variants]
