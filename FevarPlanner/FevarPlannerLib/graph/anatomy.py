@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 
 from ..conventions import BRANCH_LABELS
-from .skeleton_graph import Branch, Classification, SkeletonGraph, _path_length, _walk_back
+from .skeleton_graph import Classification, SkeletonGraph, _path_length, _walk_back
 
 def _unit(vector, dim: int, name: str) -> np.ndarray:
     vector = np.asarray(vector, dtype=float).reshape(-1)
