@@ -77,6 +77,13 @@ FRAME_MARGIN_RADII = 1.0
 #: (:func:`_largest_leg_scale`): a move of about 6 mm towards the source under the bench's
 #: short pinhole (0.4-0.6 % of magnification per mm).
 LEG_DEPTH_ALLOWANCE = 0.03
+#: A branch that does not fork (a renal) is counted from where it leaves its trunk's outline
+#: (:func:`_outline_exit`): where its centre line lies the trunk's 2D radius plus this many of
+#: its own 2D radii from the trunk's centre line, in the frame and in the projection alike.
+EXIT_BRANCH_RADII = 1.0
+#: The labels of the trunk's own course (the iliacs are its legs at the fork); every other
+#: branch leaves the trunk's side.
+_MAIN_COURSE = ("aorta", "iliac_left", "iliac_right")
 
 
 @dataclass
@@ -562,15 +569,94 @@ def _through_crotch(s3: np.ndarray, lead: float, crotch: float) -> np.ndarray:
     return np.where(s3 >= lead, crotch + s3 - lead, s3 * crotch / max(lead, 1e-9))
 
 
+def _distance_to_polylines(points: np.ndarray, curves: list) -> np.ndarray:
+    """Distance of each point to the nearest of the polylines ``curves``."""
+    return np.min([_distance_to_polyline(points, curve) for curve in curves], axis=0)
+
+
+def _distance_to_polyline(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
+    """Distance of each point to the polyline ``curve``."""
+    if len(curve) == 1:
+        return np.linalg.norm(points - curve[0], axis=1)
+    start, step = curve[:-1], np.diff(curve, axis=0)
+    squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
+    offset = points[:, None, :] - start[None]
+    t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
+    gap = offset - t[..., None] * step[None]
+    return np.sqrt(np.einsum("nmd,nmd->nm", gap, gap).min(axis=1))
+
+
+def _crossing(s: np.ndarray, distance: np.ndarray, limit: float) -> float | None:
+    """Path length ``s`` at which ``distance`` first reaches ``limit`` (linear between nodes), None
+    if it never does or only at the last node."""
+    beyond = np.flatnonzero(distance >= limit)
+    if len(beyond) == 0 or beyond[0] >= len(s) - 1:
+        return None
+    k = int(beyond[0])
+    if k == 0:
+        return 0.0
+    fraction = (limit - distance[k - 1]) / max(distance[k] - distance[k - 1], 1e-9)
+    return float(s[k - 1] + np.clip(fraction, 0.0, 1.0) * (s[k] - s[k - 1]))
+
+
+def _outline_exit(g2: SkeletonGraph, nodes2: np.ndarray, projected3: np.ndarray, trunk2: list, trunk3: list):
+    """Where a branch that does not fork leaves its trunk's outline: ``(2D path, projected 3D path)``
+    from the junction, or None where it cannot be told.
+
+    Eq. (4) counts a branch from its 2D junction. Inside the trunk's outline the frame does
+    not show the branch: thinning draws its own bridge from the trunk's centre line to where
+    the branch comes out, and its junction lies where that bridge meets the trunk, not where
+    the branch leaves it. Where the branch runs obliquely to the trunk in the image (a renal
+    in an angulated view, foreshortened) the bridge is longer or shorter than the hidden part
+    of the projected branch and runs elsewhere, so eq. (4)'s targets slide along the branch
+    (up to 15 px on LAO/RAO 30 with CRA/CAU 15). Both sides are therefore counted from the
+    same place of the anatomy: where the centre line lies the trunk's 2D radius at the
+    junction plus :data:`EXIT_BRANCH_RADII` of the branch's own 2D radius (the median over
+    its outer half) from the trunk's centre line, in the frame (the 2D chain to the 2D
+    trunk) and in the projection (the projected 3D branch to the projected 3D trunk).
+    """
+    if g2.radii is None or len(nodes2) < 4 or not trunk2 or not trunk3:
+        return None
+    radii, x2 = g2.radii[nodes2], g2.positions[nodes2]
+    limit = _trunk_radius(g2, trunk2, x2[0], float(radii[0])) + EXIT_BRANCH_RADII * float(np.median(radii[len(radii) // 2:]))
+    exit2 = _crossing(_cumulative_length(x2), _distance_to_polylines(x2, [g2.positions[n] for n in trunk2]), limit)
+    exit3 = _crossing(_cumulative_length(projected3), _distance_to_polylines(projected3, trunk3), limit)
+    if exit2 is None or exit3 is None:
+        return None
+    return exit2, exit3
+
+
+def _trunk_radius(g2: SkeletonGraph, trunk2: list, junction: np.ndarray, junction_radius: float) -> float:
+    """The trunk's 2D radius about a junction: the median over its 2D nodes within two junction
+    radii (the junction's own disk takes in the branch's mouth and is wider)."""
+    nodes = np.concatenate(trunk2)
+    near = np.linalg.norm(g2.positions[nodes] - junction, axis=1) <= 2.0 * junction_radius
+    return float(np.median(g2.radii[nodes[near]])) if np.any(near) else junction_radius
+
+
+def _counted_from_exit(s3: np.ndarray, exits) -> np.ndarray:
+    """eq. (4) from the outline's exit (:func:`_outline_exit`): the 2D path position of each 3D node
+    at projected path ``s3``; -1 (no target) for the nodes hidden in the trunk's outline."""
+    if exits is None:
+        return s3
+    exit2, exit3 = exits
+    return np.where(s3 >= exit3, exit2 + s3 - exit3, -1.0)
+
+
 def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
-                P: np.ndarray, correspondence: Correspondence, shows=None) -> SoftAssignment:
+                P: np.ndarray, correspondence: Correspondence, shows=None, *,
+                side_branch_exits: bool = True) -> SoftAssignment:
     """Soft-assign 3D nodes to 2D nodes along matched branches (eq. 4) and trunks (eq. 5).
 
     A node assigned by several chains (a junction) keeps its first assignment: trunks
     first, so junctions follow the aortic chain. The legs of a fork (the iliacs) start where
     eq. (5) put their junction, past the crotch (:func:`_branch_start`), and, where
     ``shows`` (a callable telling which (n, 2) image points the frame shows) says their 2D
-    chains end inside the frame, run end to end (:func:`_leg_scale`).
+    chains end inside the frame, run end to end (:func:`_leg_scale`). With
+    ``side_branch_exits`` a side branch of the trunk (a renal) is counted from where it
+    leaves the trunk's outline (:func:`_outline_exit`), and its nodes hidden in the outline
+    get no target (they follow their neighbours); without it, from its 2D junction as in
+    the paper (the pose check fits every node of the renal ostia).
     """
     n2, n3 = len(g2.positions), len(g3.positions)
     rows, cols, vals = [], [], []
@@ -593,6 +679,8 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
     starts = {i3: _branch_start(g2, np.asarray(nodes2), junction_targets.get(int(c3.branches[i3].nodes[0])))
               for i3, nodes2 in chains.items()}
     forks = Counter(int(chains[i3][0]) for i3, (start, _) in starts.items() if start > 0)
+    trunk2 = [np.asarray(n2) for _, n2 in correspondence.trunk_pairs]
+    trunk3 = [project(P, g3.positions[np.asarray(n3)]) for n3, _ in correspondence.trunk_pairs]
     for i3, nodes2 in chains.items():
         nodes3, nodes2 = np.asarray(c3.branches[i3].nodes), np.asarray(nodes2)
         start, lead = starts[i3] if forks[int(nodes2[0])] >= 2 else (0, 0.0)
@@ -602,6 +690,8 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
             s3 = s3 * _leg_scale(g2, nodes2[start:], lead, s3[-1], shows,
                                  _largest_leg_scale(g3.positions[nodes3], P, s3[-1]))
             s3 = _through_crotch(s3, lead, _cumulative_length(g2.positions[nodes2])[start])
+        elif side_branch_exits and c3.branches[i3].label not in _MAIN_COURSE:    # a side branch (a renal)
+            s3 = _counted_from_exit(s3, _outline_exit(g2, nodes2, project(P, g3.positions[nodes3]), trunk2, trunk3))
         add(nodes3, s3, nodes2)
 
     if not vals:
