@@ -108,10 +108,12 @@ def test_outline_exit_needs_radii_and_a_way_out():
     chain = SkeletonGraph(positions, adjacency, radii=np.r_[np.full(21, 10.0), np.full(20, 3.0)])
     nodes = np.arange(41)
     trunk2 = [np.arange(1)]                      # the junction node stands in for the trunk's 2D chain
-    exit2, exit3 = paper._outline_exit(chain, nodes, positions * 0.5, trunk2, trunk)
+    diagonal = np.stack([positions[:, 0], positions[:, 0]], axis=1)    # the projection leaves at 45 degrees
+    exit2, exit3 = paper._outline_exit(chain, nodes, diagonal, trunk2, trunk)
     assert exit2 == pytest.approx(13.0)          # trunk radius 10 px (the junction's) + one branch radius 3 px
-    assert exit3 == pytest.approx(13.0)          # measured along the projection's own path, 26 nodes in
-    assert paper._outline_exit(chain, nodes, positions * 0.2, trunk2, trunk) is None    # the projection stays inside
+    assert exit3 == pytest.approx(13.0 * np.sqrt(2.0))       # measured along the projection's own path
+    assert paper._outline_exit(chain, nodes, positions * 0.5, trunk2, trunk) is None    # 13 px both: eq. (4) stands
+    assert paper._outline_exit(chain, nodes, diagonal * 0.2, trunk2, trunk) is None     # the projection stays inside
     assert paper._outline_exit(SkeletonGraph(positions, adjacency), nodes, positions, trunk2, trunk) is None
     s3 = np.arange(0.0, 30.0, 5.0)
     assert list(paper._counted_from_exit(s3, (13.0, 12.0))) == [-1.0, -1.0, -1.0, 16.0, 21.0, 26.0]
