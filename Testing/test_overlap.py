@@ -54,14 +54,11 @@ def test_vessels_apart_in_the_view_claiming_one_2d_point_get_no_target(monkeypat
     when the main view's iliacs are counted from the 2D junction in the crotch, as eq. (4) has
     it (``paper.CROTCH_RADII`` out of reach): the test can fail. (Counted from where the legs
     part, the main view's iliac targets lie 1-3 px from the truth instead of 9-10 px, and
-    this case no longer needs either rule: 1.24 mm with both off; and with the renals counted
-    from where they leave the aorta's outline, ``paper._outline_exit``, 1.25 mm with all
-    three off.)"""
+    this case no longer needs either rule: 1.24 mm with both off.)"""
     monkeypatch.setattr(multiview, "_legs_of_vessels", lambda *args: {})
     assert _registered("two_views", 36, 2)[0]["iliac_right"] < 2.0
     monkeypatch.setattr(multiview, "_claimed_by_two_vessels", lambda view, nodes, *args: np.zeros(len(nodes), bool))
     monkeypatch.setattr(paper, "CROTCH_RADII", 1e9)
-    monkeypatch.setattr(paper, "_outline_exit", lambda *args: None)      # renals from their 2D junctions too
     assert _registered("two_views", 36, 2)[0]["iliac_right"] > 8.0
     monkeypatch.undo()
     monkeypatch.setattr(multiview, "_claimed_by_two_vessels", lambda view, nodes, *args: np.zeros(len(nodes), bool))
