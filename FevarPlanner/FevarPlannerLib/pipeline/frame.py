@@ -93,12 +93,15 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
     fit is folded into ``P`` when the regions agree on it, or always with ``mode == "on"``.
     Returns the check, the candidate correspondences under ``P`` and the first one's soft
     assignment (the registration reuses both when ``P`` is kept); the check itself fits the
-    renal ostia from their 2D junctions (``side_branch_exits=False``).
+    renal ostia from their 2D junctions (``side_branch_exits=False``; the same assignment
+    unless a renal was counted from the aorta's outline).
     """
     g3, c3 = preop.graph, preop.classification
     candidates = matching.candidate_correspondences(g3, c3, g2, c2, P)
     candidate = candidates[0]
-    assignment = matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows, side_branch_exits=False)
+    registration = matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows)
+    assignment = (matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows, side_branch_exits=False)
+                  if registration.counted_from_exits else registration)
     projected = project(P, g3.positions)
     regions, targets = {}, {}
     for name, nodes in _stable_regions(preop).items():
@@ -106,7 +109,7 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
         regions[name], targets[name] = projected[nodes], assignment.targets[nodes]
     curve = g2.positions[_branch_nodes(c2, STABLE_VESSELS)]
     check = check_misalignment(regions, curve, P, targets=targets, reference="upper_aorta", force=mode == "on")
-    return check, candidates, matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows)
+    return check, candidates, registration
 
 
 def _held_upper_aorta(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classification, P: np.ndarray,
