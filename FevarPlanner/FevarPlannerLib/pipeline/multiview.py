@@ -493,6 +493,16 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 
 #: Passes of chain-closest-point targets after the first deformation with several views (ICP-like).
 CHAIN_REFINEMENT_PASSES = 1
+#: Whether a pass that follows an estimate (``_deform_with(..., estimate=...)``) starts its
+#: L-BFGS from the estimate's displacements instead of ``phi = 0``.
+WARM_START_FOLLOWERS = True
+
+
+def _with_estimate(preop: Preoperative, estimate: np.ndarray) -> np.ndarray:
+    """All graph node positions, the kept ones replaced by ``estimate`` (kept positions)."""
+    positions = np.array(preop.graph.positions, dtype=float)
+    positions[preop.kept] = estimate
+    return positions
 
 
 def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
@@ -738,7 +748,10 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
         data = [_chain_closest_data(v, c, nodes, preop, estimate, d) if c is not None else d
                 for v, c, d in zip(views, correspondences, data)]
     edges = _induced(g3, nodes)
-    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
+    initial = None
+    if estimate is not None and WARM_START_FOLLOWERS:     # start from the last pass's displacements
+        initial = _with_estimate(preop, estimate)[nodes] - g3.positions[nodes]
+    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=initial)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
         current = np.array(g3.positions, dtype=float)
         current[nodes] = result.points
