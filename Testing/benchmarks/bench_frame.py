@@ -27,7 +27,11 @@ The stages are the pipeline's own route from raw frames (:func:`pipeline.frame.p
 then :func:`pipeline.frame.register_prepared`; both views of the two-view variant are
 registered jointly), timed by its stage timer; the benchmark adds the CPU time beside the
 wall time of each. The two-view variant runs with the view worker and, alternating with
-it, without ("two views (serial)"). Wall time
+it, without ("two views (serial)") and with the follower passes of the deformation as they
+were before warm starts ("two views (cold passes)": every pass's L-BFGS from ``phi = 0``, the
+solver's own stall window, no preconditioner kept; ``warm_over_cold_cpu`` holds the ratios).
+Each run starts with an empty preconditioner cache: repeats of one frame must not find what
+a new frame would not. Wall time
 (``time.perf_counter``) and CPU time of this process (``time.process_time``) are both
 recorded: the machine is shared with other work, so wall times are noisy and the CPU time
 is the better guide (one BLAS thread, no worker threads: CPU time <= wall time); with the
@@ -64,7 +68,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from FevarPlannerLib import phantom, pipeline, quality, segmentation  # noqa: E402
-from FevarPlannerLib.pipeline import frame as frame_module, workers  # noqa: E402
+from FevarPlannerLib.deformation import solve  # noqa: E402
+from FevarPlannerLib.pipeline import frame as frame_module, multiview, workers  # noqa: E402
 from FevarPlannerLib.quality import FluoroPrior  # noqa: E402
 
 STAGES = ("mask", "skeleton2d", "graph2d", "matching", "deformation", "plausibility", "pose", "worker", "other")
@@ -144,6 +149,7 @@ def time_views(preop, views, worker: bool = True) -> tuple[dict, dict, dict]:
     the worker's CPU time is the stage "worker"; ``total`` wall is the elapsed time.
     """
     workers.set_enabled(worker)
+    solve._preconditioner_cache.clear()     # a new frame's solves share nothing with the last frame's
     wall, cpu = {"mask": 0.0}, {}
     start = _clock()
     with _cpu_stage_timer(cpu):
@@ -285,6 +291,12 @@ def summarise(runs: list[tuple[dict, dict, dict]]) -> dict:
             "facts": runs[0][2]}
 
 
+def warm_over_cold(warm: dict, cold: dict) -> dict:
+    """Ratios of the median CPU ms of the two-view run with warm-started follower passes over the
+    one with cold passes (:data:`COLD_PASSES`): the deformation stage and the calling process."""
+    return {stage: warm["cpu_ms"][stage] / cold["cpu_ms"][stage] for stage in ("deformation", "this_process")}
+
+
 def plot_frame_check(ax, checked: dict) -> None:
     """Bars: the frame check's median CPU ms per frame, whole and by part (:func:`frame_check_cost`)."""
     parts = ("check", "noise", "contrast_to_noise", "one_tree")
@@ -332,19 +344,43 @@ def plot(path: Path, per_view: dict | None, two_views: dict | None, serial: dict
     save_figure(fig, path)
 
 
+#: The follower passes' settings before warm starts (multiview / solve constants), for the
+#: "two views (cold passes)" variant: every pass from ``phi = 0``, the solver's own stall
+#: window, no preconditioner kept between solves.
+COLD_PASSES = ((multiview, "WARM_START_FOLLOWERS", False), (multiview, "WARM_START_WINDOW", None),
+               (solve, "_PRECONDITIONER_CACHE_SIZE", 0))
+
+
+@contextmanager
+def _settings(changes):
+    """Set module constants ``changes`` ((module, name, value), ...) for the block."""
+    saved = [(module, name, getattr(module, name)) for module, name, _ in changes]
+    for module, name, value in changes:
+        setattr(module, name, value)
+    try:
+        yield
+    finally:
+        for module, name, value in saved:
+            setattr(module, name, value)
+
+
 def pipeline_runs(preop, views, repeats: int) -> dict:
     """{variant: :func:`summarise` of its runs}: each view alone, both jointly with the view worker
-    and without it, alternating over ``repeats`` (the shared machine's load hits them alike)."""
+    and without it, and both with the follower passes as before warm starts (:data:`COLD_PASSES`),
+    alternating over ``repeats`` (the shared machine's load hits them alike)."""
     runs = {}
-    variants = [(view[0], [view], True) for view in views] + [("two views", views, True),
-                                                              ("two views (serial)", views, False)]
-    for _, chosen, worker in variants:
-        time_views(preop, chosen, worker)     # warm-up: imports, caches, the worker's copy of the model
-    found = {name: [] for name, _, _ in variants}
+    variants = [(view[0], [view], True, ()) for view in views] + [("two views", views, True, ()),
+                                                                  ("two views (serial)", views, False, ()),
+                                                                  ("two views (cold passes)", views, True, COLD_PASSES)]
+    for _, chosen, worker, changes in variants:
+        with _settings(changes):
+            time_views(preop, chosen, worker)     # warm-up: imports, caches, the worker's copy of the model
+    found = {name: [] for name, _, _, _ in variants}
     for _ in range(repeats):
-        for name, chosen, worker in variants:
-            found[name].append(time_views(preop, chosen, worker))
-    for name, _, _ in variants:
+        for name, chosen, worker, changes in variants:
+            with _settings(changes):
+                found[name].append(time_views(preop, chosen, worker))
+    for name, _, _, _ in variants:
         runs[name] = summarise(found[name])
         print(name, {k: round(v, 2) for k, v in runs[name]["cpu_ms"].items()}, "CPU ms;",
               f"wall total {runs[name]['wall_ms']['total']:.1f} ms", flush=True)
@@ -382,6 +418,8 @@ def main() -> None:
         runs = pipeline_runs(preop, views, args.repeats)
         payload |= {"views": {k: v for k, v in runs.items() if not k.startswith("two views")},
                     "two_views": runs["two views"], "two_views_serial": runs["two views (serial)"],
+                    "two_views_cold_passes": runs["two views (cold passes)"],
+                    "warm_over_cold_cpu": warm_over_cold(runs["two views"], runs["two views (cold passes)"]),
                     "two_views_how": "pipeline.frame.prepare_views + register_prepared on both frames (one joint "
                                      "deformation): the second view's mask and 2D side in the view worker process; "
                                      "two_views_serial: the same with the worker off, alternating with it"}

@@ -166,6 +166,33 @@ class _BandedPreconditioner:
         return g[:, 0]
 
 
+#: Preconditioners kept (most recently used last; 0: none): the passes of one frame's solves that
+#: share their nodes, edges and data weights (the Hessian at ``phi = 0`` does not see the targets).
+_PRECONDITIONER_CACHE_SIZE = 8
+_preconditioner_cache: OrderedDict = OrderedDict()
+
+
+def _preconditioner(model: _EnergyModel, ridge: float) -> _BandedPreconditioner:
+    """The :class:`_BandedPreconditioner` of ``model``, from a small LRU cache keyed by what its
+    Hessian at ``phi = 0`` depends on: nodes, edges, rest lengths, alpha, beta, ridge and each
+    view's P and data weights (not the targets)."""
+    key = (model.points.tobytes(), model.edges.tobytes(), model.rest_lengths.tobytes(), model.alpha, model.beta,
+           float(ridge), tuple((np.asarray(v.P, dtype=float).tobytes(), v.data_weights.tobytes()) for v in model.views))
+    with _layout_lock:
+        found = _preconditioner_cache.get(key)
+        if found is not None:
+            _preconditioner_cache.move_to_end(key)
+            return found
+    found = _BandedPreconditioner(model, ridge)
+    if _PRECONDITIONER_CACHE_SIZE < 1:
+        return found
+    with _layout_lock:
+        _preconditioner_cache[key] = found
+        while len(_preconditioner_cache) > _PRECONDITIONER_CACHE_SIZE:
+            _preconditioner_cache.popitem(last=False)
+    return found
+
+
 def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFAULT_BETA, weights=None,
                     rest_lengths=None, extra_views=(), max_iter=500, tol=1e-2, window=10, gtol=1e-6,
                     memory=5, precondition=None, ridge=0.1, initial=None) -> DeformationResult:
@@ -231,7 +258,7 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
     evaluations = [0]
     if precondition is None:
         precondition = len(model.views) > 1
-    preconditioner = _BandedPreconditioner(model, ridge) if precondition else None
+    preconditioner = _preconditioner(model, ridge) if precondition else None
     if preconditioner is not None and not preconditioner.usable:
         preconditioner = None
 

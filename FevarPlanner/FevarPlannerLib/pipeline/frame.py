@@ -21,8 +21,7 @@ from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
 from .fallback import _never_worse_than_sv
-from .multiview import (CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM, MAX_CANDIDATE_COMBINATIONS, _deform_with,
-                        outside_silhouette_warnings)
+from .multiview import MAX_CANDIDATE_COMBINATIONS, _deform_with, follow_anchor, outside_silhouette_warnings
 from .results import FrameResult, METHODS, ViewFrame
 from .visibility import Visibility, frame_visibility
 
@@ -515,12 +514,7 @@ def _with_followers(preop, views, anchor, combo, deformed, alpha, beta):
     """Add the views that follow the anchor: passes of nearest-point targets (from the last
     result) beside the anchor's assignment, until the nodes settle (:func:`register_views`)."""
     full = _full_combination(views, anchor, combo)
-    energy = None
-    for _ in range(CLOSEST_POINT_PASSES):
-        previous = deformed
-        deformed, energy, _ = _deform_with(preop, views, full, alpha, beta, estimate=deformed)
-        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
-            break
+    deformed, energy = follow_anchor(preop, views, full, deformed, alpha, beta)
     return deformed, energy, full
 
 

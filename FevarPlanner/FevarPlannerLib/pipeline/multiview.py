@@ -496,6 +496,11 @@ CHAIN_REFINEMENT_PASSES = 1
 #: Whether a pass that follows an estimate (``_deform_with(..., estimate=...)``) starts its
 #: L-BFGS from the estimate's displacements instead of ``phi = 0``.
 WARM_START_FOLLOWERS = True
+#: The first follower pass (counted from 0) that starts warm (:func:`follow_anchor`).
+WARM_START_FROM_PASS = 1
+#: The L-BFGS stall window (iterations, ``deform_assigned``'s ``window``) of a warm-started
+#: solve; None: the solver's default.
+WARM_START_WINDOW = None
 
 
 def _with_estimate(preop: Preoperative, estimate: np.ndarray) -> np.ndarray:
@@ -718,11 +723,31 @@ def _deform_on(points, edges, views, data, alpha, beta, initial=None):
     if not np.any(weights) and not extra:
         raise ValueError(f"view {views[0].name}: no 3D node has a 2D target in the frame")
     weights_arg = None if np.all(weights == 1.0) else weights
+    if initial is not None and WARM_START_WINDOW is not None:
+        extra["window"] = WARM_START_WINDOW
     return deformation.deform_assigned(points, targets, edges, views[0].P, alpha=alpha, beta=beta,
                                        weights=weights_arg, initial=initial, **extra)
 
 
-def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
+def follow_anchor(preop: Preoperative, views: list, correspondences, deformed: np.ndarray, alpha, beta):
+    """Passes of nearest-point targets from the last result (the anchor's first deformation
+    ``deformed``, kept positions) until the nodes move less than :data:`CLOSEST_POINT_SETTLED_MM`
+    on average, at most :data:`CLOSEST_POINT_PASSES`; returns (kept positions, energy).
+
+    The first pass starts L-BFGS from ``phi = 0``; with :data:`WARM_START_FOLLOWERS` the later
+    ones start from the last pass's displacements (their targets moved little).
+    """
+    energy = None
+    for k in range(CLOSEST_POINT_PASSES):
+        previous = deformed
+        deformed, energy, _ = _deform_with(preop, views, correspondences, alpha, beta, estimate=deformed,
+                                           warm_start=WARM_START_FOLLOWERS and k >= WARM_START_FROM_PASS)
+        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
+            break
+    return deformed, energy
+
+
+def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None, warm_start=False):
     """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
 
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
@@ -749,7 +774,7 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
                 for v, c, d in zip(views, correspondences, data)]
     edges = _induced(g3, nodes)
     initial = None
-    if estimate is not None and WARM_START_FOLLOWERS:     # start from the last pass's displacements
+    if estimate is not None and warm_start:     # start from the estimate's displacements
         initial = _with_estimate(preop, estimate)[nodes] - g3.positions[nodes]
     result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=initial)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
