@@ -73,15 +73,19 @@ def test_an_iliac_far_off_its_leg_still_reaches_it(beyond_the_cap, monkeypatch):
     """Measured: left iliac 0.65 mm, case 0.58 mm (before: 5.8 and 1.21 mm). Either rule off
     leaves the left iliac over 3 mm off: targets past a leg's end kept (9.7 mm), or the
     view-wide outlier limit for a branch with a leg (4.9 mm, flagged 1.1 mm outside the
-    70 degree view's silhouette). The test can fail."""
+    70 degree view's silhouette). The test can fail. The counterfactuals run with the solver's
+    own stall window on the refinement (multiview.WARM_START_WINDOW None): with the shorter one
+    the passes reach the leg even without the past-the-end rule (0.54 mm)."""
     case, preop = beyond_the_cap
     result = _registered(case, preop)
     per_vessel, mean = _errors(case, preop, result.deformed)
     assert per_vessel["iliac_left"] < 1.5 and mean < 1.0
     assert not any("outside the vessels" in w for w in result.warnings)
+    monkeypatch.setattr(multiview, "WARM_START_WINDOW", None)
     monkeypatch.setattr(multiview, "_past_leg_ends", lambda g2, leg, index, uv: np.zeros(len(index), dtype=bool))
     assert _errors(case, preop, _registered(case, preop).deformed)[0]["iliac_left"] > 3.0
     monkeypatch.undo()
+    monkeypatch.setattr(multiview, "WARM_START_WINDOW", None)
     monkeypatch.setattr(multiview, "_outlier_limits", lambda distance, usable, legs: np.full(
         len(distance), multiview.CLOSEST_POINT_OUTLIER * max(float(np.median(distance[usable])), 1.0)))
     assert _errors(case, preop, _registered(case, preop).deformed)[0]["iliac_left"] > 3.0
