@@ -28,8 +28,9 @@ then :func:`pipeline.frame.register_prepared`; both views of the two-view varian
 registered jointly), timed by its stage timer; the benchmark adds the CPU time beside the
 wall time of each. The two-view variant runs with the view worker and, alternating with
 it, without ("two views (serial)") and with the follower passes of the deformation as they
-were before warm starts ("two views (cold passes)": every pass's L-BFGS from ``phi = 0``, the
-solver's own stall window, no preconditioner kept; ``warm_over_cold_cpu`` holds the ratios).
+were before issue 10's cheaper passes ("two views (cold passes)": the solver's own stall
+window on the refinement, no preconditioner kept between solves; ``over_cold_passes_cpu``
+holds the ratios).
 Each run starts with an empty preconditioner cache: repeats of one frame must not find what
 a new frame would not. Wall time
 (``time.perf_counter``) and CPU time of this process (``time.process_time``) are both
@@ -291,10 +292,10 @@ def summarise(runs: list[tuple[dict, dict, dict]]) -> dict:
             "facts": runs[0][2]}
 
 
-def warm_over_cold(warm: dict, cold: dict) -> dict:
-    """Ratios of the median CPU ms of the two-view run with warm-started follower passes over the
-    one with cold passes (:data:`COLD_PASSES`): the deformation stage and the calling process."""
-    return {stage: warm["cpu_ms"][stage] / cold["cpu_ms"][stage] for stage in ("deformation", "this_process")}
+def over_cold_passes(now: dict, cold: dict) -> dict:
+    """Ratios of the median CPU ms of the two-view run as the pipeline runs it over the one with
+    the earlier follower passes (:data:`COLD_PASSES`): the deformation stage and the calling process."""
+    return {stage: now["cpu_ms"][stage] / cold["cpu_ms"][stage] for stage in ("deformation", "this_process")}
 
 
 def plot_frame_check(ax, checked: dict) -> None:
@@ -344,9 +345,9 @@ def plot(path: Path, per_view: dict | None, two_views: dict | None, serial: dict
     save_figure(fig, path)
 
 
-#: The follower passes' settings before warm starts (multiview / solve constants), for the
-#: "two views (cold passes)" variant: every pass from ``phi = 0``, the solver's own stall
-#: window, no preconditioner kept between solves.
+#: The follower passes' settings before issue 10's cheaper passes (multiview / solve constants),
+#: for the "two views (cold passes)" variant: every pass from ``phi = 0`` (as now), the solver's
+#: own stall window on the refinement, no preconditioner kept between solves.
 COLD_PASSES = ((multiview, "WARM_START_FOLLOWERS", False), (multiview, "WARM_START_WINDOW", None),
                (solve, "_PRECONDITIONER_CACHE_SIZE", 0))
 
@@ -366,7 +367,7 @@ def _settings(changes):
 
 def pipeline_runs(preop, views, repeats: int) -> dict:
     """{variant: :func:`summarise` of its runs}: each view alone, both jointly with the view worker
-    and without it, and both with the follower passes as before warm starts (:data:`COLD_PASSES`),
+    and without it, and both with the earlier follower passes (:data:`COLD_PASSES`),
     alternating over ``repeats`` (the shared machine's load hits them alike)."""
     runs = {}
     variants = [(view[0], [view], True, ()) for view in views] + [("two views", views, True, ()),
@@ -419,7 +420,7 @@ def main() -> None:
         payload |= {"views": {k: v for k, v in runs.items() if not k.startswith("two views")},
                     "two_views": runs["two views"], "two_views_serial": runs["two views (serial)"],
                     "two_views_cold_passes": runs["two views (cold passes)"],
-                    "warm_over_cold_cpu": warm_over_cold(runs["two views"], runs["two views (cold passes)"]),
+                    "over_cold_passes_cpu": over_cold_passes(runs["two views"], runs["two views (cold passes)"]),
                     "two_views_how": "pipeline.frame.prepare_views + register_prepared on both frames (one joint "
                                      "deformation): the second view's mask and 2D side in the view worker process; "
                                      "two_views_serial: the same with the worker off, alternating with it"}
