@@ -346,10 +346,9 @@ def plot(path: Path, per_view: dict | None, two_views: dict | None, serial: dict
 
 
 #: The follower passes' settings before issue 10's cheaper passes (multiview / solve constants),
-#: for the "two views (cold passes)" variant: every pass from ``phi = 0`` (as now), the solver's
-#: own stall window on the refinement, no preconditioner kept between solves.
-COLD_PASSES = ((multiview, "WARM_START_FOLLOWERS", False), (multiview, "WARM_START_WINDOW", None),
-               (solve, "_PRECONDITIONER_CACHE_SIZE", 0))
+#: for the "two views (cold passes)" variant: the solver's own stall window on the refinement,
+#: no preconditioner kept between solves.
+COLD_PASSES = ((multiview, "WARM_START_WINDOW", None), (solve, "_PRECONDITIONER_CACHE_SIZE", 0))
 
 
 @contextmanager

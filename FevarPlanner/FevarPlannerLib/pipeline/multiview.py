@@ -493,27 +493,12 @@ def _closest_point_data(view, nodes: np.ndarray, preop: Preoperative, estimate: 
 
 #: Passes of chain-closest-point targets after the first deformation with several views (ICP-like).
 CHAIN_REFINEMENT_PASSES = 1
-#: Whether the follower passes from WARM_START_FROM_PASS on start their first L-BFGS from the
-#: last pass's displacements instead of ``phi = 0`` (:func:`follow_anchor`). Off: it saves
-#: 3-5 ms a frame, but the passes then settle where they stand. Measured (development
-#: two-view seeds 0 / 36 / 39 / 42, 0.637 / 0.535 / 0.613 / 0.538 mm from ``phi = 0``): 0.643 /
-#: 0.537 / 0.624 / 0.558 mm; on the bent phantom AP + LAO 60 the left iliac then never took its
-#: targets in the second view: 4.98 mm against 0.30 mm (its fresh passes reach them at pass 8).
-WARM_START_FOLLOWERS = False
-WARM_START_FROM_PASS = 1
 #: The L-BFGS stall window (iterations, ``deform_assigned``'s ``window``; None: the solver's
 #: default, 10) of a warm-started solve, the refinement of each pass (its targets moved a
 #: little from the solution it starts at): stopping sooner there keeps the depth from creeping
 #: along the valley :func:`deformation.deform_assigned` describes. Bent phantom, AP + LAO
 #: 30 / 45 / 60: 0.409 / 0.349 / 0.297 mm against 0.444 / 0.359 / 0.298 mm with 10.
 WARM_START_WINDOW = 5
-
-
-def _with_estimate(preop: Preoperative, estimate: np.ndarray) -> np.ndarray:
-    """All graph node positions, the kept ones replaced by ``estimate`` (kept positions)."""
-    positions = np.array(preop.graph.positions, dtype=float)
-    positions[preop.kept] = estimate
-    return positions
 
 
 def _closest_on_polyline(points: np.ndarray, polyline: np.ndarray):
@@ -740,48 +725,20 @@ def follow_anchor(preop: Preoperative, views: list, correspondences, deformed: n
     ``deformed``, kept positions) until the nodes move less than :data:`CLOSEST_POINT_SETTLED_MM`
     on average, at most :data:`CLOSEST_POINT_PASSES`; returns (kept positions, energy).
 
-    Each pass solves from ``phi = 0`` (see :data:`WARM_START_FOLLOWERS`). With
-    :data:`TARGETS_SETTLED_PX` a pass whose first targets barely moved is not solved.
+    Each pass solves from ``phi = 0``. Starting each pass from the last one's displacements
+    saved 3-5 ms a frame but let the passes settle where they stood (development two-view
+    seeds 0 / 36 / 39 / 42: 0.637 / 0.535 / 0.613 / 0.538 -> 0.643 / 0.537 / 0.624 / 0.558
+    mm; the bent phantom AP + LAO 60: 0.30 -> 4.98 mm, its left iliac never reaching its
+    second-view targets); stopping when the targets moved under 0.15 px on average cost 0.01-0.03
+    mm there (nearest skeleton nodes move in whole steps). Neither is used.
     """
-    energy, last = None, None
-    for k in range(CLOSEST_POINT_PASSES):
-        targets = _pass_targets(preop, views, correspondences, deformed)
-        if last is not None and _targets_settled(last[1], targets[1]):
-            break
-        previous, last = deformed, targets
-        deformed, energy, _ = _deform_with(preop, views, correspondences, alpha, beta, estimate=deformed,
-                                           warm_start=WARM_START_FOLLOWERS and k >= WARM_START_FROM_PASS,
-                                           targets=targets)
+    energy = None
+    for _ in range(CLOSEST_POINT_PASSES):
+        previous = deformed
+        deformed, energy, _ = _deform_with(preop, views, correspondences, alpha, beta, estimate=deformed)
         if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
             break
     return deformed, energy
-
-
-#: A follower pass whose first targets moved less than this (px, mean over the nodes with a
-#: target before and after, in every view) from the last pass's, with at most
-#: TARGETS_SETTLED_FLIPS of the nodes gaining or losing a target, is not solved: the
-#: last result stands (:func:`follow_anchor`). None: never (the default). Measured on the bent
-#: phantom, AP + LAO 30 / 45 / 60 (passes from ``phi = 0``): 0.15 px stops after two passes
-#: and costs 0.463 / 0.386 / 0.307 mm against 0.444 / 0.359 / 0.298 mm; 0.10 px never stopped
-#: there. Nearest 2D skeleton nodes move in steps of the node spacing, so a mean shift hides
-#: a few nodes that are about to take their targets.
-TARGETS_SETTLED_PX = None
-TARGETS_SETTLED_FLIPS = 0.01
-
-
-def _targets_settled(old: list, new: list) -> bool:
-    """Whether the (targets, weights) per view ``new`` of a pass moved less than
-    :data:`TARGETS_SETTLED_PX` from ``old`` (:func:`follow_anchor`)."""
-    if TARGETS_SETTLED_PX is None:
-        return False
-    for (targets0, weights0), (targets1, weights1) in zip(old, new):
-        had, has = weights0 > 0, weights1 > 0
-        both = had & has
-        if np.count_nonzero(had != has) > TARGETS_SETTLED_FLIPS * len(has) or not both.any():
-            return False
-        if np.linalg.norm(targets1[both] - targets0[both], axis=1).mean() >= TARGETS_SETTLED_PX:
-            return False
-    return True
 
 
 def _pass_targets(preop: Preoperative, views: list, correspondences, estimate):
@@ -799,8 +756,7 @@ def _pass_targets(preop: Preoperative, views: list, correspondences, estimate):
     return nodes, data
 
 
-def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None, warm_start=False,
-                 targets=None):
+def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
     """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
 
     Every view soft-assigns the same 3D nodes (eqs. 3-5); one energy (eq. 6) with the data
@@ -816,12 +772,9 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     between candidates: the energy plus the 3D implausibility of the result.
     """
     g3 = preop.graph
-    nodes, data = targets if targets is not None else _pass_targets(preop, views, correspondences, estimate)
+    nodes, data = _pass_targets(preop, views, correspondences, estimate)
     edges = _induced(g3, nodes)
-    initial = None
-    if estimate is not None and warm_start:     # start from the estimate's displacements
-        initial = _with_estimate(preop, estimate)[nodes] - g3.positions[nodes]
-    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta, initial=initial)
+    result = _deform_on(g3.positions[nodes], edges, views, data, alpha, beta)
     for _ in range(CHAIN_REFINEMENT_PASSES if len(views) > 1 else 0):
         current = np.array(g3.positions, dtype=float)
         current[nodes] = result.points
