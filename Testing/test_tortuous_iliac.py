@@ -28,7 +28,8 @@ from FevarPlannerLib.matching import Correspondence
 from FevarPlannerLib.preop import SMOOTHING_ITERATIONS
 from FevarPlannerLib.evaluation.depth import ray_components
 from FevarPlannerLib.projection import pixels_per_mm, project
-from test_iliac_targets import AORTA_MM, AORTA_RADIUS_MM, frame_chains, frame_shows, lumen_mask, polyline, projection
+from test_iliac_targets import (AORTA_MM, AORTA_RADIUS_MM, SHAPE, frame_chains, frame_shows, lumen_mask, polyline,
+                                projection)
 
 LEG_MM, LEG_RADIUS_MM, SPREAD_DEG = 75.0, 4.5, 18.0
 #: Largest turn of a leg's tangent either way, pre-operative (tortuous) and straightened.
@@ -61,20 +62,27 @@ def tree(winding_deg: float):
         edges += [(bif, start)] + [(start + k, start + k + 1) for k in range(len(points) - 1)]
     edges = np.array(edges)
     chains = [np.concatenate([[bif], np.arange(start, start + len(points))]) for start, points in zip(first, legs)]
-    return SkeletonGraph(positions, SkeletonGraph._weighted_adjacency(positions, edges)), edges, np.arange(bif + 1), chains
+    g3 = SkeletonGraph(positions, SkeletonGraph._weighted_adjacency(positions, edges))
+    return g3, edges, np.arange(bif + 1), chains
+
+
+def leg_classification(legs3: list) -> Classification:
+    """The 3D classification of the two legs (no trunks beyond the correspondence's)."""
+    branches = [Branch(c, int(c[0]), int(c[-1]), 0.0, label) for c, label in zip(legs3, ("iliac_right", "iliac_left"))]
+    return Classification(branches, [], [], np.empty(0), np.empty(0), np.empty(0), [])
 
 
 @functools.cache
 def straightened_case():
-    """Pre-operative tree, intra-operative positions, P, the frame's graph, the correspondence and eq. (4-5)'s assignment."""
+    """(pre-operative graph, its edges, intra-operative positions, P, the frame's graph, the 3D
+    and 2D leg chains, eq. (4-5)'s assignment)."""
     g3, edges, aorta, legs3 = tree(WINDING_DEG)
     intra = tree(STRAIGHTENED_DEG)[0].positions
     P = projection()
     mask = lumen_mask(P, [(intra[aorta], AORTA_RADIUS_MM)] + [(intra[c], LEG_RADIUS_MM) for c in legs3])
     g2 = graph.smooth_positions(graph.skeleton_graph_2d(mask, radii=True), SMOOTHING_ITERATIONS)
     trunk2, legs2 = frame_chains(g2, P)
-    c3 = Classification([Branch(c, int(c[0]), int(c[-1]), 0.0, label) for c, label in
-                         zip(legs3, ("iliac_right", "iliac_left"))], [], [], np.empty(0), np.empty(0), np.empty(0), [])
+    c3 = leg_classification(legs3)
     correspondence = Correspondence([(0, None), (1, None)], [(aorta, trunk2)], {int(aorta[-1]): int(trunk2[-1])},
                                     "test", {0: legs2[0], 1: legs2[1]})
     assignment = matching.soft_assign(g3, c3, g2, None, P, correspondence, shows=frame_shows(mask.shape[0]))
@@ -141,3 +149,25 @@ def test_deformed_tortuous_legs_lie_on_the_true_legs_in_the_views_plane():
     assert before["in_plane"].mean() > 2.5                                      # 3.0 mm undeformed
     assert after["in_plane"].mean() < 0.6, after["in_plane"].mean()             # 0.41 mm
     assert after["distance"].mean() < 2.0                                       # 1.6 mm, mostly along the rays
+
+
+def test_leg_nodes_on_a_thinning_bridge_get_no_target():
+    """Where a leg's 2D chain narrows to a bridge (two touching lumens joined by thinning, in the
+    patient-like frames 0-4 px wide on legs of 11-12 px), its nodes there get no target and
+    follow their neighbours; the rest of the leg keeps eq. (4)'s targets."""
+    g3, _, intra, P, g2, legs3, legs2, assignment = straightened_case()
+    leg2 = legs2[0]
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(g2.positions[leg2], axis=0), axis=1))])
+    bridge = leg2[(path > 0.4 * path[-1]) & (path < 0.6 * path[-1])]
+    radii = np.array(g2.radii, dtype=float)
+    radii[bridge] = 1.0
+    narrowed = SkeletonGraph(g2.positions, g2.adjacency, radii=radii)
+    after = matching.soft_assign(g3, leg_classification(legs3), narrowed, None, P, assignment.correspondence,
+                                 shows=frame_shows(SHAPE[0]))
+    lost = assignment.assigned & ~after.assigned
+    assert set(np.flatnonzero(lost)) <= set(legs3[0][1:])                 # only that leg's nodes
+    on_bridge = np.linalg.norm(project(P, intra[np.flatnonzero(lost)])[:, None] - g2.positions[bridge][None], axis=2)
+    assert 0.15 * len(legs3[0]) <= lost.sum() <= 0.3 * len(legs3[0])        # about the bridge's fifth of the leg
+    assert on_bridge.min(axis=1).max() < 12.0                               # and the nodes that lie there
+    kept = after.assigned & assignment.assigned
+    assert np.allclose(after.targets[kept], assignment.targets[kept])

@@ -563,6 +563,31 @@ def _leg_scale(g2: SkeletonGraph, chain2: np.ndarray, lead: float, length3: floa
     return min(ratio, max(largest, 1.0)) if low <= ratio <= high else 1.0
 
 
+#: A fork leg's 2D chain narrower than this share of its median 2D radius (past the crotch) is
+#: no vessel: where an iliac's lumen touches its internal iliac in the frame, thinning joins
+#: the two with a bridge a pixel or two wide, and the chain from the junction to the leg's end
+#: (the shortest path) can take it across, off the leg's own centre line.
+BRIDGE_RADII = 0.4
+
+
+def _off_the_bridges(g2: SkeletonGraph, leg2: np.ndarray, s2: np.ndarray, crotch: float) -> np.ndarray:
+    """``s2`` (2D path positions along a fork leg's whole chain, the leg proper from ``crotch``
+    on, ``leg2`` its chain from there) with -1 (no target) for the positions on a bridge.
+
+    Eq. (4) puts every node of the leg on its 2D chain. Where the chain runs along a bridge
+    (narrower than :data:`BRIDGE_RADII` of the leg's median 2D radius, the thinning's join of
+    two lumens that touch), the targets lie off the leg, 2-5 mm in the patient-like cases
+    whose external iliacs run beside their internal iliacs; those nodes get no data term and
+    follow their neighbours (S_L, S_S). Unchanged without 2D radii.
+    """
+    if g2.radii is None or len(leg2) < 2:
+        return s2
+    radii = g2.radii[leg2].astype(float)
+    along = crotch + _cumulative_length(g2.positions[leg2])
+    radius = np.interp(s2, along, radii)
+    return np.where((s2 > crotch) & (radius < BRIDGE_RADII * float(np.median(radii))), -1.0, s2)
+
+
 def _through_crotch(s3: np.ndarray, lead: float, crotch: float) -> np.ndarray:
     """2D path positions along a fork leg's whole chain of its 3D nodes at (scaled) projected path
     ``s3`` from the junction: past ``lead`` (:func:`_branch_start`) as far beyond the chain
@@ -675,7 +700,8 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
     first, so junctions follow the aortic chain. The legs of a fork (the iliacs) start where
     eq. (5) put their junction, past the crotch (:func:`_branch_start`), and, where
     ``shows`` (a callable telling which (n, 2) image points the frame shows) says their 2D
-    chains end inside the frame, run end to end (:func:`_leg_scale`). With
+    chains end inside the frame, run end to end (:func:`_leg_scale`); their nodes that fall on a
+    thinning's bridge between two touching lumens get no target (:func:`_off_the_bridges`). With
     ``side_branch_exits`` a side branch of the trunk (a renal) is counted from where it
     leaves the trunk's outline (:func:`_outline_exit`), and its nodes hidden in the outline
     get no target (they follow their neighbours); without it, from its 2D junction as in
@@ -714,6 +740,7 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
             s3 = s3 * _leg_scale(g2, nodes2[start:], lead, s3[-1], shows,
                                  _largest_leg_scale(g3.positions[nodes3], P, s3[-1]))
             s3 = _through_crotch(s3, lead, _cumulative_length(g2.positions[nodes2])[start])
+            s3 = _off_the_bridges(g2, nodes2[start:], s3, _cumulative_length(g2.positions[nodes2])[start])
         elif side_branch_exits and c3.branches[i3].label not in _MAIN_COURSE:    # a side branch (a renal)
             exits = _outline_exit(g2, nodes2, project(P, g3.positions[nodes3]), trunk2, trunk3)
             s3 = _counted_from_exit(s3, exits)
