@@ -16,6 +16,12 @@ nearest point of its own 2D leg after that deformation and solving again (the tw
 made it worse, 0.48 / 0.50 / 0.51 mm after one / two / three passes: the length term holds a
 node where its slide put it, and its nearest point is where it already lies. Counting the
 legs by 3D instead of projected path length (scaled to the same total) gave 0.42 mm.
+
+What did cost in-plane accuracy on the patient-like cases was elsewhere: where an external
+iliac runs beside its internal iliac the two lumens touch in the frame, thinning joins them
+by a bridge 0-4 px wide (the legs are 11-12 px), and the leg's 2D chain can cross on it,
+2-5 mm off the leg; eq. (4) now gives the nodes there no target
+(:func:`matching.paper._off_the_bridges`, last test).
 """
 
 import functools
