@@ -39,19 +39,26 @@ def leg_end(side, tilt_deg=0.0):
     return LEG_MM * np.array([side * np.sin(angle) * np.cos(tilt), -np.sin(tilt), -np.cos(angle) * np.cos(tilt)])
 
 
-def tree_3d(tilt_deg=0.0):
-    """The 3D skeleton graph (nodes 1 mm apart): aorta top -> bifurcation, then both legs."""
+def y_tree(legs: list):
+    """(3D skeleton graph, edges, aorta nodes, leg chains from the bifurcation) of the aorta
+    from its top down to the origin (nodes 1 mm apart) and ``legs`` (each leg's points after
+    the bifurcation) hanging from it."""
     aorta = polyline([0.0, 0.0, AORTA_MM], [0.0, 0.0, 0.0])
-    legs = [polyline([0.0, 0.0, 0.0], leg_end(side, tilt_deg))[1:] for side in (-1, 1)]
     positions = np.concatenate([aorta] + legs)
     bif = len(aorta) - 1
     first = [len(aorta), len(aorta) + len(legs[0])]
     edges = [(k, k + 1) for k in range(bif)]
     for start, leg in zip(first, legs):
         edges += [(bif, start)] + [(start + k, start + k + 1) for k in range(len(leg) - 1)]
-    adjacency = SkeletonGraph._weighted_adjacency(positions, np.array(edges))
+    edges = np.array(edges)
     chains = [np.concatenate([[bif], np.arange(start, start + len(leg))]) for start, leg in zip(first, legs)]
-    return SkeletonGraph(positions, adjacency), np.arange(bif + 1), chains
+    return SkeletonGraph(positions, SkeletonGraph._weighted_adjacency(positions, edges)), edges, np.arange(bif + 1), chains
+
+
+def tree_3d(tilt_deg=0.0):
+    """The 3D skeleton graph (nodes 1 mm apart): aorta top -> bifurcation, then both legs."""
+    g3, _, aorta, chains = y_tree([polyline([0.0, 0.0, 0.0], leg_end(side, tilt_deg))[1:] for side in (-1, 1)])
+    return g3, aorta, chains
 
 
 def projection():

@@ -34,8 +34,8 @@ from FevarPlannerLib.matching import Correspondence
 from FevarPlannerLib.preop import SMOOTHING_ITERATIONS
 from FevarPlannerLib.evaluation.depth import ray_components
 from FevarPlannerLib.projection import pixels_per_mm, project
-from test_iliac_targets import (AORTA_MM, AORTA_RADIUS_MM, SHAPE, frame_chains, frame_shows, lumen_mask, polyline,
-                                projection)
+from test_iliac_targets import (AORTA_RADIUS_MM, SHAPE, frame_chains, frame_shows, lumen_mask,
+                                projection, y_tree)
 
 LEG_MM, LEG_RADIUS_MM, SPREAD_DEG = 75.0, 4.5, 18.0
 #: Largest turn of a leg's tangent either way, pre-operative (tortuous) and straightened.
@@ -57,19 +57,8 @@ def leg(side: int, winding_deg: float) -> np.ndarray:
 
 
 def tree(winding_deg: float):
-    """(3D skeleton graph, aorta nodes, leg chains from the bifurcation) with legs of ``winding_deg``."""
-    aorta = polyline([0.0, 0.0, AORTA_MM], [0.0, 0.0, 0.0])
-    legs = [leg(side, winding_deg)[1:] for side in (-1, 1)]
-    positions = np.concatenate([aorta] + legs)
-    bif = len(aorta) - 1
-    first = [len(aorta), len(aorta) + len(legs[0])]
-    edges = [(k, k + 1) for k in range(bif)]
-    for start, points in zip(first, legs):
-        edges += [(bif, start)] + [(start + k, start + k + 1) for k in range(len(points) - 1)]
-    edges = np.array(edges)
-    chains = [np.concatenate([[bif], np.arange(start, start + len(points))]) for start, points in zip(first, legs)]
-    g3 = SkeletonGraph(positions, SkeletonGraph._weighted_adjacency(positions, edges))
-    return g3, edges, np.arange(bif + 1), chains
+    """(3D skeleton graph, edges, aorta nodes, leg chains from the bifurcation) with legs of ``winding_deg``."""
+    return y_tree([leg(side, winding_deg)[1:] for side in (-1, 1)])
 
 
 def leg_classification(legs3: list) -> Classification:
