@@ -10,38 +10,13 @@ solution. What these tests pin, on the bent phantom seen AP + LAO 30 / 45 / 60:
 - keeping the preconditioner between a frame's solves changes nothing (bit-identical).
 """
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 
-from FevarPlannerLib import deformation, evaluation, phantom, pipeline
+from FevarPlannerLib import deformation, pipeline
 from FevarPlannerLib.deformation import solve
 from FevarPlannerLib.pipeline import multiview
-from FevarPlannerLib.projection import projection_matrix_from_carm
-from fixtures import drawn_mask, phantom_case_fixtures
-
-case, preop = phantom_case_fixtures("bent", bend_anterior_deg=12.0)
-
-
-@pytest.fixture(scope="module")
-def frames(case):
-    """{angle: (mask, P)} of the case's intra-operative anatomy at LAO ``angle`` (0: AP)."""
-    truth = case.intraop.to_centerline()
-    found = {}
-    for angle in (0.0, 45.0, 60.0):
-        params = replace(case.params, primary_angle_deg=angle)
-        isocentre = case.grid.center_lps()
-        carm = phantom.fit_detector(case.intraop, params, isocentre)
-        P = projection_matrix_from_carm(carm, isocentre)
-        found[angle] = (drawn_mask(truth, P, (carm.rows, carm.cols)), P)
-    return found
-
-
-def error_3d(result, case) -> float:
-    truth = case.intraop.to_centerline()
-    return evaluation.evaluate(result.deformed, truth, result.P, result.skeleton2d.positions,
-                               result.skeleton2d.edges())["3d_mm"]["mean"]
+from test_views import case, error_3d, frames, preop  # noqa: F401 (fixtures: the bent phantom and its AP / LAO 45 / 60 masks)
 
 
 def register(preop, frames, other):
