@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from .centerline import ANATOMY_LABELS
 from .files import InputError, display_path
+from .graph.skeleton_graph import SkeletonGraph
 from .projection import depth, project
 
 __all__ = [
@@ -362,22 +363,13 @@ def _ostia(codes: np.ndarray, edges: np.ndarray, code: dict) -> dict:
     return found
 
 
-def _weighted_graph(n: int, edges: np.ndarray, weights: np.ndarray):
-    """The undirected sparse graph of ``edges`` (each of at least a tiny positive weight: a zero
-    would read as no edge)."""
-    weights = np.maximum(weights, 1e-9)
-    rows, cols = np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]]
-    return coo_matrix((np.r_[weights, weights], (rows, cols)), shape=(n, n)).tocsr()
-
-
 def _renal_ends(points: np.ndarray, edges: np.ndarray, codes: np.ndarray, code: dict, ostia: dict) -> dict:
     """Renal label -> its node farthest along the renal's own edges from its ostium (its end)."""
     ends = {}
     for vessel, ostium in ostia.items():
         nodes = np.flatnonzero(codes == code[vessel])
         inner = edges[np.isin(edges[:, 0], nodes) & np.isin(edges[:, 1], nodes)]
-        lengths = np.linalg.norm(points[inner[:, 0]] - points[inner[:, 1]], axis=1)
-        along = dijkstra(_weighted_graph(len(points), inner, lengths), indices=ostium)
+        along = dijkstra(SkeletonGraph._weighted_adjacency(points, inner), indices=ostium)
         reached = nodes[np.isfinite(along[nodes])]
         ends[vessel] = int(reached[np.argmax(along[reached])])
     return ends
@@ -407,8 +399,8 @@ def _continuations(sk: np.ndarray, sk_edges: np.ndarray, far: np.ndarray, ends_u
             continue
         starts = np.unique(crossing[close, 1])       # joined to the end (node len(sk)) straight
         edges = np.vstack([inner, np.c_[np.full(len(starts), len(sk)), starts]])
-        weights = np.r_[lengths, np.linalg.norm(sk[starts] - end, axis=1) * mm_per_px]
-        along = dijkstra(_weighted_graph(len(sk) + 1, edges, weights), indices=len(sk))[:-1]
+        graph = SkeletonGraph._weighted_adjacency(np.vstack([sk, end]) * mm_per_px, edges)
+        along = dijkstra(graph, indices=len(sk))[:-1]
         reach = np.linalg.norm(end - ostia_uv[vessel])
         beyond = np.flatnonzero(np.isfinite(along) & (np.linalg.norm(sk - ostia_uv[vessel], axis=1) > reach))
         if not len(beyond):
