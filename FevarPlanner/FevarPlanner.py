@@ -696,13 +696,14 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         same CT / segmentation were seen. Returns ``(PlanResult, nodes by role)``.
         """
         from FevarPlannerLib import cache as preop_cache
-        from FevarPlannerLib.pipeline import run_case
+        from FevarPlannerLib.pipeline import check_result, run_case
 
         parameters = parameters or self.getParameterNode()
         case = self.case_from_nodes(parameters)
         model = preop_cache.preop_model(case, progress=progress, use_cache=cache)
         result = run_case(case, method=parameters.method, start=parameters.start, target=parameters.target,
-                          preop=model, progress=progress, drr=False)
+                          preop=model, progress=progress, drr=False, mirror_test=True)
+        result.warnings.extend(check_result(case, result))     # the gates plan runs: refuse, or warn
         loaded = {view.name: node for view, node in zip(case.views, [parameters.fluoroVolume,
                                                                      *parameters.extraFrameVolumes])}
         nodes = self.add_result(result, model=model, case=case,
@@ -743,11 +744,13 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         """
         from FevarPlannerLib import cache as preop_cache
         from FevarPlannerLib.io import load_case
-        from FevarPlannerLib.pipeline import run_case, write_outputs
+        from FevarPlannerLib.pipeline import check_result, run_case, write_outputs
 
         case = load_case(case_dir, **{key: value for key, value in (overrides or {}).items() if value})
         model = preop_cache.preop_model(case, progress=progress)
-        result = run_case(case, method=method, start=start, target=target, preop=model, progress=progress)
+        result = run_case(case, method=method, start=start, target=target, preop=model, progress=progress,
+                          mirror_test=True)
+        result.warnings.extend(check_result(case, result))     # the gates plan runs: refuse, or warn
         if out_dir is not None:
             write_outputs(result, out_dir)
         return result, self.add_result(result, model=model, show_fluoro=show_fluoro, case=case)

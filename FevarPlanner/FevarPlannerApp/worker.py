@@ -59,7 +59,7 @@ class PlanWorker(QObject):
     def run(self) -> None:
         from FevarPlannerLib import cache
         from FevarPlannerLib.io import load_case
-        from FevarPlannerLib.pipeline import run_case, write_outputs
+        from FevarPlannerLib.pipeline import check_result, run_case, write_outputs
 
         request = self.request
         progress = lambda fraction, message: self.progress.emit(float(fraction), str(message))  # noqa: E731
@@ -67,7 +67,8 @@ class PlanWorker(QObject):
             case = load_case(request.case_dir, **{key: value for key, value in request.overrides.items() if value})
             model = cache.preop_model(case, progress=progress, use_cache=request.use_cache)
             result = run_case(case, method=request.method, start=request.start, target=request.target,
-                              preop=model, progress=progress)
+                              preop=model, progress=progress, mirror_test=True)
+            result.warnings.extend(check_result(case, result))     # the gates plan runs: refuse, or warn
             outcome = PlanOutcome(result, model=model, case=case)
             if request.out_dir is not None:
                 self.progress.emit(1.0, f"writing the outputs to {request.out_dir}")

@@ -19,7 +19,7 @@ The package, one module per stage of a case (every name is re-exported here):
     workers      a persistent worker process for a second view's 2D side (and a view's frame check)
     multiview    the deformation over several views, unseen pieces carried rigidly
     fallback     never worse than SV: per-vessel length and 2D-fit checks with fallback
-    case         prepare_preop, run_case, plan_case: a whole case, gated and evaluated
+    case         prepare_preop, run_case, check_result, plan_case: a whole case, gated and evaluated
     outputs      write_outputs: the output set, staged and swapped in whole
 """
 
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from ..preop import (Preoperative, SMOOTHING_ITERATIONS, _induced_edges, _timed, build_preop, preop_from_lumen,
                      preop_from_skeleton)
-from .case import _read_ground_truth, _vessel_mask, plan_case, prepare_preop, run_case
+from .case import _read_ground_truth, _vessel_mask, check_result, plan_case, prepare_preop, run_case
 from .fallback import FIT_TOLERANCE_PX, LENGTH_TOLERANCE, SV_NAME, _never_worse_than_sv, _vessels
 from .frame import (POSE_MODES, STABLE_VESSELS, ViewSource, _classify_2d, _prepare_view, _skeleton2d_graph,
                     prepare_views, register_frame, register_prepared, register_views)
@@ -40,4 +40,5 @@ from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame
 
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult",
            "preop_from_skeleton", "preop_from_lumen", "build_preop", "prepare_preop", "picture_title",
-           "frame_visibility", "register_frame", "register_views", "ViewSource", "prepare_views", "register_prepared", "run_case", "plan_case", "write_outputs"]
+           "frame_visibility", "register_frame", "register_views", "ViewSource", "prepare_views", "register_prepared", "run_case", "check_result", "plan_case",
+           "write_outputs"]

@@ -20,7 +20,7 @@ from ..files import InputError, InputWarning, check_inside, display_path
 from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
-from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_prepared
+from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_frame, register_prepared
 from .outputs import _write_failure_qc, check_output_folder, write_outputs
 from .results import PlanResult, ViewFrame
 
@@ -101,7 +101,8 @@ def _preop_of(case: Case, preop, progress, segmenter, cache):
 
 def run_case(case: Case, *, method: str = "proposed", progress=None, start: str = "iliac_right",
              target: str = "renal_left", refine_pose="auto", alpha: float = 500.0,
-             beta: float = 10.0, segmenter: str = "classical", preop=None, cache=False, drr="auto") -> PlanResult:
+             beta: float = 10.0, segmenter: str = "classical", preop=None, cache=False, drr="auto",
+             mirror_test: bool = False) -> PlanResult:
     """Run the whole job on a loaded case: pre-op graph, registration to every view, path, errors.
 
     Every view of the case (``case.views``: the top-level frame and ``views/<name>/``) takes
@@ -110,6 +111,8 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     or a :class:`cache.PreopModel`) skips the pre-operative work; ``cache`` keeps it on disk
     (:func:`prepare_preop`). ``drr``: render the geometry check (:mod:`drr`) of the first
     view always (True), never (False) or when its ``P`` came from C-arm tags ("auto").
+    ``mirror_test``: register a single frame flipped left-right too (``PlanResult.flipped``,
+    for :func:`plausibility.check_not_mirrored`; proposed method only).
     """
     planning.check_labels(start, target)
     t0 = time.perf_counter()
@@ -155,6 +158,10 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
         raise failure
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
+    flipped = None
+    if mirror_test and method == "proposed" and len(views) == 1:
+        with _timed(timings, "mirror_test"):
+            flipped = _flipped_registration(preop, outcomes[0].mask, views[0], refine_pose, alpha, beta)
     _report(progress, 0.85, "planning the catheter path")
     with _timed(timings, "planning"):
         path = planning.plan_path(frame.deformed, start=start, target=target)
@@ -177,7 +184,21 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
                       sk_edges, views[0].fluoro.image, timings, errors,
                       {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
                       qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings),
-                      view_frames=list(frame.views))
+                      view_frames=list(frame.views), energy=frame.energy, flipped=flipped)
+
+
+def _flipped_registration(preop: Preoperative, mask: np.ndarray, view: View, refine_pose, alpha: float,
+                          beta: float):
+    """The view's vessel mask registered flipped left-right (issue 11, the mirror test of
+    :func:`plausibility.check_not_mirrored`), or None when that registration fails: then the
+    flipped frame is no evidence either way."""
+    image = view.fluoro.image
+    try:
+        return register_frame(preop, np.ascontiguousarray(mask[:, ::-1]), view.P, refine_pose=refine_pose,
+                              alpha=alpha, beta=beta,
+                              image=None if image is None else np.ascontiguousarray(image[:, ::-1]))
+    except Exception:       # noqa: BLE001  (any failure of the flipped frame: no evidence)
+        return None
 
 
 def _view_source(view: View, prior) -> ViewSource:
@@ -248,17 +269,10 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     for recorded in caught:      # passed on as they came: the CLI shows ours as notes
         warnings.warn_explicit(recorded.message, recorded.category, recorded.filename, recorded.lineno)
     plausibility.check_anatomy_in_view(case.P, _anatomy_points(case), case.fluoro.shape, case.paths.get("geometry", case_dir))
-    frame_path = case.paths.get("fluoro_mask", case.paths.get("fluoro"))
     try:
-        result = run_case(case, method=method, progress=progress,
+        result = run_case(case, method=method, progress=progress, mirror_test=True,
                           **{k: v for k, v in overrides.items() if k not in load_keys})
-        plausibility.check_anatomy_in_view(result.P, result.preop.points, case.fluoro.shape,
-                                           case.paths.get("geometry", case_dir))
-        plausibility.check_vessel_tree(result.skeleton2d_points, result.skeleton2d_edges, result.P,
-                                       result.preop.points, frame_path)
-        gate_notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=method)
-        if method == "proposed":      # issue 11: a frame not this case's anatomy, side or view
-            gate_notes += _registration_check(case, result, frame_path)
+        gate_notes = check_result(case, result)
     except quality.QualityError as failure:    # the QC picture first, so the user sees why
         if out_dir is not None and failure.qc is not None:
             _write_failure_qc(Path(out_dir), failure)
@@ -271,9 +285,36 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
     return result
 
 
+def check_result(case: Case, result: PlanResult) -> list[str]:
+    """The plausibility gates after a registration (:mod:`plausibility`); their warnings.
+
+    The anatomy still in front of the source and in the frame under the registration's ``P``,
+    a frame whose vessel tree is at the projected tree's scale, the registered vessels'
+    lengths and displacements, and for the proposed method the registration check on every
+    view and, when ``result`` holds it (:func:`run_case` with ``mirror_test``), the mirror
+    test. :func:`plan_case`, the workstation and the Slicer module run it on every result.
+
+    Raises
+    ------
+    files.InputError
+        One line naming the file and the problem; a :class:`quality.QualityError` (a
+        subclass) carries the QC picture's data.
+    """
+    frame_path = case.paths.get("fluoro_mask", case.paths.get("fluoro", "the frame"))
+    where = case.paths.get("geometry", case.case_dir if case.case_dir is not None else "the geometry")
+    plausibility.check_anatomy_in_view(result.P, result.preop.points, case.fluoro.shape, where)
+    plausibility.check_vessel_tree(result.skeleton2d_points, result.skeleton2d_edges, result.P,
+                                   result.preop.points, frame_path)
+    notes = plausibility.result_warnings(result.preop, result.deformed, frame_path, method=result.method)
+    if result.method == "proposed":      # issue 11: a frame not this case's anatomy, side or view
+        notes += _registration_check(case, result, frame_path)
+    return notes
+
+
 def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
     """:func:`plausibility.check_registration` on every view the registration used (the
-    refusal's QC picture shows that view's frame); the warnings of those it lets pass."""
+    refusal's QC picture shows that view's frame), and the mirror test on the first
+    (:func:`plausibility.check_not_mirrored`); the warnings of those it lets pass."""
     views = {view.name: view for view in getattr(case, "views", None) or []}
     checks = [(result.P, result.skeleton2d_points, result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)]
     for frame in result.view_frames[1:]:
@@ -283,8 +324,11 @@ def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
                            view.paths.get("fluoro_mask", view.paths.get("fluoro", frame.name)),
                            _view_qc(result.qc, view, quality.FluoroPrior.from_centerline(result.preop, frame.P))))
     notes = []
-    for P, points, edges, shape, path, qc in checks:
+    for k, (P, points, edges, shape, path, qc) in enumerate(checks):
         signals = plausibility.check_registration(result.preop, result.deformed, P, points, edges, shape, path, qc)
+        if k == 0:      # a single frame registered flipped too (run_case's mirror_test)
+            plausibility.check_not_mirrored(result.preop, result.deformed, P, result.energy, signals, result.flipped,
+                                            shape, path, qc)
         notes += plausibility.registration_warnings(signals)
     return notes
 

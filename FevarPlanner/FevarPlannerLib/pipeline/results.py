@@ -84,7 +84,10 @@ class PlanResult:
     has one dict per view (name, projection matrix, 2D error, visibility, inputs) and
     ``warnings`` what the plausibility checks replaced or doubted. ``view_frames`` holds, in
     the order of ``views``, each view's :class:`ViewFrame` (its ``P`` and 2D skeleton graph),
-    for front ends that draw every view; it is not written to result.json.
+    for front ends that draw every view; it is not written to result.json. ``energy`` is the
+    registration's eq. 6 energy; ``flipped`` the same single frame registered flipped
+    left-right (:func:`run_case` with ``mirror_test``), for the mirror test of the
+    registration check.
     """
 
     method: str
@@ -104,6 +107,8 @@ class PlanResult:
     views: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     view_frames: list = field(default_factory=list, repr=False)
+    energy: float | None = None
+    flipped: FrameResult | None = field(default=None, repr=False)
 
     def view_drawings(self, case=None) -> list[ViewDrawing]:
         """One :class:`ViewDrawing` per view the registration used, in the order of ``views``.
