@@ -736,4 +736,7 @@ def check_not_mirrored(preop, deformed, P, energy: float | None, signals: dict, 
                                            flipped.skeleton2d.edges(), frame_shape)
     verdict = mirror_verdict(mirror_evidence(energy, signals), mirror_evidence(flipped.energy, flipped_signals))
     if verdict is not None:
+        if qc is not None:
+            qc.flipped = (project(flipped.P, flipped.deformed.points),
+                          np.asarray(flipped.deformed.edges, dtype=np.int64).reshape(-1, 2))
         _refuse_registration(verdict, deformed, P, frame, qc)

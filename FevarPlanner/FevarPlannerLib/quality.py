@@ -199,7 +199,9 @@ class PriorBand:
 class QCData:
     """What the QC picture shows: any of the CT and its lumen, the frame, its mask, the prior,
     and ``registered``: the registered tree's projection ``(uv (n, 2), edges (m, 2))`` when the
-    registration check (:func:`plausibility.check_registration`) refused it."""
+    registration check (:func:`plausibility.check_registration`) refused it; ``flipped``: the
+    projection of the tree registered to the frame flipped left-right, in the flipped frame's
+    pixels, when the mirror test (:func:`plausibility.check_not_mirrored`) refused it."""
 
     ct: Volume | None = None
     lumen: Volume | None = None
@@ -208,6 +210,7 @@ class QCData:
     prior: object | None = None
     notes: list = field(default_factory=list)
     registered: tuple | None = None
+    flipped: tuple | None = None
 
 
 class QualityError(InputError):
@@ -648,19 +651,22 @@ def _ct_panels(fig, grid, ct: Volume, lumen: Volume | None):
     plt.setp(ax.spines.values(), visible=False)
 
 
-def _frame_panel(ax, frame: np.ndarray, mask2d, prior, registered=None) -> None:
+def _grey(frame: np.ndarray) -> np.ndarray:
+    """The frame as one grey image (a multi-frame run's first frame, colour averaged)."""
     grey = np.asarray(frame, dtype=np.float32)
     if grey.ndim == 3 and grey.shape[-1] not in (3, 4):
         grey = grey[0]
-    if grey.ndim == 3:
-        grey = grey[..., :3].mean(axis=-1)
+    return grey[..., :3].mean(axis=-1) if grey.ndim == 3 else grey
+
+
+def _frame_panel(ax, grey: np.ndarray, mask2d, prior, registered=None, heading: str = "frame") -> None:
     ax.imshow(grey, cmap="gray")
     if mask2d is not None and np.asarray(mask2d).any():
         ax.contour(np.asarray(mask2d) > 0, [0.5], colors="red", linewidths=0.6)
     if prior is not None:
         for a, b in prior.edges:
             ax.plot(prior.uv[[a, b], 0], prior.uv[[a, b], 1], color=PALETTE["preop"], linewidth=0.8)
-    title = "frame: mask red" + (", projected pre-op tree orange" if prior is not None else "")
+    title = f"{heading}: mask red" + (", projected pre-op tree orange" if prior is not None else "")
     if registered is not None:
         uv, edges = registered
         for a, b in edges:
@@ -670,6 +676,19 @@ def _frame_panel(ax, frame: np.ndarray, mask2d, prior, registered=None) -> None:
     ax.set_ylim(grey.shape[0], 0)
     ax.set_title(title, fontsize=8)
     ax.axis("off")
+
+
+def _frame_panels(qc: QCData) -> list:
+    """The frame panels' arguments (:func:`_frame_panel`): the frame as given, and beside it,
+    when the mirror test refused it, the frame flipped left-right with the tree registered there."""
+    if qc.frame is None:
+        return []
+    grey = _grey(qc.frame)
+    panels = [(grey, qc.mask2d, qc.prior, qc.registered, "frame as given" if qc.flipped is not None else "frame")]
+    if qc.flipped is not None:
+        mask = None if qc.mask2d is None else np.asarray(qc.mask2d)[:, ::-1]
+        panels.append((grey[:, ::-1], mask, qc.prior, qc.flipped, "frame flipped left-right"))
+    return panels
 
 
 def write_segmentation_qc(path, qc: QCData, message: str | None = None) -> Path:
@@ -682,16 +701,17 @@ def write_segmentation_qc(path, qc: QCData, message: str | None = None) -> Path:
     from matplotlib.gridspec import GridSpec
 
     path = Path(path)
+    frames = _frame_panels(qc)
     if qc.ct is not None:
-        fig = plt.figure(figsize=(15, 4.2))
-        grid = GridSpec(1, 6, figure=fig, width_ratios=[1, 1, 1, 1, 0.05, 1.6])
+        fig = plt.figure(figsize=(15 + 4.5 * (len(frames) - 1), 4.2))
+        grid = GridSpec(1, 5 + len(frames), figure=fig, width_ratios=[1, 1, 1, 1, 0.05] + [1.6] * len(frames))
         _ct_panels(fig, [grid[0, n] for n in range(4)], qc.ct, qc.lumen)
-        frame_place, width = grid[0, 5], 190
+        places, width = [grid[0, 5 + k] for k in range(len(frames))], 190
     else:       # the frame alone (a case given as masks): no empty CT panels beside it
-        fig = plt.figure(figsize=(7, 7.5))
-        frame_place, width = 111, 85
-    if qc.frame is not None:
-        _frame_panel(fig.add_subplot(frame_place), qc.frame, qc.mask2d, qc.prior, qc.registered)
+        fig = plt.figure(figsize=(7 * max(1, len(frames)), 7.5))
+        places, width = [(1, len(frames), k + 1) for k in range(len(frames))], 85 * max(1, len(frames))
+    for place, panel in zip(places, frames):
+        _frame_panel(fig.add_subplot(*place) if isinstance(place, tuple) else fig.add_subplot(place), *panel)
     title = textwrap.fill(message, width) if message else "segmentation passed the quality gate"
     fig.suptitle(title, fontsize=9, color="darkred" if message else "black")
     fig.subplots_adjust(top=0.88 - 0.05 * title.count("\n"))      # a long verdict wraps above the panels
