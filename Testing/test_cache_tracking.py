@@ -123,6 +123,21 @@ def test_track_refuses_a_frame_of_another_anatomy_by_the_registration_check(run_
     assert all(r.fit_2d_px is not None and r.fit_2d_px < 6.0 for r in (result.records[0], result.records[2]))
 
 
+def test_track_refuses_a_mirrored_run_whole_by_the_mirror_test(run_case_dir, cache_dir, tmp_path):
+    """The run's frames flipped left-right (the wrong side convention): frame 0 is refused by the
+    registration check, frame 1 registers and fits; registered flipped too, it fits better on
+    every count, so the whole run is refused, naming that frame."""
+    folder, generated = run_case_dir
+    case = tmp_path / "case"
+    shutil.copytree(folder, case)
+    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                    np.random.default_rng(seed))[0] for seed in range(2)]
+    io.write_fluoro_dicom(case / "fluoro.dcm", np.stack([frame[:, ::-1] for frame in frames]), generated.carm)
+    with pytest.raises(io.InputError, match=r"fluoro.dcm \(frame 1\): registration check: the frame looks mirrored "
+                                            r"left-right: registered flipped.*every frame is refused"):
+        track_case(case)
+
+
 def test_bad_option_values_fail_before_any_work(run_case_dir, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "untouched"))
     with pytest.raises(ValueError, match="target vessel must be one of"):

@@ -150,7 +150,7 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     result = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions, edges_2d,
                         fluoro.image, {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
                         {"fluoro": str(case.fluoro.path), "frame": index},
-                        geometry=case.geometry.to_dict() if case.geometry is not None else None)
+                        geometry=case.geometry.to_dict() if case.geometry is not None else None, energy=frame.energy)
     result.warnings.extend(frame.warnings + notes)
     return result, times
 
@@ -193,7 +193,7 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
                                     use_cache=cache not in (False, None))
     preop, preop_seconds = model.preop, time.perf_counter() - t0
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
-    records, last = [], None
+    records, last, side_checked = [], None, method != "proposed"
     for done, index in enumerate(frames):
         if progress is not None:
             progress(0.3 + 0.7 * done / len(frames), f"frame {index} ({done + 1}/{len(frames)})")
@@ -209,9 +209,33 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
                 continue
         records.append(FrameRecord(index, last.errors["2d_px"]["mean"], last.path.length_mm, times,
                                    sorted({str(w.message).splitlines()[0] for w in caught} | set(last.warnings))))
+        if not side_checked:        # once per run, on its first registered frame
+            _check_run_side(preop, case, index, prior, last)
+            side_checked = True
     if progress is not None:
         progress(1.0, f"{len(records)} frames")
     return TrackResult(records, preop_seconds, model.from_cache, method, last)
+
+
+def _check_run_side(preop, case, index: int, prior, given) -> None:
+    """Refuse the whole run when frame ``index``, its first registered frame (``given``, its
+    :class:`pipeline.PlanResult`), looks mirrored left-right: the side convention is the run's,
+    so the mirror test (:func:`plausibility.check_not_mirrored`) runs once, on that frame
+    registered flipped too."""
+    from .pipeline import register_flipped
+    from .segmentation import segment_fluoro
+
+    fluoro = case.fluoro if index == case.fluoro.frame else read_fluoro(case.fluoro.path, frame=index)
+    mask = segment_fluoro(fluoro.image, prior)
+    signals = plausibility.registration_signals(preop.centerline, given.deformed, given.P, given.skeleton2d_points,
+                                                given.skeleton2d_edges, mask.shape)
+    flipped = register_flipped(preop, mask, case.P, image=fluoro.image)
+    try:
+        plausibility.check_not_mirrored(preop.centerline, given.deformed, given.P, given.energy, signals, flipped,
+                                        mask.shape, f"{case.fluoro.path} (frame {index})")
+    except quality.QualityError as exc:
+        raise InputError(f"{_without_qc_picture(exc)}; the side convention is the run's: every frame is refused") \
+            from None
 
 
 def write_track_outputs(result: TrackResult, out_dir) -> dict:

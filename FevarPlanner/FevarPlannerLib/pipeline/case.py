@@ -20,7 +20,7 @@ from ..files import InputError, InputWarning, check_inside, display_path
 from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
-from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_frame, register_prepared
+from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_flipped, register_prepared
 from .outputs import _write_failure_qc, check_output_folder, write_outputs
 from .results import PlanResult, ViewFrame
 
@@ -161,7 +161,8 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     flipped = None
     if mirror_test and method == "proposed" and len(views) == 1:
         with _timed(timings, "mirror_test"):
-            flipped = _flipped_registration(preop, outcomes[0].mask, views[0], refine_pose, alpha, beta)
+            flipped = register_flipped(preop, outcomes[0].mask, views[0].P, image=views[0].fluoro.image,
+                                       refine_pose=refine_pose, alpha=alpha, beta=beta)
     _report(progress, 0.85, "planning the catheter path")
     with _timed(timings, "planning"):
         path = planning.plan_path(frame.deformed, start=start, target=target)
@@ -185,20 +186,6 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
                       {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
                       qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings),
                       view_frames=list(frame.views), energy=frame.energy, flipped=flipped)
-
-
-def _flipped_registration(preop: Preoperative, mask: np.ndarray, view: View, refine_pose, alpha: float,
-                          beta: float):
-    """The view's vessel mask registered flipped left-right (issue 11, the mirror test of
-    :func:`plausibility.check_not_mirrored`), or None when that registration fails: then the
-    flipped frame is no evidence either way."""
-    image = view.fluoro.image
-    try:
-        return register_frame(preop, np.ascontiguousarray(mask[:, ::-1]), view.P, refine_pose=refine_pose,
-                              alpha=alpha, beta=beta,
-                              image=None if image is None else np.ascontiguousarray(image[:, ::-1]))
-    except Exception:       # noqa: BLE001  (any failure of the flipped frame: no evidence)
-        return None
 
 
 def _view_source(view: View, prior) -> ViewSource:

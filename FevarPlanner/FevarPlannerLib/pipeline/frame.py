@@ -223,6 +223,23 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
                           refine_pose=refine_pose, alpha=alpha, beta=beta)
 
 
+def register_flipped(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, image: np.ndarray | None = None,
+                     refine_pose="auto", alpha: float = 500.0, beta: float = 10.0) -> FrameResult | None:
+    """The frame registered flipped left-right (proposed method), or None when that fails.
+
+    The mirror test's other hypothesis (issue 11, :func:`plausibility.check_not_mirrored`): a
+    frame shown with the wrong side convention is, flipped, the right one. ``mask2d``,
+    ``image`` and ``P`` are the frame's as given (:func:`register_frame`); a flipped frame
+    that cannot be registered is no evidence either way.
+    """
+    flipped = None if image is None else np.ascontiguousarray(np.asarray(image)[:, ::-1])
+    try:
+        return register_frame(preop, np.ascontiguousarray(np.asarray(mask2d)[:, ::-1]), P, refine_pose=refine_pose,
+                              alpha=alpha, beta=beta, image=flipped)
+    except Exception:       # noqa: BLE001  (any failure of the flipped frame: no evidence)
+        return None
+
+
 def register_views(preop: Preoperative, frames, *, names=None, images=None, method: str = "proposed",
                    refine_pose="auto", alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
     """Register the pre-operative skeleton to several frames of the same anatomy at once.
