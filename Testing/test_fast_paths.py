@@ -672,3 +672,77 @@ def test_the_data_term_with_its_factors_kept_equals_the_formula_to_the_bit(behin
     far[:, 7] -= 5000.0 * np.sign(P[2, :3]) * (-1.0 if behind else 1.0)   # one node through the source plane
     assert _data_term_as_written(P, targets, view.data_weights, far) is None
     assert view.data_term(far, True) is None
+
+
+def _frangi_written_out(image: np.ndarray, sigmas, polarities, beta: float = 0.5, c_fraction: float = 0.5) -> dict:
+    """Multi-scale Frangi vesselness as first written: ordered eigenvalues over the whole image."""
+    image = np.asarray(image, dtype=np.float32)
+    best = {polarity: np.zeros_like(image) for polarity in polarities}
+    for sigma in sigmas:
+        smooth = ndi.gaussian_filter(image, float(sigma), mode="nearest")
+        hrr, hcc = np.empty_like(smooth), np.empty_like(smooth)
+        hrr[1:-1] = smooth[2:] - 2 * smooth[1:-1] + smooth[:-2]
+        hrr[0], hrr[-1] = hrr[1], hrr[-2]
+        hcc[:, 1:-1] = smooth[:, 2:] - 2 * smooth[:, 1:-1] + smooth[:, :-2]
+        hcc[:, 0], hcc[:, -1] = hcc[:, 1], hcc[:, -2]
+        hrc = np.gradient(np.gradient(smooth, axis=0), axis=1)
+        scale = float(sigma) ** 2
+        half_trace = 0.5 * (hrr + hcc) * scale
+        root = np.sqrt((0.5 * (hrr - hcc)) ** 2 + hrc ** 2) * scale
+        a, b = half_trace + root, half_trace - root
+        swap = np.abs(a) > np.abs(b)
+        l1, l2 = np.where(swap, b, a), np.where(swap, a, b)
+        structure = l1 ** 2 + l2 ** 2
+        c2 = (c_fraction ** 2) * float(structure.max()) + 1e-12
+        rb2 = (l1 / np.where(l2 == 0, 1e-12, l2)) ** 2
+        response = np.exp(-rb2 / (2 * beta ** 2)) * (1 - np.exp(-structure / (2 * c2)))
+        for polarity, running in best.items():
+            right_sign = (l2 < 0) if polarity == "bright" else (l2 > 0)
+            np.maximum(running, np.where(right_sign, response, 0.0), out=running)
+    return best
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a.view(np.uint8), b.view(np.uint8))
+
+
+def test_vesselness_in_a_band_equals_the_whole_images_response_times_the_band_to_the_bit():
+    rng = np.random.default_rng(12)
+    for trial in range(12):
+        shape = tuple(rng.integers(8, 90, size=2))
+        image = ndi.gaussian_filter(rng.random(shape), 1.0).astype(np.float32)
+        image[rng.integers(0, shape[0]), :] += 0.5                    # a bright line
+        sigmas = np.geomspace(0.8, float(rng.uniform(1.0, 4.5)), 4)
+        band = ndi.binary_dilation(rng.random(shape) < 0.05, iterations=int(rng.integers(1, 6)))
+        polarities = ("bright",) if trial % 2 else ("bright", "dark")
+        plain = _frangi_written_out(image, sigmas, polarities)
+        whole = fluoro.vesselness(image, sigmas, polarities=polarities)
+        banded = fluoro.vesselness(image, sigmas, polarities=polarities, inside=band)
+        for polarity in polarities:
+            assert _same_bits(whole[polarity], plain[polarity])
+            assert _same_bits(banded[polarity], plain[polarity] * band)
+        assert np.count_nonzero(banded["bright"]) > 0
+
+
+def test_square_filters_by_doubling_spans_equal_scipys_grey_filters_to_the_bit():
+    rng = np.random.default_rng(13)
+    for trial in range(60):
+        shape = tuple(rng.integers(1, 70, size=2))
+        image = rng.random(shape).astype(np.float32 if trial % 2 else np.float64)
+        radius = int(rng.integers(1, 16))
+        size = (2 * radius + 1,) * 2
+        top_hat = image - ndi.grey_dilation(ndi.grey_erosion(image, size=size), size=size)
+        assert _same_bits(fluoro._local_contrast(image, radius), top_hat)
+        assert _same_bits(fluoro._centred_square_extreme(image, radius, np.maximum, -np.inf),
+                          ndi.grey_dilation(image, size=size))
+
+
+def test_cross_dilation_erosion_and_diamond_opening_equal_scipys_binary_morphology():
+    rng = np.random.default_rng(14)
+    for mask in random_masks(seed=15, count=120):
+        iterations = int(rng.integers(1, 6))
+        assert np.array_equal(fluoro._cross_dilation(mask, iterations), ndi.binary_dilation(mask, iterations=iterations))
+        assert np.array_equal(fluoro._cross_erosion(mask, iterations), ndi.binary_erosion(mask, iterations=iterations))
+        for radius in (1, 2):
+            disk = np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
+            assert np.array_equal(fluoro._diamond_opening(mask, radius), ndi.binary_opening(mask, structure=disk))

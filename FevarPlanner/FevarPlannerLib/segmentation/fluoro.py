@@ -96,8 +96,9 @@ def _upsample_above(image: np.ndarray, factor: int, shape: tuple[int, int], leve
     return found
 
 
-def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """Scale-normalised Hessian eigenvalues (|l1| <= |l2|) of a Gaussian-smoothed image."""
+def _hessian_pair(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-normalised Hessian eigenvalues of a Gaussian-smoothed image, unordered:
+    (half trace + root, half trace - root)."""
     smooth = ndi.gaussian_filter(image, sigma, mode="nearest")
     hrr = np.empty_like(smooth)
     hcc = np.empty_like(smooth)
@@ -110,13 +111,22 @@ def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, n
     scale = sigma ** 2
     half_trace = 0.5 * (hrr + hcc) * scale
     root = np.sqrt((0.5 * (hrr - hcc)) ** 2 + hrc ** 2) * scale
-    a, b = half_trace + root, half_trace - root
+    return half_trace + root, half_trace - root
+
+
+def _ordered(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``a, b`` ordered element by element so that the first has the smaller magnitude."""
     swap = np.abs(a) > np.abs(b)
     return np.where(swap, b, a), np.where(swap, a, b)
 
 
+def _hessian_eigenvalues(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-normalised Hessian eigenvalues (|l1| <= |l2|) of a Gaussian-smoothed image."""
+    return _ordered(*_hessian_pair(image, sigma))
+
+
 def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("bright",), beta: float = 0.5,
-               c_fraction: float = 0.5) -> dict:
+               c_fraction: float = 0.5, inside: np.ndarray | None = None) -> dict:
     """Multi-scale Frangi vesselness of a 2D image, for bright and / or dark vessels.
 
     For each scale the Hessian eigenvalues ``l1, l2`` (``|l1| <= |l2|``) give
@@ -124,23 +134,75 @@ def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("b
     ``S = sqrt(l1^2 + l2^2)`` and ``c = c_fraction * max S``; ``V = 0`` where ``l2`` has the
     wrong sign for the polarity (``l2 < 0`` for bright vessels, ``> 0`` for dark ones).
 
+    ``inside`` (bool, the image's shape): ``V`` is computed only there and is 0 elsewhere,
+    the same values as the whole image's ``V`` times ``inside`` (``c`` still comes from the
+    whole image; ``S^2`` does not depend on the order of ``l1, l2``).
+
     Returns
     -------
     dict
         ``polarity -> V``, the maximum over scales (float32, same shape as ``image``).
     """
     image = np.asarray(image, dtype=np.float32)
-    best = {polarity: np.zeros_like(image) for polarity in polarities}
+    picked = None if inside is None else np.flatnonzero(inside)
+    size = image.size if picked is None else len(picked)
+    best = {polarity: np.zeros(size, dtype=np.float32) for polarity in polarities}
     for sigma in sigmas:
-        l1, l2 = _hessian_eigenvalues(image, float(sigma))
-        structure = l1 ** 2 + l2 ** 2
+        a, b = _hessian_pair(image, float(sigma))
+        structure = a ** 2 + b ** 2                     # = l1^2 + l2^2: a sum does not depend on the order
         c2 = (c_fraction ** 2) * float(structure.max()) + 1e-12
+        if picked is not None:
+            a, b, structure = a.reshape(-1)[picked], b.reshape(-1)[picked], structure.reshape(-1)[picked]
+        l1, l2 = _ordered(a.reshape(-1), b.reshape(-1))
         rb2 = (l1 / np.where(l2 == 0, 1e-12, l2)) ** 2
-        response = np.exp(-rb2 / (2 * beta ** 2)) * (1 - np.exp(-structure / (2 * c2)))
+        response = np.exp(-rb2 / (2 * beta ** 2)) * (1 - np.exp(-structure.reshape(-1) / (2 * c2)))
         for polarity, running in best.items():
             right_sign = (l2 < 0) if polarity == "bright" else (l2 > 0)
             np.maximum(running, np.where(right_sign, response, 0.0), out=running)
-    return best
+    if picked is None:
+        return {polarity: running.reshape(image.shape) for polarity, running in best.items()}
+    out = {}
+    for polarity, running in best.items():
+        out[polarity] = np.zeros(image.shape, dtype=np.float32)
+        out[polarity].reshape(-1)[picked] = running
+    return out
+
+
+def _cross_dilation(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndi.binary_dilation(mask, iterations=iterations)`` (the 4-connected cross, nothing beyond
+    the grid) of a 2D bool mask, by shifted ORs."""
+    out = np.array(mask, dtype=bool)
+    for _ in range(iterations):
+        grown = out.copy()
+        grown[1:] |= out[:-1]
+        grown[:-1] |= out[1:]
+        grown[:, 1:] |= out[:, :-1]
+        grown[:, :-1] |= out[:, 1:]
+        out = grown
+    return out
+
+
+def _cross_erosion(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """``ndi.binary_erosion(mask, iterations=iterations)`` (the 4-connected cross; beyond the grid
+    counts as background) of a 2D bool mask, by shifted ANDs."""
+    out = np.array(mask, dtype=bool)
+    for _ in range(iterations):
+        kept = out.copy()
+        kept[1:] &= out[:-1]
+        kept[:-1] &= out[1:]
+        kept[:, 1:] &= out[:, :-1]
+        kept[:, :-1] &= out[:, 1:]
+        kept[[0, -1]] = False
+        kept[:, [0, -1]] = False
+        out = kept
+    return out
+
+
+def _diamond_opening(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Binary opening of a 2D bool mask by the diamond of ``radius`` (pixels at city-block distance
+    <= radius): erosion then dilation by the cross, ``radius`` times each (the diamond is the
+    cross added to itself ``radius`` times; on the grid's box the steps can always stay inside)."""
+    return _cross_dilation(_cross_erosion(mask, radius), radius)
 
 
 def _grey_frame(image: np.ndarray, photometric: str | None) -> np.ndarray:
@@ -172,9 +234,30 @@ def _normalise(image: np.ndarray) -> np.ndarray:
 
 
 def _local_contrast(image: np.ndarray, radius: int) -> np.ndarray:
-    """White top-hat: ``image`` minus its grey opening with a (2 radius + 1)^2 square."""
-    size = 2 * radius + 1
-    return image - ndi.grey_dilation(ndi.grey_erosion(image, size=(size, size)), size=(size, size))
+    """White top-hat: ``image`` minus its grey opening with a (2 radius + 1)^2 square (centred,
+    as ``ndi.grey_dilation(ndi.grey_erosion(image, size), size)``)."""
+    eroded = _centred_square_extreme(image, radius, np.minimum, np.inf)
+    return image - _centred_square_extreme(eroded, radius, np.maximum, -np.inf)
+
+
+def _centred_square_extreme(image: np.ndarray, radius: int, reduce, fill: float) -> np.ndarray:
+    """``reduce`` (np.minimum / np.maximum) of ``image`` over the (2 radius + 1)^2 square centred on
+    each pixel, cut at the grid's edge: ``ndi.minimum_filter`` / ``ndi.maximum_filter`` with that
+    size, whose mirrored pixels beyond the edge repeat pixels already in the window. Along
+    rows, then columns, each by doubling spans over the axis padded with ``fill``."""
+    out = np.asarray(image)
+    n = 2 * radius + 1
+    for axis in range(2):
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (radius, radius)
+        current, span = np.pad(out, pad, constant_values=fill), 1
+        while span < n:         # current[k] = reduce over span pixels from k (of the padded axis)
+            count = span if 2 * span <= n else n - span
+            ahead = current[count:] if axis == 0 else current[:, count:]
+            current = reduce(current[:-count] if axis == 0 else current[:, :-count], ahead)
+            span += count
+        out = current
+    return out
 
 
 def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, vessels: str = "auto",
@@ -258,7 +341,7 @@ def _vessel_region(oriented: np.ndarray, response: np.ndarray, max_sigma: float,
     tree_contrast = float(np.median(contrast[tree]))
     if tree_contrast <= 0:
         return tree
-    near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max_sigma)))
+    near_tree = _cross_dilation(tree, int(math.ceil(max_sigma)))
     vessel = (contrast > contrast_fraction * tree_contrast) & near_tree
     labels, _ = ndi.label(vessel)
     touching = np.unique(labels[tree & vessel])
@@ -400,10 +483,14 @@ def _wide_vessels_are_blocks(vessel: np.ndarray, radius: np.ndarray, contrast: n
     if not wide.any():
         return False
     core_radius = max(1, int(round(CORE_RADII * WIDE_RADIUS_PX)))
-    disk = np.hypot(*np.mgrid[-core_radius:core_radius + 1, -core_radius:core_radius + 1]) <= core_radius
+    offsets = np.mgrid[-core_radius:core_radius + 1, -core_radius:core_radius + 1]
+    disk = np.hypot(*offsets) <= core_radius
     per_radius = contrast / np.maximum(radius, 1.0)        # a lumen's contrast grows with its chord
-    core = ndi.binary_opening(wide & (per_radius >= GAP_FRACTION * float(np.median(per_radius[wide]))),
-                              structure=disk)
+    lumen = wide & (per_radius >= GAP_FRACTION * float(np.median(per_radius[wide])))
+    if np.array_equal(disk, np.abs(offsets).sum(axis=0) <= core_radius):    # a diamond (radius <= 2)
+        core = _diamond_opening(lumen, core_radius)
+    else:
+        core = ndi.binary_opening(lumen, structure=disk)
     labels, n = ndi.label(core)
     if n == 0:
         return True
@@ -492,7 +579,7 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     else:
         across = prior.derived(("across", small_shape, factor, reach), lambda: _lines_across(prior, nearest, radius))
         oriented = _flatten_across(oriented, across)
-    response = vesselness(oriented, sigmas, polarities=("bright",))["bright"] * band
+    response = vesselness(oriented, sigmas, polarities=("bright",), inside=band)["bright"]
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
     codes = prior.derived(("label_codes", small_shape, factor, reach), lambda: _label_codes(prior, nearest))
@@ -504,7 +591,7 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     vessel, relative = _vessel_region_relative(oriented, tree, spine, radius, float(sigmas[-1]), contrast_fraction)
     vessel &= band
     vessel &= _within_expected_width(vessel, widest, spine=spine)
-    thin = vessel & ~ndi.binary_opening(vessel, structure=ndi.generate_binary_structure(2, 1))
+    thin = vessel & ~_diamond_opening(vessel, 1)
     vessel &= ~(thin & (radius >= 2.0) & (distance > radius + 2.0))   # lines off a wide vessel's projection
     vessel &= ~_straight_thin_devices(vessel, 2.0 * radius)
     expected_length = prior.derived(("wide_length", small_shape, factor), lambda: _wide_tree_length(prior, factor, small_shape))
@@ -572,7 +659,7 @@ def _vessel_region_relative(oriented: np.ndarray, tree: np.ndarray, spine, radiu
     Returns the binary region (pixels above ``contrast_fraction`` of their local centre-line
     contrast, connected to the tree) and the relative contrast (for the sub-pixel edge)."""
     contrast = _local_contrast(oriented, int(math.ceil(3 * max_sigma)))
-    near_tree = ndi.binary_dilation(tree, iterations=int(math.ceil(max_sigma)))
+    near_tree = _cross_dilation(tree, int(math.ceil(max_sigma)))
     distance, (ri, ci) = spine
     on_spine = np.zeros(contrast.shape, dtype=np.float32)
     rows, cols = np.nonzero(distance == 0)
@@ -617,7 +704,7 @@ def _widest_nearby(radius: np.ndarray) -> np.ndarray:
     thin branch seen end-on projects onto the aorta, the aorta's radius, not the branch's,
     bounds the mask's width."""
     reach = int(math.ceil(float(radius.max()))) if radius.size else 0
-    return ndi.grey_dilation(radius, size=(2 * reach + 1, 2 * reach + 1)) if reach > 0 else radius
+    return _centred_square_extreme(radius, reach, np.maximum, -np.inf) if reach > 0 else radius
 
 
 def _contrast_noise_floor(contrast: np.ndarray, near_tree: np.ndarray) -> float:
@@ -634,7 +721,7 @@ def _soft_extent(vessel: np.ndarray, relative: np.ndarray, contrast_fraction: fl
     region, and on the pixels just around it the partial contrast of an edge (below
     ``contrast_fraction``; a pixel above it that is not in the region was dropped on purpose,
     as a device, a bone or too wide, and stays out)."""
-    rim = ndi.binary_dilation(vessel) & ~vessel & (relative < contrast_fraction)
+    rim = _cross_dilation(vessel) & ~vessel & (relative < contrast_fraction)
     return np.where(vessel | rim, np.clip(relative, 0.0, 1.0), 0.0).astype(np.float32)
 
 
