@@ -98,20 +98,37 @@ def _upsample_above(image: np.ndarray, factor: int, shape: tuple[int, int], leve
 
 def _hessian_pair(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """Scale-normalised Hessian eigenvalues of a Gaussian-smoothed image, unordered:
-    (half trace + root, half trace - root)."""
+    (half trace + root, half trace - root). Second differences (edges copied from their
+    neighbours) and the gradient of the gradient for the cross term, worked in place."""
     smooth = ndi.gaussian_filter(image, sigma, mode="nearest")
     hrr = np.empty_like(smooth)
     hcc = np.empty_like(smooth)
-    hrr[1:-1] = smooth[2:] - 2 * smooth[1:-1] + smooth[:-2]
+    _second_difference(smooth, hrr[1:-1], smooth[2:], smooth[1:-1], smooth[:-2])
     hrr[0], hrr[-1] = hrr[1], hrr[-2]
-    hcc[:, 1:-1] = smooth[:, 2:] - 2 * smooth[:, 1:-1] + smooth[:, :-2]
+    _second_difference(smooth, hcc[:, 1:-1], smooth[:, 2:], smooth[:, 1:-1], smooth[:, :-2])
     hcc[:, 0], hcc[:, -1] = hcc[:, 1], hcc[:, -2]
-    grad_r = np.gradient(smooth, axis=0)
-    hrc = np.gradient(grad_r, axis=1)
-    scale = sigma ** 2
-    half_trace = 0.5 * (hrr + hcc) * scale
-    root = np.sqrt((0.5 * (hrr - hcc)) ** 2 + hrc ** 2) * scale
-    return half_trace + root, half_trace - root
+    hrc = np.gradient(np.gradient(smooth, axis=0), axis=1)
+    scale = np.float32(sigma ** 2)
+    root = np.subtract(hrr, hcc)
+    root *= np.float32(0.5)
+    np.square(root, out=root)
+    np.square(hrc, out=hrc)
+    root += hrc
+    np.sqrt(root, out=root)
+    root *= scale
+    half_trace = hrr
+    half_trace += hcc
+    half_trace *= np.float32(0.5)
+    half_trace *= scale
+    return half_trace + root, np.subtract(half_trace, root, out=hcc)
+
+
+def _second_difference(smooth: np.ndarray, out: np.ndarray, after: np.ndarray, at: np.ndarray,
+                       before: np.ndarray) -> None:
+    """``out = after - 2 at + before`` (in that order of operations), without temporaries."""
+    np.multiply(at, smooth.dtype.type(2), out=out)
+    np.subtract(after, out, out=out)
+    out += before
 
 
 def _ordered(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
