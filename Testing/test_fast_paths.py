@@ -746,3 +746,21 @@ def test_cross_dilation_erosion_and_diamond_opening_equal_scipys_binary_morpholo
         for radius in (1, 2):
             disk = np.hypot(*np.mgrid[-radius:radius + 1, -radius:radius + 1]) <= radius
             assert np.array_equal(fluoro._diamond_opening(mask, radius), ndi.binary_opening(mask, structure=disk))
+
+
+def test_the_kept_vessels_and_pieces_are_those_of_the_centerline_asked_about():
+    case = phantom_case("fallback", seed=11)
+    centerline = preop_model(case).centerline
+    stretched = centerline.with_points(centerline.points * np.array([1.0, 1.0, 1.3]))
+    for line in (centerline, stretched, centerline):
+        vessels, pieces = fallback._judged_vessels(line)
+        plain = sorted((v for v in fallback._vessels(line) if v.label != "other"), key=lambda v: v.label != "aorta")
+        assert [v.label for v in vessels] == [v.label for v in plain] and vessels[0].label == "aorta"
+        for vessel, cut, fresh in zip(vessels, pieces, plain):
+            np.testing.assert_array_equal(vessel.nodes, fresh.nodes)
+            again = fallback._pieces(fresh, line.points)
+            assert [(p.start_mm, p.end_mm) for p in cut] == [(p.start_mm, p.end_mm) for p in again]
+            for p, q in zip(cut, again):
+                np.testing.assert_array_equal(p.nodes, q.nodes)
+                np.testing.assert_array_equal(p.edges, q.edges)
+    assert fallback._judged_vessels(centerline)[1][0][0].end_mm != fallback._judged_vessels(stretched)[1][0][0].end_mm

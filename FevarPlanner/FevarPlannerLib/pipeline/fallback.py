@@ -68,7 +68,10 @@ def _fits_of(sets: list, views: list, kept: np.ndarray) -> list:
     fits = [[] for _ in sets]
     for v in views:
         shown = [(points, nodes[v.visible[kept[nodes]]]) for points, nodes in sets]
-        projected = {id(points): project(v.P, points) for points, nodes in shown if len(nodes)}  # eq. 1, once a shape
+        projected = {}
+        for points, nodes in shown:
+            if len(nodes) and id(points) not in projected:
+                projected[id(points)] = project(v.P, points)       # eq. 1, once a shape
         uv = [projected[id(points)][nodes] for points, nodes in shown if len(nodes)]
         if not uv:
             continue
@@ -310,6 +313,21 @@ def _replaced(result: np.ndarray, option: np.ndarray, vessel: _Vessel) -> np.nda
     return moved
 
 
+def _judged_vessels(centerline: Centerline) -> tuple[list, list]:
+    """The matched vessels of ``centerline`` (the aorta first) and their pieces on its own points
+    (:func:`_pieces`); kept for the last centerline asked about, whose frames follow one another."""
+    key = (centerline.points.tobytes(), centerline.edges.tobytes(), tuple(centerline.labels))
+    if _JUDGED[0] is not centerline or _JUDGED[1] != key:
+        # "other" vessels (SMA, coeliac, internal iliacs) have no 2D partner: the TPS moves them
+        vessels = [v for v in _vessels(centerline) if v.label != "other"]
+        vessels.sort(key=lambda v: v.label != "aorta")
+        _JUDGED[:] = [centerline, key, (vessels, [_pieces(vessel, centerline.points) for vessel in vessels])]
+    return _JUDGED[2]
+
+
+_JUDGED = [None, None, None]
+
+
 def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, views: list) -> tuple:
     """Check each vessel of ``result`` against the undeformed (SV) start; replace implausible ones.
 
@@ -333,11 +351,8 @@ def _never_worse_than_sv(result: np.ndarray, alternatives, preop: Preoperative, 
     """
     alternatives = functools.cache(alternatives)
     sv = preop.centerline.points
-    # "other" vessels (SMA, coeliac, internal iliacs) have no 2D partner: the TPS moves them
-    vessels = [v for v in _vessels(preop.centerline) if v.label != "other"]
-    vessels.sort(key=lambda v: v.label != "aorta")
+    vessels, pieces = _judged_vessels(preop.centerline)
     result, warnings = result.copy(), []
-    pieces = [_pieces(vessel, sv) for vessel in vessels]
     # SV's fits and those of the vessels (and pieces) still to judge on ``result``: one query per view while it stays
     sv_fits, fits = _fits_by_vessel([sv, result], vessels, pieces, views, preop.kept)
     for k, (vessel, cut, (sv_fit, sv_piece_fits)) in enumerate(zip(vessels, pieces, sv_fits)):
