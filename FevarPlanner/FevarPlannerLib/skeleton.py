@@ -129,7 +129,8 @@ def _euler_number_2d(mask: np.ndarray) -> int:
     """
     padded = np.pad(mask, 1).view(np.uint8)
     quad = padded[:-1, :-1] + 2 * padded[:-1, 1:] + 4 * padded[1:, :-1] + 8 * padded[1:, 1:]
-    counts = np.bincount(quad.ravel(), minlength=16)
+    mixed = quad[(quad != 0) & (quad != 15)]        # empty and full quads count for nothing
+    counts = np.bincount(mixed, minlength=16)
     ones = counts[[1, 2, 4, 8]].sum()
     threes = counts[[7, 11, 13, 14]].sum()
     diagonals = counts[[6, 9]].sum()
