@@ -764,3 +764,17 @@ def test_the_kept_vessels_and_pieces_are_those_of_the_centerline_asked_about():
                 np.testing.assert_array_equal(p.nodes, q.nodes)
                 np.testing.assert_array_equal(p.edges, q.edges)
     assert fallback._judged_vessels(centerline)[1][0][0].end_mm != fallback._judged_vessels(stretched)[1][0][0].end_mm
+
+
+def test_hysteresis_by_label_indexing_equals_scikit_images():
+    from skimage.filters import apply_hysteresis_threshold
+
+    rng = np.random.default_rng(16)
+    for trial in range(80):
+        shape = tuple(rng.integers(1, 60, size=2))
+        image = ndi.gaussian_filter(rng.random(shape), rng.uniform(0.5, 3.0)).astype(np.float32)
+        image = (image - image.min()) / max(float(np.ptp(image)), 1e-6)
+        low, high = sorted(rng.uniform(0.0, 1.0, size=2))
+        if trial % 5 == 0:
+            low, high = high, low           # low above high: clipped to it
+        assert np.array_equal(fluoro._hysteresis(image, low, high), apply_hysteresis_threshold(image, low, high))

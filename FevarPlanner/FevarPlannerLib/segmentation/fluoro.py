@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage as ndi
-from skimage.filters import apply_hysteresis_threshold
 
 from ..files import InputError
 from ..quality import DEFORMATION_MARGIN_MM, FluoroPrior
@@ -185,6 +184,16 @@ def vesselness(image: np.ndarray, sigmas=(1.0, 2.0, 3.0, 4.5), *, polarities=("b
     return out
 
 
+def _hysteresis(image: np.ndarray, low: float, high: float) -> np.ndarray:
+    """``skimage.filters.apply_hysteresis_threshold``: the 4-connected pieces above ``low`` that hold a
+    pixel above ``high``; each piece marked by indexing its label, without a sum per label."""
+    low = np.clip(low, a_min=None, a_max=high)
+    labels, count = ndi.label(image > low)
+    touched = np.zeros(count + 1, dtype=bool)
+    touched[labels[image > high]] = True
+    return touched[labels]
+
+
 def _cross_dilation(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
     """``ndi.binary_dilation(mask, iterations=iterations)`` (the 4-connected cross, nothing beyond
     the grid) of a 2D bool mask, by shifted ORs."""
@@ -350,7 +359,7 @@ def _vessel_region(oriented: np.ndarray, response: np.ndarray, max_sigma: float,
     ``reference`` (default: the 99.5th percentile of ``response``) is what ``high`` and ``low``
     are fractions of."""
     reference = (float(np.percentile(response, 99.5)) if reference is None else reference) + 1e-12
-    tree = apply_hysteresis_threshold(response / reference, low, high)
+    tree = _hysteresis(response / reference, low, high)
     if not tree.any():
         return tree
     radius = int(math.ceil(3 * max_sigma))
@@ -601,7 +610,7 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     reference = _percentile_among_zeros(response, 99.5, total)
     codes = prior.derived(("label_codes", small_shape, factor, reach), lambda: _label_codes(prior, nearest))
     response = response / _per_vessel_reference(response, codes, band, reference)
-    tree = apply_hysteresis_threshold(response, low, high)
+    tree = _hysteresis(response, low, high)
     if not tree.any():
         return np.zeros(frame.shape, dtype=bool)
     spine = _spine_lookup(tree)
