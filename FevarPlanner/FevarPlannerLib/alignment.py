@@ -181,7 +181,10 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     others[own] = False
     if np.count_nonzero(others) >= 3:
         direction = _principal_direction(best.moved)
-        moved = moved + _along_reference_shift(moved[others], direction, curve, tree, normals) * direction
+        groups = [np.arange(bounds[i], bounds[i + 1]) for i in range(len(names)) if i != k]
+        shift = _along_reference_shift(moved, groups, _ostia(moved, groups, moved[own]), direction, curve, tree,
+                                       normals)
+        moved = moved + shift * direction
     return fit_in_plane_rigid(source, moved, P)
 
 
@@ -208,28 +211,64 @@ def _principal_direction(points: np.ndarray) -> np.ndarray:
     return np.linalg.eigh(centred.T @ centred)[1][:, -1]
 
 
-def _along_reference_shift(moved: np.ndarray, direction: np.ndarray, curve, tree, normals) -> float:
-    """The shift along ``direction`` that brings ``moved`` nearest to the curve (px).
+def _ostia(moved: np.ndarray, groups: list, reference_uv: np.ndarray) -> list:
+    """Row of each group nearest to the reference region's points: where a renal leaves the aorta."""
+    return [int(rows[np.argmin(np.min(np.linalg.norm(moved[rows][:, None] - reference_uv[None], axis=2), axis=1))])
+            for rows in groups]
 
-    Point-to-line residuals, one degree of freedom, Huber weights, closest points renewed
-    each pass; points whose curve runs along ``direction`` carry no weight.
+
+def _along_reference_shift(moved: np.ndarray, groups: list, pivots: list, direction: np.ndarray, curve, tree,
+                           normals) -> float:
+    """The shift along ``direction`` that brings the ``groups`` of ``moved`` nearest to the curve (px).
+
+    Each group (the rows of one renal ostium part) may also turn in-plane about its
+    ``pivots`` row (its ostium): a wire tilts a renal about its ostium by a few degrees,
+    which moves the far points of the ostium part across the renal, nearly along the aorta;
+    read as a shift, that tilt moved the estimate by up to 5 px. Point-to-line residuals,
+    Gauss-Newton on the shift and one turn a group, Huber weights, closest points renewed
+    each pass; points whose curve runs along ``direction`` carry no weight on the shift. A
+    group of fewer than ``MIN_TURN_POINTS`` rows only shifts.
     """
-    shift = 0.0
+    rows = np.concatenate(groups)
+    points = moved[rows]
+    turning = [(g, rows_) for g, rows_ in enumerate(groups) if len(rows_) >= MIN_TURN_POINTS]
+    pivot = np.zeros_like(points)
+    column = np.full(len(rows), -1)
+    start = np.cumsum([0] + [len(g) for g in groups])
+    for c, (g, _) in enumerate(turning):
+        pivot[start[g]:start[g + 1]] = moved[pivots[g]]
+        column[start[g]:start[g + 1]] = c
+    turns = column >= 0
+    params = np.zeros(1 + len(turning))
     for _ in range(ICP_ITERATIONS):
-        at = moved + shift * direction
+        arm = _turned(points - pivot, np.where(turns, params[1:][np.maximum(column, 0)] if len(turning) else 0.0, 0.0))
+        at = pivot + arm + params[0] * direction
         _, nearest = tree.query(at)
         n = normals[nearest]
         residual = np.einsum("ij,ij->i", n, at - curve[nearest])
-        slope = n @ direction
+        jacobian = np.zeros((len(points), len(params)))
+        jacobian[:, 0] = n @ direction
+        jacobian[turns, 1 + column[turns]] = n[turns, 1] * arm[turns, 0] - n[turns, 0] * arm[turns, 1]
         w = _huber_weights(residual)
-        denominator = float(w @ slope ** 2)
-        if denominator < 1e-9:
-            return shift
-        step = -float(w @ (slope * residual)) / denominator
-        shift += step
-        if abs(step) < ICP_SETTLED_PX:
+        if float(w @ jacobian[:, 0] ** 2) < 1e-9:
             break
-    return shift
+        step = np.linalg.lstsq(jacobian * np.sqrt(w)[:, None], -residual * np.sqrt(w), rcond=None)[0]
+        params += step
+        if abs(step[0]) < ICP_SETTLED_PX and np.all(np.abs(step[1:]) < TURN_SETTLED_RAD):
+            break
+    return float(params[0])
+
+
+#: A renal ostium part needs this many points to fit its own turn (:func:`_along_reference_shift`).
+MIN_TURN_POINTS = 8
+#: A change of turn (radians) that ends the along fit's passes.
+TURN_SETTLED_RAD = 1e-5
+
+
+def _turned(arm: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """2D vectors ``arm`` each turned by its own angle ``theta`` (radians)."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.column_stack([c * arm[:, 0] - s * arm[:, 1], s * arm[:, 0] + c * arm[:, 1]])
 
 
 def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, targets: dict | None = None,
