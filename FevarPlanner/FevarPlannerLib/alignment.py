@@ -11,7 +11,8 @@ the iliacs and the sac; it barely moves the aorta above the renal arteries, and 
 ostia only by a few millimetres (as much as a misalignment of a few pixels). A misaligned
 ``P`` moves all of them by one in-plane rigid motion. So the rotation and the offset
 across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
-straight vessel cannot show) on the renal ostia, and the correction is applied only when
+straight vessel cannot show) on the renal ostia, each free to turn about its ostium (a wire
+tilts a renal by a few degrees), and the correction is applied only when
 the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
 read as deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
 abdominal frame, about 1.2 mm of 3D error per degree of turn), so its points beyond the ends
@@ -160,8 +161,9 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     its closest-point fit alone fixes the rotation and the offset across it (from each
     start, the one leaving it nearest to the curve); the offset along it, which a nearly
     straight vessel cannot show, is then taken from the other regions
-    (:func:`_along_reference_shift`): their ostia may have moved with the wire, so they
-    decide only what the reference leaves open. Without a usable reference all regions are
+    (:func:`_along_reference_shift`, each region free to turn about its point nearest to the
+    reference): their ostia may have moved with the wire, so they decide only what the
+    reference leaves open. Without a usable reference all regions are
     fitted at once. Returns the fit of ``source`` (all regions, in order).
     """
     normals = _curve_normals(curve, tree)
