@@ -11,8 +11,7 @@ the iliacs and the sac; it barely moves the aorta above the renal arteries, and 
 ostia only by a few millimetres (as much as a misalignment of a few pixels). A misaligned
 ``P`` moves all of them by one in-plane rigid motion. So the rotation and the offset
 across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
-straight vessel cannot show) on the renal ostia, each free to turn about its ostium (a wire
-tilts a renal by a few degrees), and the correction is applied only when
+straight vessel cannot show) on the renal ostia, and the correction is applied only when
 the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
 read as deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
 abdominal frame, about 1.2 mm of 3D error per degree of turn), so its points beyond the ends
@@ -161,9 +160,8 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     its closest-point fit alone fixes the rotation and the offset across it (from each
     start, the one leaving it nearest to the curve); the offset along it, which a nearly
     straight vessel cannot show, is then taken from the other regions
-    (:func:`_along_reference_shift`, each region free to turn about its point nearest to the
-    reference): their ostia may have moved with the wire, so they decide only what the
-    reference leaves open. Without a usable reference all regions are
+    (:func:`_along_reference_shift`): their ostia may have moved with the wire, so they
+    decide only what the reference leaves open. Without a usable reference all regions are
     fitted at once. Returns the fit of ``source`` (all regions, in order).
     """
     normals = _curve_normals(curve, tree)
@@ -183,10 +181,7 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     others[own] = False
     if np.count_nonzero(others) >= 3:
         direction = _principal_direction(best.moved)
-        groups = [np.arange(bounds[i], bounds[i + 1]) for i in range(len(names)) if i != k]
-        shift = _along_reference_shift(moved, groups, _ostia(moved, groups, moved[own]), direction, curve, tree,
-                                       normals)
-        moved = moved + shift * direction
+        moved = moved + _along_reference_shift(moved[others], direction, curve, tree, normals) * direction
     return fit_in_plane_rigid(source, moved, P)
 
 
@@ -213,64 +208,28 @@ def _principal_direction(points: np.ndarray) -> np.ndarray:
     return np.linalg.eigh(centred.T @ centred)[1][:, -1]
 
 
-def _ostia(moved: np.ndarray, groups: list, reference_uv: np.ndarray) -> list:
-    """Row of each group nearest to the reference region's points: where a renal leaves the aorta."""
-    return [int(rows[np.argmin(np.min(np.linalg.norm(moved[rows][:, None] - reference_uv[None], axis=2), axis=1))])
-            for rows in groups]
+def _along_reference_shift(moved: np.ndarray, direction: np.ndarray, curve, tree, normals) -> float:
+    """The shift along ``direction`` that brings ``moved`` nearest to the curve (px).
 
-
-def _along_reference_shift(moved: np.ndarray, groups: list, pivots: list, direction: np.ndarray, curve, tree,
-                           normals) -> float:
-    """The shift along ``direction`` that brings the ``groups`` of ``moved`` nearest to the curve (px).
-
-    Each group (the rows of one renal ostium part) may also turn in-plane about its
-    ``pivots`` row (its ostium): a wire tilts a renal about its ostium by a few degrees,
-    which moves the far points of the ostium part across the renal, nearly along the aorta;
-    read as a shift, that tilt moved the estimate by up to 5 px. Point-to-line residuals,
-    Gauss-Newton on the shift and one turn a group, Huber weights, closest points renewed
-    each pass; points whose curve runs along ``direction`` carry no weight on the shift. A
-    group of fewer than ``MIN_TURN_POINTS`` rows only shifts.
+    Point-to-line residuals, one degree of freedom, Huber weights, closest points renewed
+    each pass; points whose curve runs along ``direction`` carry no weight.
     """
-    rows = np.concatenate(groups)
-    points = moved[rows]
-    turning = [(g, rows_) for g, rows_ in enumerate(groups) if len(rows_) >= MIN_TURN_POINTS]
-    pivot = np.zeros_like(points)
-    column = np.full(len(rows), -1)
-    start = np.cumsum([0] + [len(g) for g in groups])
-    for c, (g, _) in enumerate(turning):
-        pivot[start[g]:start[g + 1]] = moved[pivots[g]]
-        column[start[g]:start[g + 1]] = c
-    turns = column >= 0
-    params = np.zeros(1 + len(turning))
+    shift = 0.0
     for _ in range(ICP_ITERATIONS):
-        arm = _turned(points - pivot, np.where(turns, params[1:][np.maximum(column, 0)] if len(turning) else 0.0, 0.0))
-        at = pivot + arm + params[0] * direction
+        at = moved + shift * direction
         _, nearest = tree.query(at)
         n = normals[nearest]
         residual = np.einsum("ij,ij->i", n, at - curve[nearest])
-        jacobian = np.zeros((len(points), len(params)))
-        jacobian[:, 0] = n @ direction
-        jacobian[turns, 1 + column[turns]] = n[turns, 1] * arm[turns, 0] - n[turns, 0] * arm[turns, 1]
+        slope = n @ direction
         w = _huber_weights(residual)
-        if float(w @ jacobian[:, 0] ** 2) < 1e-9:
+        denominator = float(w @ slope ** 2)
+        if denominator < 1e-9:
+            return shift
+        step = -float(w @ (slope * residual)) / denominator
+        shift += step
+        if abs(step) < ICP_SETTLED_PX:
             break
-        step = np.linalg.lstsq(jacobian * np.sqrt(w)[:, None], -residual * np.sqrt(w), rcond=None)[0]
-        params += step
-        if abs(step[0]) < ICP_SETTLED_PX and np.all(np.abs(step[1:]) < TURN_SETTLED_RAD):
-            break
-    return float(params[0])
-
-
-#: A renal ostium part needs this many points to fit its own turn (:func:`_along_reference_shift`).
-MIN_TURN_POINTS = 8
-#: A change of turn (radians) that ends the along fit's passes.
-TURN_SETTLED_RAD = 1e-5
-
-
-def _turned(arm: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """2D vectors ``arm`` each turned by its own angle ``theta`` (radians)."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.column_stack([c * arm[:, 0] - s * arm[:, 1], s * arm[:, 0] + c * arm[:, 1]])
+    return shift
 
 
 def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, targets: dict | None = None,
