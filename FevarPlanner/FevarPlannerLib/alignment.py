@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .projection import in_plane_transform
+from .projection import in_plane_transform, project
 
 __all__ = ["PoseRefinement", "PoseCheck", "fit_in_plane_rigid", "robust_fit_in_plane_rigid",
-           "check_misalignment", "MIN_OFFSET_PX"]
+           "check_misalignment", "pose_residual", "MIN_OFFSET_PX"]
 
 #: Below this mean displacement of the stable points (px) the frame and ``P`` agree.
 MIN_OFFSET_PX = 2.0
@@ -431,3 +431,32 @@ def _within_curve(offset: np.ndarray, normals: np.ndarray, weights: np.ndarray) 
     """
     inside = np.abs(offset[:, 0] * normals[:, 1] - offset[:, 1] * normals[:, 0]) <= CURVE_END_PX
     return inside if np.count_nonzero(inside & (weights > 0)) >= 3 else np.ones(len(offset))
+
+
+def pose_residual(P_used: np.ndarray, P_true: np.ndarray, vessel_points: np.ndarray) -> dict:
+    """How far a pose is off the true one on a vessel, split along and across it (px, degrees).
+
+    The evaluation side of the pose check: ``vessel_points`` (3D, ordered along the vessel,
+    e.g. the upper aorta from its top down) are projected through both matrices (eq. 1).
+    The mean image offset from the used to the true projection is split along the vessel's
+    course (the principal direction of its true projection, pointing from its first point
+    towards its last) and across it (that direction turned by +90 degrees); ``rotation_deg``
+    is the in-plane turn taking the used projection onto the true one (2D Procrustes).
+
+    Returns
+    -------
+    dict
+        ``along_px``, ``across_px``, ``rotation_deg`` and ``mean_px`` (mean distance between
+        the two projections of each point).
+    """
+    points = np.asarray(vessel_points, float)
+    if len(points) < 2:
+        raise ValueError(f"need two or more vessel points, got {len(points)}")
+    used, true = project(P_used, points), project(P_true, points)
+    course = _principal_direction(true)
+    if (true[-1] - true[0]) @ course < 0:
+        course = -course
+    offset = (true - used).mean(axis=0)
+    theta = _weighted_kabsch(used, true, np.ones(len(points)))[0]
+    return {"along_px": float(offset @ course), "across_px": float(offset @ np.array([-course[1], course[0]])),
+            "rotation_deg": float(np.rad2deg(theta)), "mean_px": float(np.linalg.norm(true - used, axis=1).mean())}
