@@ -1,0 +1,140 @@
+"""Branches of an unsubtracted frame's vessel mask that run across the projected tree (issue 11).
+
+On an unsubtracted frame the vessel mask keeps what touches the vessels and is about as dark:
+the vertebral bodies beside the aorta, the pelvic plates and a ruler or a rail crossing the
+iliacs. Thinned, each grows a branch off the vessel it touches, and the 2D skeleton graph
+then has branches that no pre-operative vessel explains: Algorithm 1 may take one for a
+missing renal, the matching pairs a renal with a ruler, and the registration check refuses
+the frame ("30% of the frame's vessels lie over 5 mm from the registered tree").
+
+A vessel, however deformed, runs roughly along its projected pre-operative direction; these
+branches run across it (a vertebral body's blob off the aorta's side, a ruler across an
+iliac). :func:`without_cross_branches` thins the mask (on the reduced grid of the
+segmentation), takes each skeleton pixel's direction from the skeleton pixels around it,
+and calls it *across* when that direction is more than :data:`ACROSS_DEG` off the direction
+of the nearest projected vessel while the pixel lies outside the widest projected lumen
+nearby (where a renal leaves the aorta every direction meets). Runs of at least
+:data:`MIN_RUN_PX` across pixels are dropped with the mask pixels only they explain; the
+mask pixels inside the lumen of a kept skeleton pixel (its distance to the background) stay.
+
+Only frames whose background had to be flattened (unsubtracted) go through this: a subtracted
+frame's mask has no bones attached and is left as it is.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage as ndi
+
+__all__ = ["tidy_unsubtracted", "without_cross_branches", "skeleton_directions", "ACROSS_DEG", "MIN_RUN_PX"]
+
+#: A skeleton pixel runs across the projected tree when its direction is more than this many
+#: degrees off the nearest projected vessel's.
+ACROSS_DEG = 50.0
+#: A run of across pixels this long (px of the reduced grid) or longer is dropped.
+MIN_RUN_PX = 3
+#: Radius (px of the reduced grid) of the window whose skeleton pixels give a pixel's direction.
+DIRECTION_RADIUS_PX = 3
+#: Pixels this close (px) beyond the widest projected radius nearby are never across: at a
+#: junction (renal ostium, bifurcation) the skeleton's local direction is mixed.
+JUNCTION_SLACK_PX = 1.0
+
+_EIGHT = np.ones((3, 3), dtype=bool)
+
+
+def skeleton_directions(skeleton: np.ndarray, radius: int = DIRECTION_RADIUS_PX) -> np.ndarray:
+    """Axis angle (radians, of (d_col, d_row), modulo pi) of a 2D skeleton at each of its pixels,
+    from the second moments of the skeleton pixels within a (2 radius + 1)^2 window.
+
+    Parameters
+    ----------
+    skeleton : numpy.ndarray of bool, shape (rows, cols)
+    radius : int
+
+    Returns
+    -------
+    numpy.ndarray of float32, same shape (meaningful on the skeleton's pixels only).
+    """
+    offsets = np.arange(-radius, radius + 1, dtype=np.float32)
+    d_row, d_col = np.meshgrid(offsets, offsets, indexing="ij")
+    weights = skeleton.astype(np.float32)
+    moment = {name: ndi.correlate(weights, kernel, mode="constant")
+              for name, kernel in (("uu", d_col * d_col), ("vv", d_row * d_row), ("uv", d_col * d_row))}
+    return (0.5 * np.arctan2(2.0 * moment["uv"], moment["uu"] - moment["vv"])).astype(np.float32)
+
+
+def _axis_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Angle (radians, 0 to pi/2) between two axes given as angles modulo pi."""
+    return 0.5 * np.abs(np.angle(np.exp(2j * (first - second))))
+
+
+def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid_key: tuple,
+                      min_area: float) -> np.ndarray:
+    """The last clean-up of an unsubtracted frame's reduced-grid ``vessel`` mask: branches across
+    the projected tree dropped (:func:`without_cross_branches`), then pieces smaller than
+    ``min_area`` pixels (as on every frame).
+
+    ``prior`` is the :class:`quality.FluoroPrior`, ``where`` its band on this grid
+    (:meth:`FluoroPrior.band`), ``widest`` the widest projected radius nearby; ``grid_key``
+    names the grid for the prior's cache.
+    """
+    from .fluoro import _node_directions
+    from .threshold import _remove_small_objects
+
+    node_angle = prior.derived(("node_angle",) + tuple(grid_key),
+                               lambda: _node_directions(prior).astype(np.float32)[where.nearest])
+    vessel = without_cross_branches(vessel, node_angle, where.distance, widest)
+    if not vessel.any():
+        return vessel
+    return _remove_small_objects(vessel, min_area)
+
+
+def without_cross_branches(vessel: np.ndarray, node_angle: np.ndarray, distance: np.ndarray,
+                           widest: np.ndarray) -> np.ndarray:
+    """``vessel`` without the branches that run across the projected tree (module docstring).
+
+    Parameters
+    ----------
+    vessel : numpy.ndarray of bool, shape (rows, cols)
+        The vessel mask on the segmentation's reduced grid.
+    node_angle : numpy.ndarray, same shape
+        Per pixel, the axis angle (radians, of (d_col, d_row)) of the nearest projected vessel.
+    distance : numpy.ndarray, same shape
+        Per pixel, the distance (px) to the projected tree.
+    widest : numpy.ndarray, same shape
+        Per pixel, the widest projected radius (px) nearby.
+
+    Returns
+    -------
+    numpy.ndarray of bool, same shape: a subset of ``vessel``.
+    """
+    from skimage.morphology import skeletonize
+
+    if not vessel.any():
+        return vessel
+    skeleton = skeletonize(vessel)
+    across = skeleton & (_axis_difference(skeleton_directions(skeleton), node_angle) > math.radians(ACROSS_DEG))
+    across &= distance > widest + JUNCTION_SLACK_PX
+    runs, count = ndi.label(across, structure=_EIGHT)
+    if count == 0:
+        return vessel
+    dropped = np.bincount(runs.ravel(), minlength=count + 1) >= MIN_RUN_PX
+    dropped[0] = False
+    if not dropped.any():
+        return vessel
+    kept = skeleton & ~dropped[runs]
+    if not kept.any():
+        return vessel
+    return vessel & _explained_by(vessel, skeleton, kept)
+
+
+def _explained_by(vessel: np.ndarray, skeleton: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """Mask pixels that a kept skeleton pixel explains: those nearest to a kept skeleton pixel, and
+    those inside the lumen of the nearest kept skeleton pixel (its distance to the background + 1)."""
+    depth = ndi.distance_transform_edt(vessel)
+    _, (ri, ci) = ndi.distance_transform_edt(~skeleton, return_indices=True)
+    nearest_is_kept = kept[ri, ci]
+    to_kept, (ki, kj) = ndi.distance_transform_edt(~kept, return_indices=True)
+    return nearest_is_kept | (to_kept <= depth[ki, kj] + 1.0)
