@@ -17,8 +17,9 @@ nearby (where a renal leaves the aorta every direction meets). Runs of at least
 :data:`MIN_RUN_PX` across pixels are dropped with the mask pixels only they explain; the
 mask pixels inside the lumen of a kept skeleton pixel (its distance to the background) stay.
 
-Only frames whose background had to be flattened (unsubtracted) go through this: a subtracted
-frame's mask has no bones attached and is left as it is.
+Only frames whose background had to be flattened go through this (unsubtracted frames, and
+subtracted ones with a collimator shutter across the vessels); a flat subtracted frame's mask
+is left as it is.
 """
 
 from __future__ import annotations
@@ -58,11 +59,16 @@ def skeleton_directions(skeleton: np.ndarray, radius: int = DIRECTION_RADIUS_PX)
     numpy.ndarray of float32, same shape (meaningful on the skeleton's pixels only).
     """
     offsets = np.arange(-radius, radius + 1, dtype=np.float32)
-    d_row, d_col = np.meshgrid(offsets, offsets, indexing="ij")
+    flat = np.ones_like(offsets)
     weights = skeleton.astype(np.float32)
-    moment = {name: ndi.correlate(weights, kernel, mode="constant")
-              for name, kernel in (("uu", d_col * d_col), ("vv", d_row * d_row), ("uv", d_col * d_row))}
-    return (0.5 * np.arctan2(2.0 * moment["uv"], moment["uu"] - moment["vv"])).astype(np.float32)
+
+    def window_sum(along_rows: np.ndarray, along_cols: np.ndarray) -> np.ndarray:
+        """Window sum of the skeleton's pixels times a separable kernel (rows by cols)."""
+        return ndi.correlate1d(ndi.correlate1d(weights, along_cols, axis=1, mode="constant"), along_rows, axis=0,
+                               mode="constant")
+
+    uu, vv, uv = window_sum(flat, offsets ** 2), window_sum(offsets ** 2, flat), window_sum(offsets, offsets)
+    return (0.5 * np.arctan2(2.0 * uv, uu - vv)).astype(np.float32)
 
 
 def _axis_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -115,8 +121,9 @@ def without_cross_branches(vessel: np.ndarray, node_angle: np.ndarray, distance:
     if not vessel.any():
         return vessel
     skeleton = skeletonize(vessel)
-    across = skeleton & (_axis_difference(skeleton_directions(skeleton), node_angle) > math.radians(ACROSS_DEG))
-    across &= distance > widest + JUNCTION_SLACK_PX
+    on = np.nonzero(skeleton & (distance > widest + JUNCTION_SLACK_PX))
+    across = np.zeros_like(skeleton)
+    across[on] = _axis_difference(skeleton_directions(skeleton)[on], node_angle[on]) > math.radians(ACROSS_DEG)
     runs, count = ndi.label(across, structure=_EIGHT)
     if count == 0:
         return vessel
