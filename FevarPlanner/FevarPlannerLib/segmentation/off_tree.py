@@ -55,30 +55,28 @@ JUNCTION_SLACK_PX = 1.0
 _EIGHT = np.ones((3, 3), dtype=bool)
 
 
-def skeleton_directions(skeleton: np.ndarray, radius: int = DIRECTION_RADIUS_PX) -> np.ndarray:
-    """Axis angle (radians, of (d_col, d_row), modulo pi) of a 2D skeleton at each of its pixels,
+def skeleton_directions(skeleton: np.ndarray, pixels: np.ndarray, radius: int = DIRECTION_RADIUS_PX) -> np.ndarray:
+    """Axis angle (radians, of (d_col, d_row), modulo pi) of a 2D skeleton at some of its pixels,
     from the second moments of the skeleton pixels within a (2 radius + 1)^2 window.
 
     Parameters
     ----------
     skeleton : numpy.ndarray of bool, shape (rows, cols)
+    pixels : numpy.ndarray of int, shape (n, 2)
+        ``(row, col)`` of the pixels to measure.
     radius : int
 
     Returns
     -------
-    numpy.ndarray of float32, same shape (meaningful on the skeleton's pixels only).
+    numpy.ndarray, shape (n,)
     """
-    offsets = np.arange(-radius, radius + 1, dtype=np.float32)
-    flat = np.ones_like(offsets)
-    weights = skeleton.astype(np.float32)
-
-    def window_sum(along_rows: np.ndarray, along_cols: np.ndarray) -> np.ndarray:
-        """Window sum of the skeleton's pixels times a separable kernel (rows by cols)."""
-        return ndi.correlate1d(ndi.correlate1d(weights, along_cols, axis=1, mode="constant"), along_rows, axis=0,
-                               mode="constant")
-
-    uu, vv, uv = window_sum(flat, offsets ** 2), window_sum(offsets ** 2, flat), window_sum(offsets, offsets)
-    return (0.5 * np.arctan2(2.0 * uv, uu - vv)).astype(np.float32)
+    steps = np.arange(-radius, radius + 1)
+    d_row, d_col = (grid.ravel() for grid in np.meshgrid(steps, steps, indexing="ij"))
+    padded = np.pad(skeleton, radius)
+    window = padded[pixels[:, :1] + radius + d_row, pixels[:, 1:] + radius + d_col].astype(np.float32)
+    uu, vv, uv = window @ (d_col * d_col).astype(np.float32), window @ (d_row * d_row).astype(np.float32), \
+        window @ (d_col * d_row).astype(np.float32)
+    return 0.5 * np.arctan2(2.0 * uv, uu - vv)
 
 
 def _axis_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -145,7 +143,7 @@ def without_cross_branches(vessel: np.ndarray, node_angle: np.ndarray, beyond: n
     skeleton = skeletonize(vessel)
     pixels = np.argwhere(skeleton)
     rows, cols = pixels.T
-    turned = _axis_difference(skeleton_directions(skeleton)[rows, cols], node_angle[rows, cols]) > math.radians(ACROSS_DEG)
+    turned = _axis_difference(skeleton_directions(skeleton, pixels), node_angle[rows, cols]) > math.radians(ACROSS_DEG)
     if not turned.any() or turned.all():
         return vessel
     depth = local_radius(vessel, pixels) + 0.5          # distance to the nearest background pixel
@@ -166,13 +164,17 @@ def without_cross_branches(vessel: np.ndarray, node_angle: np.ndarray, beyond: n
 
 
 def _explained_by(vessel: np.ndarray, skeleton: np.ndarray, depth: np.ndarray, kept: np.ndarray) -> np.ndarray:
-    """The pixels of ``vessel`` that a kept skeleton pixel explains: those nearest to a kept one, and
-    those inside the lumen of the nearest kept one (its ``depth``, the distance to the
-    background, + 1). ``skeleton``: (n, 2) pixel indices, ``depth`` and ``kept`` per pixel."""
+    """``vessel`` less the pixels that only dropped skeleton pixels explain: a pixel stays when its
+    nearest skeleton pixel is kept, or when it lies inside the lumen of the nearest kept one (its
+    ``depth``, the distance to the background, + 1). ``skeleton``: (n, 2) pixel indices,
+    ``depth`` and ``kept`` per skeleton pixel. Only pixels within reach of a dropped skeleton
+    pixel (twice its depth + 2) are looked at: the others are nearer to a kept one."""
     inside = np.argwhere(vessel)
-    nearest_is_kept = kept[cKDTree(skeleton).query(inside)[1]]
-    to_kept, nearest = cKDTree(skeleton[kept]).query(inside)
-    explained = nearest_is_kept | (to_kept <= depth[kept][nearest] + 1.0)
-    out = np.zeros_like(vessel)
-    out[tuple(inside[explained].T)] = True
+    reach = 2.0 * float(depth[~kept].max()) + 2.0
+    candidates = inside[np.isfinite(cKDTree(skeleton[~kept]).query(inside, distance_upper_bound=reach)[0])]
+    nearest_is_kept = kept[cKDTree(skeleton).query(candidates)[1]]
+    to_kept, nearest = cKDTree(skeleton[kept]).query(candidates)
+    lost = ~(nearest_is_kept | (to_kept <= depth[kept][nearest] + 1.0))
+    out = vessel.copy()
+    out[tuple(candidates[lost].T)] = False
     return out
