@@ -12,6 +12,7 @@ from scipy import ndimage as ndi
 
 from ..files import InputError
 from ..quality import DEFORMATION_MARGIN_MM, FluoroPrior
+from .off_tree import tidy_unsubtracted
 from .threshold import _remove_small_objects
 
 
@@ -623,7 +624,10 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     expected_length = prior.derived(("wide_length", small_shape, factor), lambda: _wide_tree_length(prior, factor, small_shape))
     if _wide_vessels_are_blocks(vessel, widest, oriented, expected_length):
         return np.zeros(frame.shape, dtype=bool)        # bones, no contrast: nothing to segment
-    vessel = _remove_small_objects(vessel, min_area_fraction * total)
+    if flat:
+        vessel = _remove_small_objects(vessel, min_area_fraction * total)
+    else:       # unsubtracted: bones and rulers across the vessels, cut-off branches (off_tree.py)
+        vessel = tidy_unsubtracted(vessel, prior, where, widest, (small_shape, factor, reach), min_area_fraction * total)
     soft = _soft_extent(vessel, relative, contrast_fraction)
     full = np.zeros(frame.shape, dtype=bool)
     full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \
