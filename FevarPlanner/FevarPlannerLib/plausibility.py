@@ -469,7 +469,7 @@ def _in_frame(uv: np.ndarray, frame_shape) -> np.ndarray:
     return (uv[:, 0] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= rows - 1)
 
 
-def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape) -> dict:
+def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape, classification=None) -> dict:
     """What a registration needed to fit its frame, in mm at the tree's depth (issue 11).
 
     Parameters
@@ -481,13 +481,18 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     skeleton_points : (k, 2), skeleton_edges : (m, 2)
         The frame's 2D skeleton graph.
     frame_shape : (rows, cols)
+    classification : graph.Classification, optional
+        Algorithm 1 on that skeleton: the nodes it deleted as spurs (``spur_nodes``: thinning's
+        side shoots off a vessel, or off what the mask fused to it, a vertebra's edge, a ruler)
+        are not vessels and do not count as unexplained.
 
     Returns
     -------
     dict
         ``fit_mm`` (mean over the registered nodes inside the frame of their distance to the
-        skeleton, and the worst vessel's), ``unexplained`` (share of skeleton nodes farther than
-        :data:`EXPLAINED_WITHIN_MM` from the projected registered tree), ``renal_misfit_mm``
+        skeleton, and the worst vessel's), ``unexplained`` (share of skeleton nodes, spurs left
+        out, farther than :data:`EXPLAINED_WITHIN_MM` from the projected registered tree;
+        ``unexplained_with_spurs`` counts them in), ``renal_misfit_mm``
         (per renal, the pre-operative nodes' mean distance through ``P``), ``aorta_bend_mm``,
         ``ostium_move_mm`` (per renal), ``renal_continuation_mm`` (per renal, how far the frame's
         vessel goes on beyond the registered renal's end, :data:`RENAL_CONTINUATION_DOUBT_MM`),
@@ -516,7 +521,9 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     fit, misfit = both[:len(uv)], np.full(len(uv), np.nan)
     misfit[renals] = both[len(uv):]
     far = _kd_tree(_drawn(uv, edges)).query(sk)[0] * mm_per_px > EXPLAINED_WITHIN_MM
-    sample, unexplained = sk[::UNEXPLAINED_STRIDE], far[::UNEXPLAINED_STRIDE]
+    vessel = np.ones(len(sk), dtype=bool)
+    vessel[np.asarray(classification.spur_nodes if classification is not None else [], dtype=np.int64)] = False
+    sample, unexplained = sk[vessel][::UNEXPLAINED_STRIDE], far[vessel][::UNEXPLAINED_STRIDE]
     residual = _rigid_residual(preop.points, deformed.points)
     vessel_fit = {v: float(np.nanmean(fit[m])) for v, m in members.items() if np.isfinite(fit[m]).any()}
     renal = {v: float(np.nanmean(misfit[members[v]])) for v in ("renal_left", "renal_right")
@@ -529,6 +536,7 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     return {
         "fit_mm": float(np.nanmean(fit)) if np.isfinite(fit).any() else 0.0, "vessel_fit_mm": vessel_fit,
         "unexplained": float(unexplained.mean()) if len(sample) else 0.0,
+        "unexplained_with_spurs": float(far[::UNEXPLAINED_STRIDE].mean()) if len(far) else 0.0,
         "unexplained_where": sample[unexplained].mean(axis=0).tolist() if unexplained.any() else None,
         "side_fit_mm": side,
         "renal_misfit_mm": renal,
@@ -646,10 +654,11 @@ def _doubts(signals: dict) -> list[str]:
     return doubts
 
 
-def check_registration(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape, frame, qc=None) -> dict:
+def check_registration(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape, frame, qc=None,
+                       classification=None) -> dict:
     """Refuse a registration that needed what no right frame needs (issue 11,
     :func:`registration_verdict`); returns the signals (:func:`registration_warnings` reads
-    what is left to warn of).
+    what is left to warn of). ``classification``: as in :func:`registration_signals`.
 
     Raises
     ------
@@ -657,7 +666,7 @@ def check_registration(preop, deformed, P, skeleton_points, skeleton_edges, fram
         One line naming ``frame``, the vessel or problem and where; ``qc`` (the case's
         :class:`quality.QCData`, given the registered tree's projection) for the QC picture.
     """
-    signals = registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape)
+    signals = registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, frame_shape, classification)
     verdict = registration_verdict(signals)
     if verdict is not None:
         _refuse_registration(verdict, deformed, P, frame, qc)

@@ -138,7 +138,7 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
         try:
             signals = plausibility.check_registration(preop.centerline, frame.deformed, frame.P,
                                                       frame.skeleton2d.positions, edges_2d, fluoro.image.shape,
-                                                      frame_path)
+                                                      frame_path, classification=frame.classification2d)
         except quality.QualityError as exc:
             raise _without_qc_picture(exc) from None
         notes += plausibility.registration_warnings(signals)

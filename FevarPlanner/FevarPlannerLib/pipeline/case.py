@@ -303,16 +303,20 @@ def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
     refusal's QC picture shows that view's frame), and the mirror test on the first
     (:func:`plausibility.check_not_mirrored`); the warnings of those it lets pass."""
     views = {view.name: view for view in getattr(case, "views", None) or []}
-    checks = [(result.P, result.skeleton2d_points, result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc)]
+    first = result.view_frames[0].classification2d if result.view_frames else None
+    checks = [(result.P, result.skeleton2d_points, result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc,
+               first)]
     for frame in result.view_frames[1:]:
         view = views.get(frame.name)
         if view is not None:
             checks.append((frame.P, frame.skeleton2d.positions, frame.skeleton2d.edges(), view.fluoro.shape,
                            view.paths.get("fluoro_mask", view.paths.get("fluoro", frame.name)),
-                           _view_qc(result.qc, view, quality.FluoroPrior.from_centerline(result.preop, frame.P))))
+                           _view_qc(result.qc, view, quality.FluoroPrior.from_centerline(result.preop, frame.P)),
+                           frame.classification2d))
     notes = []
-    for k, (P, points, edges, shape, path, qc) in enumerate(checks):
-        signals = plausibility.check_registration(result.preop, result.deformed, P, points, edges, shape, path, qc)
+    for k, (P, points, edges, shape, path, qc, classification) in enumerate(checks):
+        signals = plausibility.check_registration(result.preop, result.deformed, P, points, edges, shape, path, qc,
+                                                  classification)
         if k == 0:      # a single frame registered flipped too (run_case's mirror_test)
             plausibility.check_not_mirrored(result.preop, result.deformed, P, result.energy, signals, result.flipped,
                                             shape, path, qc)
