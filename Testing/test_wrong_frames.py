@@ -122,6 +122,29 @@ def test_a_tree_off_the_frame_is_refused_and_drawn_in_the_qc_picture(tmp_path):
     assert path.stat().st_size > 1000
 
 
+def test_spurs_algorithm1_deleted_are_not_unexplained_vessels():
+    """Thinning's side shoots off what an unsubtracted frame's mask fused to the aorta (a
+    vertebra's edge): 30 shoots, each reaching 20 mm off the aorta. Counted as frame vessels they
+    refuse a right fit; left out as the spurs Algorithm 1 deleted (``spur_nodes``), they do not."""
+    from types import SimpleNamespace
+
+    tree = hand_tree()
+    points, edges = skeleton_of(tree)
+    shoots, shoot_edges, spur_nodes = [], [], []
+    for z in np.linspace(190, -90, 30):
+        root = np.argmin(np.linalg.norm(points - project(P, np.array([[0.0, 0.0, z]]))[0], axis=1))
+        first = len(points) + len(shoots)
+        shoots += [points[root] + (d, 0.0) for d in range(1, 21)]
+        shoot_edges += [(root, first)] + [(first + k, first + k + 1) for k in range(19)]
+        spur_nodes += list(range(first, first + 20))
+    points, edges = np.vstack([points, shoots]), np.vstack([edges, shoot_edges])
+    with pytest.raises(quality.QualityError, match="of the frame's vessels lie over 5 mm"):
+        plausibility.check_registration(tree, tree, P, points, edges, SHAPE, "frame.png")
+    spurs = SimpleNamespace(spur_nodes=np.array(spur_nodes))
+    signals = plausibility.check_registration(tree, tree, P, points, edges, SHAPE, "frame.png", classification=spurs)
+    assert signals["unexplained"] == 0.0 and signals["unexplained_with_spurs"] > 0.25
+
+
 # --- end to end: two scenario cases and one's frame filed in the other's folder
 
 
