@@ -13,8 +13,8 @@ across onto the truth it was 0.09 mm.
 :func:`centre_in_outline` moves each connection node of the 2D skeleton along its normal to
 the midpoint of the vessel's walls on that normal, each wall at sub-pixel precision where the
 bilinearly interpolated mask crosses one half. Nodes whose normal does not meet both walls
-within :data:`WALL_SEARCH_RADII` radii (a junction's neighbourhood, where it runs into a
-branch) keep their place.
+within :data:`WALL_SEARCH_RADII` radii, and those within :data:`JUNCTION_RADII` radii of a
+junction (where it runs into a branch's mouth), keep their place.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..graph import SkeletonGraph, smooth_positions
 
@@ -38,6 +39,10 @@ FINE_SAMPLES = 6
 #: taken from, and of the centred positions (the walls' pixel steps).
 TANGENT_SMOOTHING = 40
 SHIFT_SMOOTHING = 10
+#: Nodes within this many of their 2D radii of a junction keep their place: there a wall is
+#: missing over the branch's mouth, and the normal meets the branch's far wall or the mouth's
+#: corner (shifts of 3-5 px beside the renal ostia).
+JUNCTION_RADII = 1.5
 
 
 def _bilinear(mask: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -94,7 +99,12 @@ def centre_in_outline(g2: SkeletonGraph, mask: np.ndarray) -> SkeletonGraph:
     """
     if g2.radii is None or g2.dim != 2:
         return g2
+    radii = np.asarray(g2.radii, dtype=float)
     movable = np.flatnonzero(g2.degrees == 2)
+    junctions = np.flatnonzero(g2.degrees >= 3)
+    if len(junctions):
+        near, _ = cKDTree(g2.positions[junctions]).query(g2.positions[movable])
+        movable = movable[near > JUNCTION_RADII * radii[movable]]
     if len(movable) == 0:
         return g2
     slot = g2.adjacency.indptr[movable]
@@ -107,7 +117,7 @@ def centre_in_outline(g2: SkeletonGraph, mask: np.ndarray) -> SkeletonGraph:
     movable, tangent = movable[keep], tangent[keep] / length[keep, None]
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     centres = g2.positions[movable]
-    reach = WALL_SEARCH_RADII * np.asarray(g2.radii, dtype=float)[movable] + 2.0
+    reach = WALL_SEARCH_RADII * radii[movable] + 2.0
     binary = np.ascontiguousarray(np.asarray(mask) > 0)
     plus = _wall_offsets(binary, centres, normal, reach)
     minus = _wall_offsets(binary, centres, -normal, reach)
