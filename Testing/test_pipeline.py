@@ -99,11 +99,14 @@ def test_branch_assignment_follows_projected_arc_length():
 
 
 def test_energy_decreases(case, preop, intra):
-    frame = pipeline.register_frame(preop, simulated_mask(case, intra.centerline), case.P_true, refine_pose=False)
+    mask = simulated_mask(case, intra.centerline)
+    frame = pipeline.register_frame(preop, mask, case.P_true, refine_pose=False)
     g2, c2 = frame.skeleton2d, frame.classification2d
     candidate = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, case.P_true)[0]
     assignment = matching.soft_assign(preop.graph, preop.classification, g2, c2, case.P_true, candidate,
                                       shows=frame.views[0].visibility.shows)
+    # the pipeline takes a single view's targets at the 2D nodes centred between the walls
+    assignment = matching.targets_at(assignment, matching.centre_in_outline(g2, mask).positions)
     # the pipeline holds the upper aorta on the frame's aorta (no slide along itself)
     assignment = pipeline.frame._held_upper_aorta(preop, g2, c2, case.P_true, frame.views[0].visibility,
                                                    assignment)
