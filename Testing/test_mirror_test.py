@@ -28,6 +28,8 @@ def test_the_flipped_frame_must_need_less_energy_and_motion_at_a_fit_no_worse():
     for flipped in (evidence(1.7, 0.4, 1.2), evidence(0.5, 0.4, 2.5), evidence(0.5, 1.3, 1.2)):
         assert plausibility.mirror_verdict(given, flipped) is None
     assert plausibility.mirror_verdict(evidence(None, 1.2, 3.0), evidence(0.5, 0.4, 1.2)) is None
+    # two poor fits are no evidence: the flipped registration must explain the frame itself
+    assert plausibility.mirror_verdict(evidence(2.0, 2.3, 2.1), evidence(1.5, 2.1, 1.6)) is None
 
 
 @pytest.fixture(scope="module")
