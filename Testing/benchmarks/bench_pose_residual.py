@@ -30,7 +30,7 @@ from FevarPlannerLib.alignment import pose_residual  # noqa: E402
 from FevarPlannerLib.benchmark.independent import independent_case_folders  # noqa: E402
 from FevarPlannerLib.centerline import Centerline  # noqa: E402
 from FevarPlannerLib.pipeline import plan_case  # noqa: E402
-from FevarPlannerLib.scenarios import KINDS  # noqa: E402
+from FevarPlannerLib.scenarios import EXTRA_KINDS, KINDS  # noqa: E402
 
 #: Upper-aorta points this far (mm) above the higher renal ostium count (the ostia themselves may move).
 ABOVE_OSTIA_MM = 3.0
@@ -76,7 +76,7 @@ def case_row(kind: str, folder: Path, oracle: bool, scratch: Path) -> dict:
     upper = upper_aorta(gt_intra)
     result = plan_case(folder, method="proposed")
     row = {"name": folder.name, "kind": kind, "depth_floor_mm": floor, "proposed": _scored(result, truth),
-           "pose_applied": not np.allclose(result.P, P_given),
+           "pose_applied": not np.allclose(result.P, P_given), "pose_check": result.views[0].get("pose_correction"),
            "given_residual": pose_residual(P_given, P_true, upper), "used_residual": pose_residual(result.P, P_true, upper)}
     row["floor_gap_mm"] = row["proposed"]["3d_mm"] - floor
     if oracle:
@@ -102,7 +102,7 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     parser = argument_parser(__doc__)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--kinds", nargs="+", choices=KINDS, default=["misaligned", "angulated"])
+    parser.add_argument("--kinds", nargs="+", choices=KINDS + EXTRA_KINDS, default=["misaligned", "angulated"])
     parser.add_argument("--oracle", action="store_true", help="also plan each case from its true P")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
