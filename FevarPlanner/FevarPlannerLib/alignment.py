@@ -12,8 +12,9 @@ ostia only by a few millimetres (as much as a misalignment of a few pixels). A m
 ``P`` moves all of them by one in-plane rigid motion. So the rotation and the offset
 across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
 straight vessel cannot show) on the renal ostia, and the correction is applied only when
-the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
-read as deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
+the upper aorta is off under ``P`` (or turned as a whole: a pose off along it barely moves it
+off itself, but turns it) and the rigid motion explains it; otherwise the offset is read as
+deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
 abdominal frame, about 1.2 mm of 3D error per degree of turn), so its points beyond the ends
 of the frame's vessels (an upper aorta that the CT shows further up than the frame, or that
 slid along itself in the fit) get no weight: they meet the curve's end sample, not the vessel.
@@ -295,9 +296,12 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         ``reference`` region in the frame, (b) the reference is off under ``P`` by
         ``min_offset_px`` or more and the fit takes it to ``MAX_RESIDUAL_FRACTION`` of that:
         a wire moves the renal ostia and leaves the upper aorta, so renals off the frame
-        alone are deformation, and renals that moved as well may stay off after the fit. (A
-        shift purely along a straight upper aorta is therefore not corrected: one view cannot
-        tell it from renals that moved.) Without a reference, (c) the fit explains the
+        alone are deformation, and renals that moved as well may stay off after the fit. A
+        reference less than ``min_offset_px`` off is still corrected when it is turned
+        rigidly (:func:`_reference_turned`: a pose off along it and turned a little; a wire
+        does not turn it, and a bend it gave it turns one half only). (A shift purely along
+        a straight upper aorta, without a turn, is not corrected: one view cannot tell it from
+        renals that moved.) Without a reference, (c) the fit explains the
         mismatch: the mean distance of the stable points to the frame's stable vessels drops
         to ``MAX_RESIDUAL_FRACTION`` of what it was, and each region comes ``REGION_GAIN_PX``
         nearer (they agree on one motion).
