@@ -53,7 +53,7 @@ MAX_ROTATION_DEG = 35.0
 #: its lower or upper half only) and taken by the rigid fit to ``TURN_RESIDUAL_FRACTION`` of
 #: its distance under ``P``, the pose is corrected below ``MIN_OFFSET_PX``.
 MIN_TURN_DEG = 1.0
-HALF_TURN_AGREEMENT = 0.6
+HALF_TURN_AGREEMENT = 0.65
 TURN_RESIDUAL_FRACTION = 0.6
 #: Huber threshold in robust standard deviations (1.4826 MAD) of the residuals.
 HUBER_K = 1.345
