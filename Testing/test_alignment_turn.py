@@ -60,3 +60,22 @@ def test_a_bent_upper_aorta_under_the_right_p_is_not_a_turn(seed, bend, monkeypa
     monkeypatch.setattr(alignment, "_reference_turned",
                         lambda check, reference_px: abs(check.rotation_deg) >= alignment.MIN_TURN_DEG)
     assert alignment.check_misalignment(regions, frame, P, reference="upper_aorta").applied
+
+
+def test_the_misaligned_along_kind_is_off_along_the_upper_aorta():
+    """The scenario kind of this failure (``misaligned_along``, beside the benchmark sets): the
+    given ``P`` is off as drawn on the true projection of the upper aorta, mostly along it."""
+    from FevarPlannerLib import scenarios
+
+    assert "misaligned_along" in scenarios.EXTRA_KINDS and "misaligned_along" not in scenarios.KINDS
+    scenario = scenarios.plan_scenarios("misaligned_along", 1, seed=0)[0]
+    case = scenarios.generate(scenario)
+    drawn = scenario.info["misalign_along_aorta"]
+    aorta = case.intraop.tubes["aorta"]
+    ostium = min(case.intraop.tubes[f"renal_{side}"].parent_index for side in ("left", "right"))
+    view = case.views[0]
+    residual = alignment.pose_residual(view.P_given, view.P_true, aorta.points[:ostium])   # true minus given
+    assert residual["along_px"] == pytest.approx(-drawn["along_px"], abs=1e-6)
+    assert residual["across_px"] == pytest.approx(-drawn["across_px"], abs=1e-6)
+    assert residual["rotation_deg"] == pytest.approx(-drawn["rotation_deg"], abs=1e-6)
+    assert 3.0 <= abs(drawn["along_px"]) <= 7.0 and abs(drawn["across_px"]) <= 1.5 and 1.0 <= abs(drawn["rotation_deg"]) <= 3.0
