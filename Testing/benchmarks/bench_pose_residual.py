@@ -30,6 +30,7 @@ from FevarPlannerLib.alignment import pose_residual  # noqa: E402
 from FevarPlannerLib.benchmark.independent import independent_case_folders  # noqa: E402
 from FevarPlannerLib.centerline import Centerline  # noqa: E402
 from FevarPlannerLib.pipeline import plan_case  # noqa: E402
+from FevarPlannerLib.files import InputError  # noqa: E402
 from FevarPlannerLib.quality import QualityError  # noqa: E402
 from FevarPlannerLib.scenarios import EXTRA_KINDS, KINDS  # noqa: E402
 
@@ -113,7 +114,7 @@ def main(argv=None) -> int:
         for kind, folder in independent_case_folders(args.out / "cases", seed=args.seed, kinds=args.kinds):
             try:
                 rows.append(case_row(kind, folder, args.oracle, Path(scratch)))
-            except QualityError as refused:        # the plan refused the case: recorded, not scored
+            except (QualityError, InputError) as refused:       # the plan refused the case: recorded, not scored
                 refusals.append({"name": folder.name, "kind": kind, "refused": str(refused)})
                 print(f"| {folder.name} | refused: {refused}", flush=True)
                 continue
