@@ -137,7 +137,7 @@ class PoseCheck:
     ``before_px`` / ``after_px``: mean distance of the stable points to the frame's stable
     vessels under the given and the fitted pose; ``regions_px``: the same per region
     (before, after); ``halves_deg``: the turn of each half of the reference region fitted on
-    its own (empty without a reference).
+    its own (empty without a reference or when it turns less than ``MIN_TURN_DEG``).
     """
 
     P: np.ndarray
@@ -176,7 +176,7 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     (:func:`_along_reference_shift`): their ostia may have moved with the wire, so they
     decide only what the reference leaves open. Without a usable reference all regions are
     fitted at once. Returns the fit of ``source`` (all regions, in order) and the turns of the
-    reference's halves (:func:`_half_turns`; empty without a reference).
+    reference's halves (:func:`_half_turns`; empty without a reference or below ``MIN_TURN_DEG``).
     """
     normals = _curve_normals(curve, tree)
     names = list(regions)
@@ -190,7 +190,9 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     fits = [_closest_point_fit(source[own], curve, P, None if start is None else _restricted(start, own), tree, normals,
                                free=along) for start in starts]
     best = min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
-    halves = _half_turns(source[own], best, curve, P, tree, normals, along)
+    # the halves matter only to a turn the rule can read (:func:`_reference_turned`); they cost 2 fits
+    halves = (_half_turns(source[own], best, curve, P, tree, normals, along)
+              if abs(best.rotation_deg) >= MIN_TURN_DEG else ())
     moved = _apply_rigid(source, source[own], best.moved)
     others = np.ones(len(source), bool)
     others[own] = False
