@@ -12,8 +12,9 @@ ostia only by a few millimetres (as much as a misalignment of a few pixels). A m
 ``P`` moves all of them by one in-plane rigid motion. So the rotation and the offset
 across the upper aorta are fitted on the upper aorta alone, the offset along it (which a
 straight vessel cannot show) on the renal ostia, and the correction is applied only when
-the upper aorta is off under ``P`` and the rigid motion explains it; otherwise the offset is
-read as deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
+the upper aorta is off under ``P`` (or turned as a whole: a pose off along it barely moves it
+off itself, but turns it) and the rigid motion explains it; otherwise the offset is read as
+deformation and ``P`` is kept. The upper aorta's lever is short (about 130 px in an
 abdominal frame, about 1.2 mm of 3D error per degree of turn), so its points beyond the ends
 of the frame's vessels (an upper aorta that the CT shows further up than the frame, or that
 slid along itself in the fit) get no weight: they meet the curve's end sample, not the vessel.
@@ -45,6 +46,15 @@ DISTANCE_CAP_PX = 30.0
 #: A correction turning the frame further than this is a failed fit, not a misalignment (the
 #: paper's robustness sweep turns the frame by up to 30 degrees: a right fit there must pass).
 MAX_ROTATION_DEG = 35.0
+#: The upper aorta's own turn (issue 10): a pose off along the upper aorta barely moves it off
+#: itself (under ``MIN_OFFSET_PX``), but a wire does not turn it. Turned by ``MIN_TURN_DEG`` or
+#: more, its two halves fitted on their own turned alike (the smaller turn at least
+#: ``HALF_TURN_AGREEMENT`` of the larger: a bend that the deformation gave it fakes a turn of
+#: its lower or upper half only) and taken by the rigid fit to ``TURN_RESIDUAL_FRACTION`` of
+#: its distance under ``P``, the pose is corrected below ``MIN_OFFSET_PX``.
+MIN_TURN_DEG = 1.0
+HALF_TURN_AGREEMENT = 0.65
+TURN_RESIDUAL_FRACTION = 0.6
 #: Huber threshold in robust standard deviations (1.4826 MAD) of the residuals.
 HUBER_K = 1.345
 ROBUST_ITERATIONS = 10
@@ -126,7 +136,8 @@ class PoseCheck:
     ``offset_px``: mean displacement of the stable points by the fitted motion;
     ``before_px`` / ``after_px``: mean distance of the stable points to the frame's stable
     vessels under the given and the fitted pose; ``regions_px``: the same per region
-    (before, after).
+    (before, after); ``halves_deg``: the turn of each half of the reference region fitted on
+    its own (empty without a reference or when it turns less than ``MIN_TURN_DEG``).
     """
 
     P: np.ndarray
@@ -138,6 +149,7 @@ class PoseCheck:
     regions_px: dict = field(default_factory=dict)
     applied: bool = False
     why: str = ""
+    halves_deg: tuple = ()
 
     def to_dict(self) -> dict:
         return {"translation_px": [round(float(t), 3) for t in self.translation_px],
@@ -145,6 +157,7 @@ class PoseCheck:
                 "distance_before_px": round(float(self.before_px), 3),
                 "distance_after_px": round(float(self.after_px), 3),
                 "regions_px": {k: [round(float(b), 3), round(float(a), 3)] for k, (b, a) in self.regions_px.items()},
+                "halves_deg": [round(float(t), 3) for t in self.halves_deg],
                 "applied": bool(self.applied), "why": self.why}
 
 
@@ -162,27 +175,47 @@ def _stable_regions_fit(source, regions, curve, P, starts, tree, reference):
     straight vessel cannot show, is then taken from the other regions
     (:func:`_along_reference_shift`): their ostia may have moved with the wire, so they
     decide only what the reference leaves open. Without a usable reference all regions are
-    fitted at once. Returns the fit of ``source`` (all regions, in order).
+    fitted at once. Returns the fit of ``source`` (all regions, in order) and the turns of the
+    reference's halves (:func:`_half_turns`; empty without a reference or below ``MIN_TURN_DEG``).
     """
     normals = _curve_normals(curve, tree)
     names = list(regions)
     bounds = np.cumsum([0] + [len(regions[name]) for name in names])
     if reference not in regions or len(regions[reference]) < MIN_REFERENCE_POINTS:
         fits = [_closest_point_fit(source, curve, P, start, tree, normals) for start in starts]
-        return min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
+        return min(fits, key=lambda fit: _distances(tree, fit.moved).mean()), ()
     k = names.index(reference)
     own = slice(bounds[k], bounds[k + 1])
     along = _principal_direction(source[own])
     fits = [_closest_point_fit(source[own], curve, P, None if start is None else _restricted(start, own), tree, normals,
                                free=along) for start in starts]
     best = min(fits, key=lambda fit: _distances(tree, fit.moved).mean())
+    # the halves matter only to a turn the rule can read (:func:`_reference_turned`); they cost 2 fits
+    halves = (_half_turns(source[own], best, curve, P, tree, normals, along)
+              if abs(best.rotation_deg) >= MIN_TURN_DEG else ())
     moved = _apply_rigid(source, source[own], best.moved)
     others = np.ones(len(source), bool)
     others[own] = False
     if np.count_nonzero(others) >= 3:
         direction = _principal_direction(best.moved)
         moved = moved + _along_reference_shift(moved[others], direction, curve, tree, normals) * direction
-    return fit_in_plane_rigid(source, moved, P)
+    return fit_in_plane_rigid(source, moved, P), halves
+
+
+def _half_turns(reference: np.ndarray, fit: PoseRefinement, curve, P, tree, normals, along) -> tuple:
+    """The turn (degrees) of each half of the reference region (split at its middle along
+    ``along``), each fitted on its own from the whole region's ``fit``. A rigid misalignment
+    turns both halves alike; a bend of the vessel turns one more than the other (the phantom
+    generator bends the upper aorta from its middle: the lower half stays, the upper turns)."""
+    position = reference @ along
+    lower = position <= np.median(position)
+    turns = []
+    for half in (lower, ~lower):
+        if np.count_nonzero(half) < 3:
+            return ()
+        start = _restricted(fit, half)
+        turns.append(_closest_point_fit(reference[half], curve, P, start, tree, normals, free=along).rotation_deg)
+    return tuple(turns)
 
 
 #: The reference region needs this many points in the frame to fix the rotation on its own.
@@ -265,9 +298,12 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         ``reference`` region in the frame, (b) the reference is off under ``P`` by
         ``min_offset_px`` or more and the fit takes it to ``MAX_RESIDUAL_FRACTION`` of that:
         a wire moves the renal ostia and leaves the upper aorta, so renals off the frame
-        alone are deformation, and renals that moved as well may stay off after the fit. (A
-        shift purely along a straight upper aorta is therefore not corrected: one view cannot
-        tell it from renals that moved.) Without a reference, (c) the fit explains the
+        alone are deformation, and renals that moved as well may stay off after the fit. A
+        reference less than ``min_offset_px`` off is still corrected when it is turned
+        rigidly (:func:`_reference_turned`: a pose off along it and turned a little; a wire
+        does not turn it, and a bend it gave it turns one half only). (A shift purely along
+        a straight upper aorta, without a turn, is not corrected: one view cannot tell it from
+        renals that moved.) Without a reference, (c) the fit explains the
         mismatch: the mean distance of the stable points to the frame's stable vessels drops
         to ``MAX_RESIDUAL_FRACTION`` of what it was, and each region comes ``REGION_GAIN_PX``
         nearer (they agree on one motion).
@@ -286,14 +322,14 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
         coarse = robust_fit_in_plane_rigid(source, np.concatenate([targets[name] for name in regions]), P)
         if abs(coarse.rotation_deg) <= MAX_ROTATION_DEG:
             starts.append(coarse)
-    fit = _stable_regions_fit(source, regions, curve_uv, P, starts, tree, reference)
+    fit, halves = _stable_regions_fit(source, regions, curve_uv, P, starts, tree, reference)
     before, after = _distances(tree, source), _distances(tree, fit.moved)
     offset = float(np.linalg.norm(fit.moved - source, axis=1).mean())
     bounds = np.cumsum([0] + [len(uv) for uv in regions.values()])
     per_region = {name: (float(before[i:j].mean()), float(after[i:j].mean()))
                   for name, i, j in zip(regions, bounds[:-1], bounds[1:])}
     check = PoseCheck(np.asarray(P, float), fit.translation, fit.rotation_deg, offset, float(before.mean()),
-                      float(after.mean()), per_region)
+                      float(after.mean()), per_region, halves_deg=halves)
     check.applied, check.why = _decide(check, len(regions), reference if reference in per_region and
                                        len(regions[reference]) >= MIN_REFERENCE_POINTS else None, force, min_offset_px)
     if check.applied:
@@ -308,13 +344,18 @@ def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool
         return False, f"fit turned the frame {check.rotation_deg:.1f} deg: a failed fit, not a misalignment"
     if force:
         return True, "pose correction forced"
-    if offset < min_offset_px:
+    turned = reference is not None and _reference_turned(check, per_region[reference])
+    if offset < min_offset_px and not turned:
         return False, f"frame and P agree: best rigid offset {offset:.1f} px (< {min_offset_px:g} px)"
     if n_regions < 2:
         return False, f"only {', '.join(per_region)} in the frame: one region cannot tell misalignment from deformation"
     if reference is not None:
         # renals the wire moved may stay off or come no nearer: the reference alone decides
         held, moved_to = per_region[reference]
+        if turned and held < min_offset_px:
+            return True, (f"{reference} is turned {check.rotation_deg:+.1f} deg against the frame: {held:.1f} px off "
+                          f"under P, {moved_to:.1f} px after one rigid offset of {offset:.1f} px (a wire does not "
+                          f"turn it; along it from the other regions)")
         if held < min_offset_px:
             return False, (f"read as deformation: {reference} is {held:.1f} px off the frame under P "
                            f"(< {min_offset_px:g} px), the rest moved")
@@ -335,6 +376,18 @@ def _decide(check: PoseCheck, n_regions: int, reference: str | None, force: bool
                       f"offset of {offset:.1f} px (its turn and cross offset; along it from {others})")
     return True, (f"{', '.join(per_region)} agree on one rigid offset of {offset:.1f} px (stable vessels "
                   f"{check.before_px:.1f} -> {check.after_px:.1f} px off the frame's)")
+
+
+def _reference_turned(check: PoseCheck, reference_px: tuple) -> bool:
+    """Is the reference region (the upper aorta) turned against the frame, rigidly? Its fitted
+    turn is at least ``MIN_TURN_DEG``, its halves' turns agree (same sign, the smaller at least
+    ``HALF_TURN_AGREEMENT`` of the larger) and the rigid fit takes it to
+    ``TURN_RESIDUAL_FRACTION`` of its distance under ``P``."""
+    held, moved_to = reference_px
+    if abs(check.rotation_deg) < MIN_TURN_DEG or len(check.halves_deg) != 2 or moved_to > TURN_RESIDUAL_FRACTION * held:
+        return False
+    small, large = sorted(check.halves_deg, key=abs)
+    return small * large > 0 and abs(small) >= HALF_TURN_AGREEMENT * abs(large)
 
 
 #: A point meeting the frame's curve this far (px) along it from its nearest sample lies beyond

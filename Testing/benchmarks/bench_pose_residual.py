@@ -30,7 +30,9 @@ from FevarPlannerLib.alignment import pose_residual  # noqa: E402
 from FevarPlannerLib.benchmark.independent import independent_case_folders  # noqa: E402
 from FevarPlannerLib.centerline import Centerline  # noqa: E402
 from FevarPlannerLib.pipeline import plan_case  # noqa: E402
-from FevarPlannerLib.scenarios import KINDS  # noqa: E402
+from FevarPlannerLib.files import InputError  # noqa: E402
+from FevarPlannerLib.quality import QualityError  # noqa: E402
+from FevarPlannerLib.scenarios import EXTRA_KINDS, KINDS  # noqa: E402
 
 #: Upper-aorta points this far (mm) above the higher renal ostium count (the ostia themselves may move).
 ABOVE_OSTIA_MM = 3.0
@@ -76,7 +78,7 @@ def case_row(kind: str, folder: Path, oracle: bool, scratch: Path) -> dict:
     upper = upper_aorta(gt_intra)
     result = plan_case(folder, method="proposed")
     row = {"name": folder.name, "kind": kind, "depth_floor_mm": floor, "proposed": _scored(result, truth),
-           "pose_applied": not np.allclose(result.P, P_given),
+           "pose_applied": not np.allclose(result.P, P_given), "pose_check": result.views[0].get("pose_correction"),
            "given_residual": pose_residual(P_given, P_true, upper), "used_residual": pose_residual(result.P, P_true, upper)}
     row["floor_gap_mm"] = row["proposed"]["3d_mm"] - floor
     if oracle:
@@ -102,18 +104,25 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     parser = argument_parser(__doc__)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--kinds", nargs="+", choices=KINDS, default=["misaligned", "angulated"])
+    parser.add_argument("--kinds", nargs="+", choices=KINDS + EXTRA_KINDS, default=["misaligned", "angulated"])
     parser.add_argument("--oracle", action="store_true", help="also plan each case from its true P")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
+    rows, refusals = [], []
     with tempfile.TemporaryDirectory() as scratch, warnings.catch_warnings():
         warnings.simplefilter("ignore")          # the plans' own notes; the residuals are the point here
         for kind, folder in independent_case_folders(args.out / "cases", seed=args.seed, kinds=args.kinds):
-            rows.append(case_row(kind, folder, args.oracle, Path(scratch)))
+            try:
+                rows.append(case_row(kind, folder, args.oracle, Path(scratch)))
+            except (QualityError, InputError) as refused:       # the plan refused the case: recorded, not scored
+                refusals.append({"name": folder.name, "kind": kind, "refused": str(refused)})
+                print(f"| {folder.name} | refused: {refused}", flush=True)
+                continue
             print(table(rows[-1:]).splitlines()[-1], flush=True)
-    write_report(args.out, "pose_residual", {"seed": args.seed, "kinds": args.kinds, "cases": rows})
-    (args.out / "pose_residual.md").write_text(table(rows))
+    write_report(args.out, "pose_residual", {"seed": args.seed, "kinds": args.kinds, "cases": rows,
+                                             "refused": refusals})
+    (args.out / "pose_residual.md").write_text(table(rows) + "".join(f"\n{r['name']}: refused ({r['refused']})"
+                                                                      for r in refusals))
     print(table(rows))
     return 0
 

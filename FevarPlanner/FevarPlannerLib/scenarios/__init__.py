@@ -49,12 +49,13 @@ from .deformations import bend_subtree, deform_tree, Deformation, straighten_tub
 from .frames import (CT_HU, CT_MARGIN_MM, CT_NOISE_HU, CT_SPACING_MM, DETECTOR_MARGIN_PX, DSA_ATTENUATION_PER_MM,
                      DSA_NOISE, IMAGE_CT_MARGIN_MM, SPINE_MM, generate, mask_end_points,
                      paint_capsules, render_ct, render_dsa, RenderedView, ScenarioCase)
-from .plans import (ANGULATED_VIEWS_DEG, KINDS, OUT_OF_PLANE_SEVERITIES_DEG, SECOND_VIEW_DEG, plan_scenarios,
+from .plans import (ANGULATED_VIEWS_DEG, EXTRA_KINDS, KINDS, OUT_OF_PLANE_SEVERITIES_DEG, SECOND_VIEW_DEG, plan_scenarios,
                     Scenario, View)
 from .tree import MAIN_VESSELS, SIDES, STEP_MM, build_tree, random_shape, TreeShape, Tube, VesselTree
 
 __all__ = [
     "KINDS",
+    "EXTRA_KINDS",
     "MAIN_VESSELS",
     "Tube",
     "VesselTree",

@@ -202,9 +202,28 @@ def _render_view(tree: VesselTree, scenario: Scenario, view: View, isocenter: np
         P, rows, clipped_rows = _clipped(P, rows, tree, view.clip_top_mm)
         carm = replace(carm, rows=rows)
     mask = _draw_frame(tree, P, (rows, carm.cols))
-    centre = ((carm.cols - 1) / 2.0, (rows - 1) / 2.0)
-    P_given = in_plane_transform(P, view.misalign_shift_px, view.misalign_rotation_deg, 1.0, centre)
+    shift, turn, centre = view.misalign_shift_px, view.misalign_rotation_deg, ((carm.cols - 1) / 2.0, (rows - 1) / 2.0)
+    along = scenario.info.get("misalign_along_aorta")
+    if along is not None and view is scenario.views[0]:
+        shift, turn, centre = _along_aorta_pose_error(tree, P, along)
+    P_given = in_plane_transform(P, shift, turn, 1.0, centre)
     return RenderedView(view.name, mask, P, P_given, carm, clipped_rows)
+
+
+def _along_aorta_pose_error(tree: VesselTree, P: np.ndarray, error: dict) -> tuple:
+    """(shift px, turn degrees, centre) of a given pose off along the upper aorta (plans, kind
+    ``misaligned_along``): the turn about the projected upper aorta's centre, the shift
+    ``along_px`` along its projected course (top to bottom) and ``across_px`` across it (that
+    course turned by +90 degrees). The upper aorta: the aorta above the higher renal ostium."""
+    aorta = tree.tubes["aorta"]
+    ostium = min(tree.tubes[f"renal_{side}"].parent_index for side in ("left", "right"))
+    uv = project(P, aorta.points[:ostium])
+    centred = uv - uv.mean(axis=0)
+    course = np.linalg.eigh(centred.T @ centred)[1][:, -1]
+    if (uv[-1] - uv[0]) @ course < 0:
+        course = -course
+    shift = error["along_px"] * course + error["across_px"] * np.array([-course[1], course[0]])
+    return (float(shift[0]), float(shift[1])), float(error["rotation_deg"]), tuple(float(c) for c in uv.mean(axis=0))
 
 
 def generate(scenario: Scenario) -> ScenarioCase:
