@@ -72,6 +72,8 @@ FORK_SLIDE_RADII = 2.0
 #: length lies in this range; a 2D end within ``FRAME_MARGIN_RADII`` 2D radii of what the
 #: frame shows is a cut, not the vessel's end.
 LEG_SCALE_RANGE = (0.8, 1.2)
+#: Slack (px) of the segment bound of :func:`_reachable_segments`, far above its rounding.
+_REACH_MARGIN = 1e-6
 FRAME_MARGIN_RADII = 1.0
 #: How much longer than parallel to the detector a leg may come out in the frame
 #: (:func:`_largest_leg_scale`): a move of about 6 mm towards the source under the bench's
@@ -227,11 +229,18 @@ def match_trunks(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: C
     return candidates
 
 
-def _nearest_matched_junction(graph: SkeletonGraph, junction: int, matched) -> int:
-    """The matched junction closest (geodesically) to ``junction``."""
+def _nearest_matched_junctions(graph: SkeletonGraph, junctions, matched) -> list[int]:
+    """The matched junction closest (geodesically) to each of ``junctions``.
+
+    One Dijkstra run per distinct junction (a junction with several branches is asked once).
+    """
     matched = np.asarray(sorted(matched))
-    distances = graph.geodesic_from(int(junction))[matched]
-    return int(matched[np.argmin(distances)])
+    distinct = sorted({int(j) for j in junctions})
+    if not distinct:
+        return []
+    distances = np.atleast_2d(graph.geodesic_from(distinct))[:, matched]
+    nearest = {j: int(matched[np.argmin(row)]) for j, row in zip(distinct, distances)}
+    return [nearest[int(j)] for j in junctions]
 
 
 def match_branches(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
@@ -245,9 +254,9 @@ def match_branches(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2:
     t3 = branch_tangents(g3, c3.branches, P)
     t2 = branch_tangents(g2, c2.branches)
     similarity = t3 @ t2.T
-    anchor3 = [_nearest_matched_junction(g3, b.junction, junction_pairs) for b in c3.branches]
+    anchor3 = _nearest_matched_junctions(g3, [b.junction for b in c3.branches], junction_pairs)
     inverse = {v: k for k, v in junction_pairs.items()}
-    anchor2 = [inverse[_nearest_matched_junction(g2, b.junction, inverse)] for b in c2.branches]
+    anchor2 = [inverse[j] for j in _nearest_matched_junctions(g2, [b.junction for b in c2.branches], inverse)]
     allowed = np.equal.outer(anchor3, anchor2)
     cost = np.where(allowed, -similarity, _FORBIDDEN)
     rows, cols = linear_sum_assignment(cost)
@@ -322,14 +331,35 @@ def _join_two(first: list, second: list) -> list | None:
 
 
 def _arc_positions(curve: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Path length along the polyline ``curve`` of its point nearest to each of ``points``."""
+    """Path length along the polyline ``curve`` of its point nearest to each of ``points``.
+
+    Only the segments that can hold a nearest point (:func:`_reachable_segments`) are
+    measured; the nearest one, its first in order on a tie, is the one all would give.
+    """
     start, step = curve[:-1], np.diff(curve, axis=0)
+    kept = _reachable_segments(points, curve)
+    start, step = start[kept], step[kept]
     squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
     offset = points[:, None, :] - start[None]
     t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
     gap = offset - t[..., None] * step[None]
     segment = np.argmin(np.einsum("nmd,nmd->nm", gap, gap), axis=1)
-    return _cumulative_length(curve)[segment] + t[np.arange(len(points)), segment] * np.sqrt(squared[segment])
+    return _cumulative_length(curve)[kept[segment]] + t[np.arange(len(points)), segment] * np.sqrt(squared[segment])
+
+
+def _reachable_segments(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
+    """Indices (ascending) of the segments of the polyline ``curve`` that may lie nearest to one of ``points``.
+
+    A segment lies at least (distance to its farther end - its length) from a point, and
+    the nearest vertex bounds the nearest segment's distance from above: a segment whose
+    bound exceeds it for every point cannot be nearest to any. The margin
+    (:data:`_REACH_MARGIN`) keeps every segment within rounding of the nearest.
+    """
+    offset, step = points[:, None, :] - curve[None], np.diff(curve, axis=0)
+    vertex = np.sqrt(np.einsum("nmd,nmd->nm", offset, offset))
+    length = np.sqrt(np.einsum("md,md->m", step, step))
+    bound = vertex.min(axis=1, keepdims=True) + _REACH_MARGIN
+    return np.flatnonzero(np.any(np.maximum(vertex[:, :-1], vertex[:, 1:]) - length <= bound, axis=0))
 
 
 def _projected_length_fit(curve2: np.ndarray, projected: np.ndarray) -> np.ndarray | None:
@@ -620,7 +650,8 @@ def _distance_to_polyline(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
     """Distance of each point to the polyline ``curve``."""
     if len(curve) == 1:
         return np.linalg.norm(points - curve[0], axis=1)
-    start, step = curve[:-1], np.diff(curve, axis=0)
+    kept = _reachable_segments(points, curve)       # the minimum over the rest is the same
+    start, step = curve[:-1][kept], np.diff(curve, axis=0)[kept]
     squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
     offset = points[:, None, :] - start[None]
     t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
