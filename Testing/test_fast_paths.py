@@ -778,3 +778,48 @@ def test_hysteresis_by_label_indexing_equals_scikit_images():
         if trial % 5 == 0:
             low, high = high, low           # low above high: clipped to it
         assert np.array_equal(fluoro._hysteresis(image, low, high), apply_hysteresis_threshold(image, low, high))
+
+
+def _nearest_on_every_segment(points: np.ndarray, curve: np.ndarray):
+    """Each point's nearest segment of ``curve`` measured against every segment (argmin: the first on a tie)."""
+    start, step = curve[:-1], np.diff(curve, axis=0)
+    squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
+    offset = points[:, None, :] - start[None]
+    t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
+    gap = offset - t[..., None] * step[None]
+    distance = np.einsum("nmd,nmd->nm", gap, gap)
+    segment = np.argmin(distance, axis=1)
+    rows = np.arange(len(points))
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(step, axis=1))])
+    return segment, arc[segment] + t[rows, segment] * np.sqrt(squared[segment]), np.sqrt(distance[rows, segment])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_segments_searched_near_each_point_give_the_all_segment_answer_to_the_bit(seed):
+    from FevarPlannerLib.matching import paper
+
+    rng = np.random.default_rng(seed)
+    for points_count, segments in ((24, 9), (24, 310), (120, 318), (300, 60)):
+        curve = np.cumsum(rng.normal(0.0, 1.0, (segments + 1, 2)) + [0.3, 1.0], axis=0)
+        curve[rng.integers(0, segments, 3)] *= 1.0 + rng.normal(0, 0.2)      # some long jumps
+        points = curve[rng.integers(0, len(curve), points_count)] + rng.normal(0.0, 6.0, (points_count, 2))
+        points[:4] = curve[[0, 1, 1, -1]]                                         # on vertices: ties
+        segment, arc, distance = _nearest_on_every_segment(points, curve)
+        point, found, _, squared = paper._nearest_segments(points, curve)
+        assert np.array_equal(point, np.arange(points_count))
+        assert np.array_equal(found, segment)
+        assert _same_bits(np.sqrt(squared), distance)
+        assert _same_bits(paper._arc_positions(curve, points), arc)
+        assert _same_bits(paper._distance_to_polyline(points, curve), distance)
+
+
+def test_nearest_matched_junctions_in_one_run_equal_one_dijkstra_per_junction():
+    from FevarPlannerLib.matching import paper
+
+    model = preop_model(phantom_case("fallback", seed=11))
+    graph, classification = model.graph, model.classification
+    junctions = [b.junction for b in classification.branches]
+    matched = sorted({int(j) for j in junctions})[::2]
+    one_by_one = [int(np.asarray(matched)[np.argmin(graph.geodesic_from(int(j))[matched])]) for j in junctions]
+    assert paper._nearest_matched_junctions(graph, junctions, set(matched)) == one_by_one
+    assert len(set(junctions)) >= 2 and len(junctions) > len(set(junctions))

@@ -72,8 +72,11 @@ FORK_SLIDE_RADII = 2.0
 #: length lies in this range; a 2D end within ``FRAME_MARGIN_RADII`` 2D radii of what the
 #: frame shows is a cut, not the vessel's end.
 LEG_SCALE_RANGE = (0.8, 1.2)
-#: Slack (px) of the segment bound of :func:`_reachable_segments`, far above its rounding.
+#: Slack (px) of the segment bound of :func:`_nearest_segments`, far above its rounding.
 _REACH_MARGIN = 1e-6
+#: Up to this many (point, segment) pairs :func:`_nearest_segments` measures them all (a
+#: KD-tree's set-up costs more).
+_DENSE_PAIRS = 6000
 FRAME_MARGIN_RADII = 1.0
 #: How much longer than parallel to the detector a leg may come out in the frame
 #: (:func:`_largest_leg_scale`): a move of about 6 mm towards the source under the bench's
@@ -331,35 +334,57 @@ def _join_two(first: list, second: list) -> list | None:
 
 
 def _arc_positions(curve: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Path length along the polyline ``curve`` of its point nearest to each of ``points``.
-
-    Only the segments that can hold a nearest point (:func:`_reachable_segments`) are
-    measured; the nearest one, its first in order on a tie, is the one all would give.
-    """
-    start, step = curve[:-1], np.diff(curve, axis=0)
-    kept = _reachable_segments(points, curve)
-    start, step = start[kept], step[kept]
+    """Path length along the polyline ``curve`` of its point nearest to each of ``points``."""
+    point, segment, t, _ = _nearest_segments(points, curve)
+    step = np.diff(curve, axis=0)
     squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
+    return _cumulative_length(curve)[segment] + t * np.sqrt(squared[segment])
+
+
+def _nearest_segments(points: np.ndarray, curve: np.ndarray):
+    """For each of ``points`` its nearest segment of the polyline ``curve`` (the first on a tie):
+    ``(point, segment, t, squared distance)``, one entry per point in order, ``t`` the clipped
+    position along the segment.
+
+    Only the segments that can hold a nearest point are measured: those starting within the
+    nearest vertex's distance plus the longest segment (and :data:`_REACH_MARGIN`, far above
+    rounding), since the nearest vertex bounds the nearest segment's distance from above and
+    a segment lies no nearer than its start less its length. Each (point, segment) pair is
+    measured as over all segments at once, which is what a small problem (up to
+    :data:`_DENSE_PAIRS` pairs) does.
+    """
+    from scipy.spatial import cKDTree
+
+    start, step = curve[:-1], np.diff(curve, axis=0)
+    squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
+    if len(points) * len(start) <= _DENSE_PAIRS:
+        return _nearest_segments_dense(points, start, step, squared)
+    starts = cKDTree(start)
+    nearest = np.minimum(starts.query(points)[0], np.linalg.norm(points - curve[-1], axis=1))
+    reach = nearest + np.sqrt(squared.max()) + _REACH_MARGIN
+    near = starts.query_ball_point(points, reach, return_sorted=True)
+    point = np.repeat(np.arange(len(points)), [len(n) for n in near])
+    segment = np.concatenate(near).astype(np.int64)
+    offset = points[point] - start[segment]
+    t = np.clip(np.einsum("kd,kd->k", offset, step[segment]) / squared[segment], 0.0, 1.0)
+    gap = offset - t[:, None] * step[segment]
+    distance = np.einsum("kd,kd->k", gap, gap)
+    first = np.concatenate([[0], np.cumsum([len(n) for n in near])[:-1]])
+    least = np.minimum.reduceat(distance, first)
+    best = np.flatnonzero(distance == least[point])
+    best = best[np.unique(point[best], return_index=True)[1]]
+    return point[best], segment[best], t[best], distance[best]
+
+
+def _nearest_segments_dense(points: np.ndarray, start: np.ndarray, step: np.ndarray, squared: np.ndarray):
+    """:func:`_nearest_segments` measuring every (point, segment) pair."""
     offset = points[:, None, :] - start[None]
     t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
     gap = offset - t[..., None] * step[None]
-    segment = np.argmin(np.einsum("nmd,nmd->nm", gap, gap), axis=1)
-    return _cumulative_length(curve)[kept[segment]] + t[np.arange(len(points)), segment] * np.sqrt(squared[segment])
-
-
-def _reachable_segments(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
-    """Indices (ascending) of the segments of the polyline ``curve`` that may lie nearest to one of ``points``.
-
-    A segment lies at least (distance to its farther end - its length) from a point, and
-    the nearest vertex bounds the nearest segment's distance from above: a segment whose
-    bound exceeds it for every point cannot be nearest to any. The margin
-    (:data:`_REACH_MARGIN`) keeps every segment within rounding of the nearest.
-    """
-    offset, step = points[:, None, :] - curve[None], np.diff(curve, axis=0)
-    vertex = np.sqrt(np.einsum("nmd,nmd->nm", offset, offset))
-    length = np.sqrt(np.einsum("md,md->m", step, step))
-    bound = vertex.min(axis=1, keepdims=True) + _REACH_MARGIN
-    return np.flatnonzero(np.any(np.maximum(vertex[:, :-1], vertex[:, 1:]) - length <= bound, axis=0))
+    distance = np.einsum("nmd,nmd->nm", gap, gap)
+    point = np.arange(len(points))
+    segment = np.argmin(distance, axis=1)
+    return point, segment, t[point, segment], distance[point, segment]
 
 
 def _projected_length_fit(curve2: np.ndarray, projected: np.ndarray) -> np.ndarray | None:
@@ -650,13 +675,7 @@ def _distance_to_polyline(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
     """Distance of each point to the polyline ``curve``."""
     if len(curve) == 1:
         return np.linalg.norm(points - curve[0], axis=1)
-    kept = _reachable_segments(points, curve)       # the minimum over the rest is the same
-    start, step = curve[:-1][kept], np.diff(curve, axis=0)[kept]
-    squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
-    offset = points[:, None, :] - start[None]
-    t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
-    gap = offset - t[..., None] * step[None]
-    return np.sqrt(np.einsum("nmd,nmd->nm", gap, gap).min(axis=1))
+    return np.sqrt(_nearest_segments(points, curve)[3])
 
 
 def _crossing(s: np.ndarray, distance: np.ndarray, limit: float) -> float | None:
