@@ -823,3 +823,20 @@ def test_nearest_matched_junctions_in_one_run_equal_one_dijkstra_per_junction():
     one_by_one = [int(np.asarray(matched)[np.argmin(graph.geodesic_from(int(j))[matched])]) for j in junctions]
     assert paper._nearest_matched_junctions(graph, junctions, set(matched)) == one_by_one
     assert len(set(junctions)) >= 2 and len(junctions) > len(set(junctions))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_segments_of_several_polylines_give_the_nearest_of_each_polylines_distance_to_the_bit(seed):
+    from FevarPlannerLib.matching import paper
+
+    rng = np.random.default_rng(seed)
+    curves = [np.cumsum(rng.normal(0.0, 1.0, (size, 2)) + [0.2, 1.0], axis=0) + rng.normal(0, 20, 2)
+              for size in (320, 12, 1, 90)]
+    segments = paper._Segments(curves)
+    for count in (5, 24, 200):           # small problems measure all pairs, large ones reuse one KD-tree
+        points = curves[0][rng.integers(0, 320, count)] + rng.normal(0.0, 8.0, (count, 2))
+        points[0] = curves[2][0]
+        each = np.min([_nearest_on_every_segment(points, c)[2] if len(c) > 1 else np.linalg.norm(points - c[0], axis=1)
+                       for c in curves], axis=0)
+        assert _same_bits(segments.distances(points), each)
+    assert segments._tree is not None

@@ -72,9 +72,9 @@ FORK_SLIDE_RADII = 2.0
 #: length lies in this range; a 2D end within ``FRAME_MARGIN_RADII`` 2D radii of what the
 #: frame shows is a cut, not the vessel's end.
 LEG_SCALE_RANGE = (0.8, 1.2)
-#: Slack (px) of the segment bound of :func:`_nearest_segments`, far above its rounding.
+#: Slack (px) of the segment bound of :class:`_Segments`, far above its rounding.
 _REACH_MARGIN = 1e-6
-#: Up to this many (point, segment) pairs :func:`_nearest_segments` measures them all (a
+#: Up to this many (point, segment) pairs :class:`_Segments` measures them all (a
 #: KD-tree's set-up costs more).
 _DENSE_PAIRS = 6000
 FRAME_MARGIN_RADII = 1.0
@@ -343,41 +343,61 @@ def _arc_positions(curve: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def _nearest_segments(points: np.ndarray, curve: np.ndarray):
     """For each of ``points`` its nearest segment of the polyline ``curve`` (the first on a tie):
-    ``(point, segment, t, squared distance)``, one entry per point in order, ``t`` the clipped
-    position along the segment.
+    ``(point, segment, t, squared distance)`` (:meth:`_Segments.nearest`)."""
+    return _Segments([curve]).nearest(points)
 
-    Only the segments that can hold a nearest point are measured: those starting within the
-    nearest vertex's distance plus the longest segment (and :data:`_REACH_MARGIN`, far above
-    rounding), since the nearest vertex bounds the nearest segment's distance from above and
-    a segment lies no nearer than its start less its length. Each (point, segment) pair is
-    measured as over all segments at once, which is what a small problem (up to
-    :data:`_DENSE_PAIRS` pairs) does.
+
+class _Segments:
+    """The segments of one or more polylines, for each point's nearest one.
+
+    Only the segments that can hold a point's nearest are measured: those starting within
+    the nearest segment start's distance plus the longest segment (and
+    :data:`_REACH_MARGIN`, far above rounding), since a segment start bounds the nearest
+    segment's distance from above and a segment lies no nearer than its start less its
+    length. Each (point, segment) pair is measured as over all segments at once, which is
+    what a small problem (up to :data:`_DENSE_PAIRS` pairs) does. The KD-tree of the
+    segment starts is built once, at the first large problem.
     """
-    from scipy.spatial import cKDTree
 
-    start, step = curve[:-1], np.diff(curve, axis=0)
-    squared = np.maximum(np.einsum("md,md->m", step, step), 1e-12)
-    if len(points) * len(start) <= _DENSE_PAIRS:
-        return _nearest_segments_dense(points, start, step, squared)
-    starts = cKDTree(start)
-    nearest = np.minimum(starts.query(points)[0], np.linalg.norm(points - curve[-1], axis=1))
-    reach = nearest + np.sqrt(squared.max()) + _REACH_MARGIN
-    near = starts.query_ball_point(points, reach, return_sorted=True)
-    point = np.repeat(np.arange(len(points)), [len(n) for n in near])
-    segment = np.concatenate(near).astype(np.int64)
-    offset = points[point] - start[segment]
-    t = np.clip(np.einsum("kd,kd->k", offset, step[segment]) / squared[segment], 0.0, 1.0)
-    gap = offset - t[:, None] * step[segment]
-    distance = np.einsum("kd,kd->k", gap, gap)
-    first = np.concatenate([[0], np.cumsum([len(n) for n in near])[:-1]])
-    least = np.minimum.reduceat(distance, first)
-    best = np.flatnonzero(distance == least[point])
-    best = best[np.unique(point[best], return_index=True)[1]]
-    return point[best], segment[best], t[best], distance[best]
+    def __init__(self, curves: list):
+        lines = [np.asarray(c, float) for c in curves if len(c) >= 2]
+        self.vertices = [np.asarray(c, float)[0] for c in curves if len(c) == 1]
+        self.start = np.concatenate([c[:-1] for c in lines]) if lines else np.empty((0, 2))
+        self.step = np.concatenate([np.diff(c, axis=0) for c in lines]) if lines else np.empty((0, 2))
+        self.squared = np.maximum(np.einsum("md,md->m", self.step, self.step), 1e-12)
+        self._tree = None
+
+    def nearest(self, points: np.ndarray):
+        """``(point, segment, t, squared distance)``: each point's nearest segment (the first on a
+        tie), one entry per point in order, ``t`` the clipped position along the segment."""
+        if len(points) * len(self.start) <= _DENSE_PAIRS:
+            return _nearest_segments_dense(points, self.start, self.step, self.squared)
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+            self._tree = cKDTree(self.start)
+        reach = self._tree.query(points)[0] + np.sqrt(self.squared.max()) + _REACH_MARGIN
+        near = self._tree.query_ball_point(points, reach, return_sorted=True)
+        point = np.repeat(np.arange(len(points)), [len(n) for n in near])
+        segment = np.concatenate(near).astype(np.int64)
+        offset = points[point] - self.start[segment]
+        t = np.clip(np.einsum("kd,kd->k", offset, self.step[segment]) / self.squared[segment], 0.0, 1.0)
+        gap = offset - t[:, None] * self.step[segment]
+        distance = np.einsum("kd,kd->k", gap, gap)
+        first = np.concatenate([[0], np.cumsum([len(n) for n in near])[:-1]])
+        least = np.minimum.reduceat(distance, first)
+        best = np.flatnonzero(distance == least[point])
+        best = best[np.unique(point[best], return_index=True)[1]]
+        return point[best], segment[best], t[best], distance[best]
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """Distance of each point to the nearest of the polylines (a one-point polyline: its point)."""
+        single = [np.linalg.norm(points - vertex, axis=1) for vertex in self.vertices]
+        lines = [np.sqrt(self.nearest(points)[3])] if len(self.start) else []
+        return np.min(lines + single, axis=0)
 
 
 def _nearest_segments_dense(points: np.ndarray, start: np.ndarray, step: np.ndarray, squared: np.ndarray):
-    """:func:`_nearest_segments` measuring every (point, segment) pair."""
+    """:meth:`_Segments.nearest` measuring every (point, segment) pair."""
     offset = points[:, None, :] - start[None]
     t = np.clip(np.einsum("nmd,md->nm", offset, step) / squared, 0.0, 1.0)
     gap = offset - t[..., None] * step[None]
@@ -653,19 +673,14 @@ def _through_crotch(s3: np.ndarray, lead: float, crotch: float) -> np.ndarray:
     return np.where(s3 >= lead, crotch + s3 - lead, s3 * crotch / max(lead, 1e-9))
 
 
-def _distance_to_polylines(points: np.ndarray, curves: list) -> np.ndarray:
-    """Distance of each point to the nearest of the polylines ``curves``."""
-    return np.min([_distance_to_polyline(points, curve) for curve in curves], axis=0)
-
-
-def _distances_until(points: np.ndarray, curves: list, limit: float, chunk: int = 24) -> np.ndarray:
-    """:func:`_distance_to_polylines` of a path's points in order, a chunk at a time, up to the
+def _distances_until(points: np.ndarray, curves: "_Segments", limit: float, chunk: int = 24) -> np.ndarray:
+    """:meth:`_Segments.distances` of a path's points in order, a chunk at a time, up to the
     chunk where one first reaches ``limit``; the points after it get infinity. What
     :func:`_crossing` reads (up to the first point at ``limit``) is the same, at a fraction of
     the cost: a branch leaves its trunk's outline within its first few points."""
     distance = np.full(len(points), np.inf)
     for begin in range(0, len(points), chunk):
-        distance[begin:begin + chunk] = _distance_to_polylines(points[begin:begin + chunk], curves)
+        distance[begin:begin + chunk] = curves.distances(points[begin:begin + chunk])
         if np.any(distance[begin:begin + chunk] >= limit):
             break
     return distance
@@ -673,9 +688,7 @@ def _distances_until(points: np.ndarray, curves: list, limit: float, chunk: int 
 
 def _distance_to_polyline(points: np.ndarray, curve: np.ndarray) -> np.ndarray:
     """Distance of each point to the polyline ``curve``."""
-    if len(curve) == 1:
-        return np.linalg.norm(points - curve[0], axis=1)
-    return np.sqrt(_nearest_segments(points, curve)[3])
+    return _Segments([curve]).distances(points)
 
 
 def _crossing(s: np.ndarray, distance: np.ndarray, limit: float) -> float | None:
@@ -691,7 +704,8 @@ def _crossing(s: np.ndarray, distance: np.ndarray, limit: float) -> float | None
     return float(s[k - 1] + np.clip(fraction, 0.0, 1.0) * (s[k] - s[k - 1]))
 
 
-def _outline_exit(g2: SkeletonGraph, nodes2: np.ndarray, projected3: np.ndarray, trunk2: list, trunk3: list):
+def _outline_exit(g2: SkeletonGraph, nodes2: np.ndarray, projected3: np.ndarray, trunk2: list, trunk3: list, *,
+                  segments: tuple | None = None):
     """Where a branch that does not fork leaves its trunk's outline: ``(2D path, projected 3D path)``
     from the junction, or None where it cannot be told.
 
@@ -710,18 +724,24 @@ def _outline_exit(g2: SkeletonGraph, nodes2: np.ndarray, projected3: np.ndarray,
     across the view, as in frontal views) the bridge runs along the hidden part and eq. (4)
     from the junction stands (None): its targets differ by less than that, and the nodes in
     the outline keep theirs (without them the renals of the clipped frames came out 0.1-0.3
-    mm worse).
+    mm worse). ``segments``: :func:`_trunk_segments` of ``trunk2`` and ``trunk3`` when already built.
     """
     if g2.radii is None or len(nodes2) < 4 or not trunk2 or not trunk3:
         return None
     radii, x2 = g2.radii[nodes2], g2.positions[nodes2]
     own = float(np.median(radii[len(radii) // 2:]))
     limit = _trunk_radius(g2, trunk2, x2[0], float(radii[0])) + EXIT_BRANCH_RADII * own
-    exit2 = _crossing(_cumulative_length(x2), _distances_until(x2, [g2.positions[n] for n in trunk2], limit), limit)
-    exit3 = _crossing(_cumulative_length(projected3), _distances_until(projected3, trunk3, limit), limit)
+    trunk2_curves, trunk3_curves = segments or _trunk_segments(g2, trunk2, trunk3)
+    exit2 = _crossing(_cumulative_length(x2), _distances_until(x2, trunk2_curves, limit), limit)
+    exit3 = _crossing(_cumulative_length(projected3), _distances_until(projected3, trunk3_curves, limit), limit)
     if exit2 is None or exit3 is None or abs(exit2 - exit3) <= own:
         return None
     return exit2, exit3
+
+
+def _trunk_segments(g2: SkeletonGraph, trunk2: list, trunk3: list) -> tuple[_Segments, _Segments]:
+    """The segments of the trunks' 2D chains (node lists ``trunk2``) and of their projections ``trunk3``."""
+    return _Segments([g2.positions[n] for n in trunk2]), _Segments(trunk3)
 
 
 def _trunk_radius(g2: SkeletonGraph, trunk2: list, junction: np.ndarray, junction_radius: float) -> float:
@@ -780,6 +800,7 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
     forks = Counter(int(chains[i3][0]) for i3, (start, _) in starts.items() if start > 0)
     trunk2 = [np.asarray(n2) for _, n2 in correspondence.trunk_pairs]
     trunk3 = [project(P, g3.positions[np.asarray(n3)]) for n3, _ in correspondence.trunk_pairs]
+    segments = _trunk_segments(g2, trunk2, trunk3)          # shared by every side branch
     from_exits = []
     for i3, nodes2 in chains.items():
         nodes3, nodes2 = np.asarray(c3.branches[i3].nodes), np.asarray(nodes2)
@@ -792,7 +813,8 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
             s3 = _through_crotch(s3, lead, _cumulative_length(g2.positions[nodes2])[start])
             s3 = _off_the_bridges(g2, nodes2[start:], s3, _cumulative_length(g2.positions[nodes2])[start])
         elif side_branch_exits and c3.branches[i3].label not in _MAIN_COURSE:    # a side branch (a renal)
-            exits = _outline_exit(g2, nodes2, project(P, g3.positions[nodes3]), trunk2, trunk3)
+            exits = _outline_exit(g2, nodes2, project(P, g3.positions[nodes3]), trunk2, trunk3,
+                                  segments=segments)
             s3 = _counted_from_exit(s3, exits)
             from_exits += [] if exits is None else [int(i3)]
         add(nodes3, s3, nodes2)
