@@ -627,7 +627,8 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     if flat:
         vessel = _remove_small_objects(vessel, min_area_fraction * total)
     else:       # unsubtracted: bones and rulers across the vessels, cut-off branches (off_tree.py)
-        vessel = tidy_unsubtracted(vessel, prior, where, widest, (small_shape, factor, reach), min_area_fraction * total)
+        vessel, relative = tidy_unsubtracted(vessel, prior, where, widest, (small_shape, factor, reach),
+                                             min_area_fraction * total, relative)
     soft = _soft_extent(vessel, relative, contrast_fraction)
     full = np.zeros(frame.shape, dtype=bool)
     full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \

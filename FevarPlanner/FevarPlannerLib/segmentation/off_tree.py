@@ -39,7 +39,7 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 __all__ = ["tidy_unsubtracted", "without_cross_branches", "beyond_projected_lumen", "skeleton_directions",
-           "ACROSS_DEG", "MIN_RUN_PX"]
+           "cut_renal_bridges", "ACROSS_DEG", "MIN_RUN_PX"]
 
 #: A skeleton pixel runs across the projected tree when its direction is more than this many
 #: degrees off the nearest projected vessel's.
@@ -85,14 +85,21 @@ def _axis_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 
 
 def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid_key: tuple,
-                      min_area: float) -> np.ndarray:
+                      min_area: float, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The last clean-up of an unsubtracted frame's reduced-grid ``vessel`` mask: branches across
-    the projected tree dropped (:func:`without_cross_branches`), then pieces smaller than
-    ``min_area`` pixels (as on every frame).
+    the projected tree dropped (:func:`without_cross_branches`), a renal cut off at its ostium
+    bridged back (:func:`cut_renal_bridges`), then pieces smaller than ``min_area`` pixels (as
+    on every frame).
 
     ``prior`` is the :class:`quality.FluoroPrior`, ``where`` its band on this grid
     (:meth:`FluoroPrior.band`), ``widest`` the widest projected radius nearby (px);
-    ``grid_key`` names the grid for the prior's cache.
+    ``grid_key`` names the grid for the prior's cache; ``relative`` is the relative contrast
+    map the mask's soft extent is read from.
+
+    Returns
+    -------
+    (vessel, relative): the mask, and ``relative`` with the bridges at full contrast (a copy
+    when there are bridges) so that the soft extent keeps them.
     """
     from .fluoro import _node_directions
     from .threshold import _remove_small_objects
@@ -102,8 +109,19 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
     beyond = prior.derived(("beyond_lumen",) + tuple(grid_key), lambda: beyond_projected_lumen(where, widest))
     vessel = without_cross_branches(vessel, node_angle, beyond)
     if not vessel.any():
-        return vessel
-    return _remove_small_objects(vessel, min_area)
+        return vessel, relative
+    renal = prior.derived(("renal",) + tuple(grid_key), lambda: _renal_pixels(prior, where))
+    bridges = cut_renal_bridges(vessel, where, node_angle, renal, min_area)
+    if bridges.any():
+        vessel = vessel | bridges
+        relative = np.where(bridges, np.float32(1.0), relative)
+    return _remove_small_objects(vessel, min_area), relative
+
+
+def _renal_pixels(prior, where) -> np.ndarray:
+    """Pixels of the band ``where`` whose nearest projected node is a renal's."""
+    is_renal = np.array([label.startswith("renal") for label in prior.labels], dtype=bool)
+    return is_renal[where.nearest]
 
 
 def beyond_projected_lumen(where, widest: np.ndarray) -> np.ndarray:
@@ -178,3 +196,127 @@ def _explained_by(vessel: np.ndarray, skeleton: np.ndarray, depth: np.ndarray, k
     out = vessel.copy()
     out[tuple(candidates[lost].T)] = False
     return out
+
+
+# ----------------------------------------------------------------------------------------
+# A renal cut off at its ostium (a bone's edge across it): its piece bridged back
+# ----------------------------------------------------------------------------------------
+
+#: A small piece is a cut renal only when at least this share of its pixels lie nearest a renal.
+RENAL_SHARE = 0.8
+#: ... its axis is at most this many degrees off the projected renal's,
+RENAL_AXIS_DEG = 30.0
+#: ... it lies within this many projected renal radii (+ 1 px) of the projected renal (median),
+RENAL_LUMEN_RADII = 2.0
+#: ... it is at most this many projected renal diameters wide (+ 1 px),
+RENAL_WIDTH_DIAMETERS = 1.6
+#: ... the gap to the rest of the mask is at most this many projected renal diameters long
+#: (+ 2 px) and at most :data:`GAP_AXIS_DEG` off the piece's axis.
+RENAL_GAP_DIAMETERS = 3.0
+GAP_AXIS_DEG = 35.0
+#: Smallest piece (px of the reduced grid) looked at.
+MIN_PIECE_PX = 6
+
+
+def _piece_axis(pixels: np.ndarray) -> tuple[float, float, float]:
+    """(axis angle of (d_col, d_row) modulo pi, length along it, width = area / length) of a
+    piece given as (n, 2) ``(row, col)`` pixels, from its second moments."""
+    centred = pixels - pixels.mean(axis=0)
+    rows, cols = centred.T
+    angle = 0.5 * math.atan2(2.0 * float(cols @ rows), float(cols @ cols - rows @ rows))
+    along = cols * math.cos(angle) + rows * math.sin(angle)
+    length = float(np.ptp(along)) + 1.0
+    return angle, length, len(pixels) / length
+
+
+def _mean_axis(angles: np.ndarray) -> float:
+    """Mean of axis angles (modulo pi)."""
+    return 0.5 * float(np.angle(np.exp(2j * angles).mean()))
+
+
+def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: np.ndarray,
+                      min_area: float) -> np.ndarray:
+    """Pixels that join a renal's piece cut off at its ostium back to the rest of ``vessel``.
+
+    Where a renal crosses a vertebral body's edge the mask breaks; the renal's piece is then
+    smaller than ``min_area`` and would be dropped, and Algorithm 1 would take any stub for the
+    renal. A piece smaller than ``min_area`` is bridged when it is a renal's: its pixels lie
+    nearest a projected renal (``renal``), within :data:`RENAL_LUMEN_RADII` of its lumen; its
+    axis runs along the projected renal's (``node_angle``, :data:`RENAL_AXIS_DEG`); it is no
+    wider than the renal (:data:`RENAL_WIDTH_DIAMETERS`); it ends inside the prior's band (a
+    rail or ruler parallel to a renal is long and straight and runs on to the band's edge,
+    where the band cut it); and the gap from it to the pieces that stay is short
+    (:data:`RENAL_GAP_DIAMETERS`) and runs along its axis (:data:`GAP_AXIS_DEG`). The bridge
+    is the straight segment across the gap, one pixel either side.
+
+    Parameters
+    ----------
+    vessel : numpy.ndarray of bool, shape (rows, cols)
+        The vessel mask on the reduced grid of ``where`` (:meth:`FluoroPrior.band`).
+    where : quality.PriorBand
+    node_angle : numpy.ndarray, same shape
+        Axis angle of the nearest projected vessel per pixel.
+    renal : numpy.ndarray of bool, same shape
+        Pixels whose nearest projected node is a renal's.
+    min_area : float
+        Pieces this large stay anyway (the small-object threshold).
+
+    Returns
+    -------
+    numpy.ndarray of bool, same shape: the bridge pixels (none inside ``vessel``).
+    """
+    bridges = np.zeros_like(vessel)
+    pieces, count = ndi.label(vessel, structure=_EIGHT)
+    if count < 2:
+        return bridges
+    sizes = np.bincount(pieces.ravel(), minlength=count + 1)
+    stays = sizes >= min_area
+    stays[0] = False
+    renal_share = np.bincount(pieces[renal], minlength=count + 1) / np.maximum(sizes, 1)
+    candidates = np.flatnonzero(~stays & (sizes >= MIN_PIECE_PX) & (renal_share >= RENAL_SHARE))
+    if not stays.any() or not len(candidates):
+        return bridges
+    inner_band = ndi.binary_erosion(where.band, structure=_EIGHT)
+    staying = np.argwhere(stays[pieces])
+    staying_tree = cKDTree(staying)
+    for piece in candidates:
+        segment = _bridge_of_piece(np.argwhere(pieces == piece), where, node_angle, inner_band, staying, staying_tree)
+        if segment is not None:
+            bridges[tuple(segment.T)] = True
+    return bridges & ~vessel
+
+
+def _bridge_of_piece(pixels: np.ndarray, where, node_angle: np.ndarray, inner_band: np.ndarray,
+                     staying: np.ndarray, staying_tree) -> np.ndarray | None:
+    """The bridge pixels (k, 2) from one small piece to the pixels that stay, or None when the
+    piece is not a cut renal's (:func:`cut_renal_bridges`)."""
+    rows, cols = pixels.T
+    radius = float(np.median(where.radius[rows, cols]))
+    if np.median(where.distance[rows, cols]) > RENAL_LUMEN_RADII * radius + 1.0:
+        return None
+    if not inner_band[rows, cols].all():
+        return None                         # runs on to the band's edge: a rail, not a renal
+    angle, length, width = _piece_axis(pixels)
+    if width > RENAL_WIDTH_DIAMETERS * 2.0 * radius + 1.0 or length < 2.0 * width:
+        return None
+    if _axis_difference(angle, _mean_axis(node_angle[rows, cols])) > math.radians(RENAL_AXIS_DEG):
+        return None
+    gaps, nearest = staying_tree.query(pixels)
+    end = int(np.argmin(gaps))
+    if gaps[end] > RENAL_GAP_DIAMETERS * 2.0 * radius + 2.0:
+        return None
+    start, stop = pixels[end].astype(float), staying[nearest[end]].astype(float)
+    step = stop - start
+    if gaps[end] >= 2.0 and _axis_difference(math.atan2(step[0], step[1]), angle) > math.radians(GAP_AXIS_DEG):
+        return None
+    return _thick_segment(start, stop, inner_band.shape)
+
+
+def _thick_segment(start: np.ndarray, stop: np.ndarray, shape: tuple) -> np.ndarray:
+    """(k, 2) pixels of the segment from ``start`` to ``stop`` (row, col), one pixel either side."""
+    n = int(math.ceil(2.0 * float(np.linalg.norm(stop - start)))) + 1
+    points = np.rint(start + np.linspace(0.0, 1.0, n)[:, None] * (stop - start)).astype(int)
+    around = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+    pixels = (points[:, None, :] + around[None]).reshape(-1, 2)
+    inside = np.all((pixels >= 0) & (pixels < np.array(shape)), axis=1)
+    return np.unique(pixels[inside], axis=0)
