@@ -111,7 +111,9 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
     if not vessel.any():
         return vessel, relative
     renal = prior.derived(("renal",) + tuple(grid_key), lambda: _renal_pixels(prior, where))
-    bridges = cut_renal_bridges(vessel, where, node_angle, renal, min_area)
+    inner_band = prior.derived(("inner_band",) + tuple(grid_key),
+                               lambda: ndi.binary_erosion(where.band, structure=_EIGHT))
+    bridges = cut_renal_bridges(vessel, where, node_angle, renal, min_area, inner_band)
     if bridges.any():
         vessel = vessel | bridges
         relative = np.where(bridges, np.float32(1.0), relative)
@@ -235,7 +237,7 @@ def _mean_axis(angles: np.ndarray) -> float:
 
 
 def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: np.ndarray,
-                      min_area: float) -> np.ndarray:
+                      min_area: float, inner_band: np.ndarray | None = None) -> np.ndarray:
     """Pixels that join a renal's piece cut off at its ostium back to the rest of ``vessel``.
 
     Where a renal crosses a vertebral body's edge the mask breaks; the renal's piece is then
@@ -260,6 +262,8 @@ def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: 
         Pixels whose nearest projected node is a renal's.
     min_area : float
         Pieces this large stay anyway (the small-object threshold).
+    inner_band : numpy.ndarray of bool, same shape, optional
+        ``where.band`` eroded by one pixel (computed when not given).
 
     Returns
     -------
@@ -276,20 +280,23 @@ def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: 
     candidates = np.flatnonzero(~stays & (sizes >= MIN_PIECE_PX) & (renal_share >= RENAL_SHARE))
     if not stays.any() or not len(candidates):
         return bridges
-    inner_band = ndi.binary_erosion(where.band, structure=_EIGHT)
-    staying = np.argwhere(stays[pieces])
-    staying_tree = cKDTree(staying)
+    if inner_band is None:
+        inner_band = ndi.binary_erosion(where.band, structure=_EIGHT)
+    boxes = ndi.find_objects(pieces)
+    staying = stays[pieces]
     for piece in candidates:
-        segment = _bridge_of_piece(np.argwhere(pieces == piece), where, node_angle, inner_band, staying, staying_tree)
+        box = boxes[piece - 1]
+        pixels = np.argwhere(pieces[box] == piece) + np.array([box[0].start, box[1].start])
+        segment = _bridge_of_piece(pixels, where, node_angle, inner_band, staying)
         if segment is not None:
-            bridges[tuple(segment.T)] = True
+            _draw_thick(bridges, segment)
     return bridges & ~vessel
 
 
 def _bridge_of_piece(pixels: np.ndarray, where, node_angle: np.ndarray, inner_band: np.ndarray,
-                     staying: np.ndarray, staying_tree) -> np.ndarray | None:
-    """The bridge pixels (k, 2) from one small piece to the pixels that stay, or None when the
-    piece is not a cut renal's (:func:`cut_renal_bridges`)."""
+                     staying: np.ndarray) -> np.ndarray | None:
+    """The bridge's centre pixels (k, 2) from one small piece (``pixels``, (n, 2)) to the
+    ``staying`` mask, or None when the piece is not a cut renal's (:func:`cut_renal_bridges`)."""
     rows, cols = pixels.T
     radius = float(np.median(where.radius[rows, cols]))
     if np.median(where.distance[rows, cols]) > RENAL_LUMEN_RADII * radius + 1.0:
@@ -301,22 +308,29 @@ def _bridge_of_piece(pixels: np.ndarray, where, node_angle: np.ndarray, inner_ba
         return None
     if _axis_difference(angle, _mean_axis(node_angle[rows, cols])) > math.radians(RENAL_AXIS_DEG):
         return None
-    gaps, nearest = staying_tree.query(pixels)
-    end = int(np.argmin(gaps))
-    if gaps[end] > RENAL_GAP_DIAMETERS * 2.0 * radius + 2.0:
+    longest_gap = RENAL_GAP_DIAMETERS * 2.0 * radius + 2.0
+    reach = int(math.ceil(longest_gap))
+    low = np.maximum(pixels.min(axis=0) - reach, 0)
+    high = pixels.max(axis=0) + reach + 1
+    nearby = np.argwhere(staying[low[0]:high[0], low[1]:high[1]]) + low
+    if not len(nearby):
         return None
-    start, stop = pixels[end].astype(float), staying[nearest[end]].astype(float)
+    gaps, nearest = cKDTree(nearby).query(pixels)
+    end = int(np.argmin(gaps))
+    if gaps[end] > longest_gap:
+        return None
+    start, stop = pixels[end].astype(float), nearby[nearest[end]].astype(float)
     step = stop - start
     if gaps[end] >= 2.0 and _axis_difference(math.atan2(step[0], step[1]), angle) > math.radians(GAP_AXIS_DEG):
         return None
-    return _thick_segment(start, stop, inner_band.shape)
+    n = int(math.ceil(2.0 * float(np.linalg.norm(step)))) + 1
+    return np.rint(start + np.linspace(0.0, 1.0, n)[:, None] * step).astype(int)
 
 
-def _thick_segment(start: np.ndarray, stop: np.ndarray, shape: tuple) -> np.ndarray:
-    """(k, 2) pixels of the segment from ``start`` to ``stop`` (row, col), one pixel either side."""
-    n = int(math.ceil(2.0 * float(np.linalg.norm(stop - start)))) + 1
-    points = np.rint(start + np.linspace(0.0, 1.0, n)[:, None] * (stop - start)).astype(int)
-    around = np.array([(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
-    pixels = (points[:, None, :] + around[None]).reshape(-1, 2)
-    inside = np.all((pixels >= 0) & (pixels < np.array(shape)), axis=1)
-    return np.unique(pixels[inside], axis=0)
+def _draw_thick(mask: np.ndarray, centre: np.ndarray) -> None:
+    """Set the ``centre`` pixels (k, 2) of ``mask`` and their 8 neighbours (clipped to the grid)."""
+    for d_row in (-1, 0, 1):
+        for d_col in (-1, 0, 1):
+            rows = np.clip(centre[:, 0] + d_row, 0, mask.shape[0] - 1)
+            cols = np.clip(centre[:, 1] + d_col, 0, mask.shape[1] - 1)
+            mask[rows, cols] = True
