@@ -53,21 +53,37 @@ KINDS = (("every", {}), ("every_dsa", {"subtracted": True})) + tuple(
 POLARITIES = ("dark", "bright")
 REPO = Path(__file__).resolve().parents[2]
 FLUORO_PATH = "FevarPlanner/FevarPlannerLib/segmentation/fluoro.py"
+OFF_TREE_PATH = "FevarPlanner/FevarPlannerLib/segmentation/off_tree.py"
 
 
 def reference_segmenter(revision: str):
     """``segment_fluoro`` of ``segmentation/fluoro.py`` at git ``revision``, loaded as a sibling module
-    of the working tree's (its relative imports resolve in the same package)."""
-    source = subprocess.run(["git", "-C", str(REPO), "show", f"{revision}:{FLUORO_PATH}"], check=True,
-                            capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "fluoro_reference.py"
-    path.write_text(source)
-    name = "FevarPlannerLib.segmentation._fluoro_reference"
-    spec = importlib.util.spec_from_file_location(name, path)
+    of the working tree's (its relative imports resolve in the same package), with the
+    revision's own ``segmentation/off_tree.py`` beside it (the two change together)."""
+    off_tree = _load_revision_module(revision, OFF_TREE_PATH, "_off_tree_reference")
+    fluoro = _load_revision_module(revision, FLUORO_PATH, "_fluoro_reference",
+                                   (("from .off_tree import", "from ._off_tree_reference import"),)
+                                   if off_tree is not None else ())
+    return fluoro.segment_fluoro
+
+
+def _load_revision_module(revision: str, path: str, name: str, replacements=()):
+    """The module at ``path`` of git ``revision`` as ``FevarPlannerLib.segmentation.<name>`` (None
+    when the revision has no such file), its source edited by ``replacements`` ((old, new), ...)."""
+    shown = subprocess.run(["git", "-C", str(REPO), "show", f"{revision}:{path}"], capture_output=True, text=True)
+    if shown.returncode != 0:
+        return None
+    source = shown.stdout
+    for old, new in replacements:
+        source = source.replace(old, new)
+    file = Path(tempfile.mkdtemp()) / f"{name}.py"
+    file.write_text(source)
+    qualified = f"FevarPlannerLib.segmentation.{name}"
+    spec = importlib.util.spec_from_file_location(qualified, file)
     module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
+    sys.modules[qualified] = module
     spec.loader.exec_module(module)
-    return module.segment_fluoro
+    return module
 
 
 def bench_frames(seed: int, kinds, cache: Path | None):
