@@ -102,7 +102,6 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
     when there are bridges) so that the soft extent keeps them.
     """
     from .fluoro import _node_directions
-    from .threshold import _remove_small_objects
 
     node_angle = prior.derived(("node_angle",) + tuple(grid_key),
                                lambda: _node_directions(prior).astype(np.float32)[where.nearest])
@@ -113,11 +112,10 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
     renal = prior.derived(("renal",) + tuple(grid_key), lambda: _renal_pixels(prior, where))
     inner_band = prior.derived(("inner_band",) + tuple(grid_key),
                                lambda: ndi.binary_erosion(where.band, structure=_EIGHT))
-    bridges = cut_renal_bridges(vessel, where, node_angle, renal, min_area, inner_band)
+    vessel, bridges = without_small_pieces_but_cut_renals(vessel, where, node_angle, renal, min_area, inner_band)
     if bridges.any():
-        vessel = vessel | bridges
         relative = np.where(bridges, np.float32(1.0), relative)
-    return _remove_small_objects(vessel, min_area), relative
+    return vessel, relative
 
 
 def _renal_pixels(prior, where) -> np.ndarray:
@@ -269,15 +267,39 @@ def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: 
     -------
     numpy.ndarray of bool, same shape: the bridge pixels (none inside ``vessel``).
     """
-    bridges = np.zeros_like(vessel)
-    pieces, count = ndi.label(vessel, structure=_EIGHT)
-    if count < 2:
-        return bridges
+    pieces, count = ndi.label(vessel)          # face-connected, as the small-object removal
     sizes = np.bincount(pieces.ravel(), minlength=count + 1)
+    return _bridges_of_pieces(pieces, sizes, where, node_angle, renal, min_area, inner_band) & ~vessel
+
+
+def without_small_pieces_but_cut_renals(vessel: np.ndarray, where, node_angle: np.ndarray, renal: np.ndarray,
+                                        min_area: float, inner_band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(``vessel`` with the bridges of :func:`cut_renal_bridges` and without the pieces still
+    smaller than ``min_area``, the bridges): one labelling when nothing is bridged."""
+    from .threshold import _remove_small_objects
+
+    pieces, count = ndi.label(vessel)          # face-connected, as the small-object removal
+    sizes = np.bincount(pieces.ravel(), minlength=count + 1)
+    bridges = _bridges_of_pieces(pieces, sizes, where, node_angle, renal, min_area, inner_band) & ~vessel
+    if not bridges.any():
+        stays = sizes >= max(min_area, 1)
+        stays[0] = False
+        return stays[pieces], bridges
+    return _remove_small_objects(vessel | bridges, min_area), bridges
+
+
+def _bridges_of_pieces(pieces: np.ndarray, sizes: np.ndarray, where, node_angle: np.ndarray, renal: np.ndarray,
+                       min_area: float, inner_band: np.ndarray | None) -> np.ndarray:
+    """The bridges of :func:`cut_renal_bridges` from a labelling ``pieces`` (8-connected) and
+    its ``sizes`` (per label, label 0 the background)."""
+    bridges = np.zeros(pieces.shape, dtype=bool)
+    if len(sizes) < 3:
+        return bridges
     stays = sizes >= min_area
     stays[0] = False
-    renal_share = np.bincount(pieces[renal], minlength=count + 1) / np.maximum(sizes, 1)
+    renal_share = np.bincount(pieces[renal], minlength=len(sizes)) / np.maximum(sizes, 1)
     candidates = np.flatnonzero(~stays & (sizes >= MIN_PIECE_PX) & (renal_share >= RENAL_SHARE))
+    candidates = candidates[candidates > 0]
     if not stays.any() or not len(candidates):
         return bridges
     if inner_band is None:
@@ -290,7 +312,7 @@ def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: 
         segment = _bridge_of_piece(pixels, where, node_angle, inner_band, staying)
         if segment is not None:
             _draw_thick(bridges, segment)
-    return bridges & ~vessel
+    return bridges
 
 
 def _bridge_of_piece(pixels: np.ndarray, where, node_angle: np.ndarray, inner_band: np.ndarray,
