@@ -89,3 +89,24 @@ def test_a_piece_wider_than_the_renal_is_not_bridged():
     aorta, blob = _aorta_and((AORTA_COL + AORTA_RADIUS + 6, 58), half_width=4)   # 9 px wide, renal 4
     bridges, _ = _tidied(aorta, blob)
     assert not bridges.any()
+
+
+def test_the_small_object_removal_is_unchanged_when_nothing_is_bridged():
+    where, node_angle, renal, band = _prior_maps()
+    rng = np.random.default_rng(5)
+    aorta, _ = _aorta_and((0, 0))
+    specks = ndi.binary_dilation(rng.random(SHAPE) < 0.01) & ~renal      # small pieces, none a renal's
+    vessel = (aorta | specks) & band
+    kept, bridges = off_tree.without_small_pieces_but_cut_renals(vessel, where, node_angle, renal, MIN_AREA,
+                                                                 ndi.binary_erosion(band, structure=np.ones((3, 3))))
+    assert not bridges.any()
+    assert np.array_equal(kept, _remove_small_objects(vessel, MIN_AREA))
+    assert kept[aorta].all() and not (kept & ~ndi.binary_dilation(aorta, iterations=4)).any()
+
+
+def test_the_cut_renal_survives_the_combined_removal():
+    where, node_angle, renal, band = _prior_maps()
+    aorta, piece = _aorta_and((AORTA_COL + AORTA_RADIUS + 6, 66))
+    kept, bridges = off_tree.without_small_pieces_but_cut_renals((aorta | piece) & band, where, node_angle, renal,
+                                                                 MIN_AREA, ndi.binary_erosion(band, structure=np.ones((3, 3))))
+    assert bridges.any() and kept[piece].all() and kept[bridges].all()
