@@ -25,6 +25,16 @@ the background) stay.
 On development bench seeds 231-240 (every distractor, unsubtracted) this halves the share of
 the 2D skeleton lying over 5 mm off the vessels (seed 231: 32 % -> 15 %).
 
+Where a renal crosses a vertebral body's edge the mask breaks at the renal's ostium; the
+renal's piece is then smaller than the smallest object kept and Algorithm 1 takes a rail or a
+ruler stub for the renal. :func:`cut_renal_bridges` joins such a piece back, only when it is
+a renal's (in the projected renal's lumen band, along its direction, no wider than it, ending
+inside the prior's band where a rail runs on to the band's edge) and the gap to the rest of
+the mask is short and runs along the piece. On development seeds 231-240 (image only, the
+``every`` frame, end to end) image-only minus masks falls on seed 234 from +0.81 to -0.40 mm,
+235 from +2.13 to +0.74 mm and 238 from +1.70 to +1.19 mm (its renals from 5.4 / 13.4 mm to
+0.9 / 1.6 mm); no seed gets worse.
+
 Only frames whose background had to be flattened go through this (unsubtracted frames, and
 subtracted ones with a collimator shutter across the vessels); a flat subtracted frame's mask
 is left as it is.
