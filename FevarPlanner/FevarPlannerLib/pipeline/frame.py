@@ -411,18 +411,19 @@ def _source_mask(source: ViewSource) -> np.ndarray:
     return segmentation.segment_fluoro(source.image, source.prior)
 
 
-def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pose) -> ViewOutcome:
+def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pose, centre: bool = True) -> ViewOutcome:
     """One view's whole 2D side: mask, frame check, then :func:`_prepare_view`; errors kept."""
     outcome = ViewOutcome(source.name)
     start = time.process_time()
     try:
-        _view_steps(preop, source, method, refine_pose, outcome)
+        _view_steps(preop, source, method, refine_pose, outcome, centre)
     finally:
         outcome.cpu_seconds = time.process_time() - start
     return outcome
 
 
-def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pose, outcome: ViewOutcome) -> None:
+def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pose, outcome: ViewOutcome,
+                centre: bool = True) -> None:
     """The steps of :func:`_view_stage`, each result or error written into ``outcome``."""
     try:
         with _timed(outcome.timings, "segmentation2d"):
@@ -443,7 +444,7 @@ def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pos
     try:
         with _threadpools().limit(limits=1, user_api="blas"):
             outcome.view = _prepare_view(preop, outcome.mask, source.P, source.name, source.frame, method,
-                                         refine_pose, outcome.timings)
+                                         refine_pose, outcome.timings, centre)
     except Exception as exc:        # noqa: BLE001
         outcome.view_error = exc
 
@@ -480,12 +481,13 @@ def prepare_views(preop: Preoperative, sources, *, method: str = "proposed", ref
     from . import workers
 
     sources = list(sources)
+    centre = len(sources) == 1      # centred targets are a single view's (_uncentred)
     outcomes = []
     for first in range(0, len(sources), 2):
-        job = (workers.submit(_view_stage, preop, sources[first + 1], method, refine_pose)
+        job = (workers.submit(_view_stage, preop, sources[first + 1], method, refine_pose, centre)
                if first + 1 < len(sources) else None)
         try:
-            outcomes.append(_view_stage(preop, sources[first], method, refine_pose))
+            outcomes.append(_view_stage(preop, sources[first], method, refine_pose, centre))
         except BaseException:       # interrupted: the worker's answer must not be left in its pipe
             if job is not None and job.remote:
                 job.result()
@@ -502,8 +504,10 @@ def finish_checks(outcomes) -> None:
         outcome.finish_check()
 
 
-def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -> _ViewState:
-    """One view's 2D side: skeleton graph, classification (Alg. 1), pose, visibility."""
+def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings, centre: bool = True) -> _ViewState:
+    """One view's 2D side: skeleton graph, classification (Alg. 1), pose, visibility; with
+    ``centre`` the 2D nodes centred between the vessel's walls, where a single view's targets lie
+    (:func:`_centred_targets`; a view of several would drop them, :func:`_uncentred`)."""
     with _timed(timings, "skeleton2d"):
         g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
     c2 = unclassified = centred = None
@@ -517,7 +521,7 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings) -
                 unclassified = str(exc)
             # pixel staircase smoothed away: eq. (4) compares path lengths along it
             g2 = graph.smooth_positions(g2, SMOOTHING_ITERATIONS)
-            centred = matching.centre_in_outline(g2, mask2d)
+            centred = matching.centre_in_outline(g2, mask2d) if centre else None
     visibility = frame_visibility(mask2d, image)
     pose = kept = None
     if c2 is not None and (mode == "on" or (mode == "auto" and method == "proposed")):
