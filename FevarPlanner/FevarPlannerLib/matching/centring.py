@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..graph import SkeletonGraph, smooth_positions
+from .paper import targets_of
 
 __all__ = ["WALL_SEARCH_RADII", "COARSE_SAMPLES", "centre_in_outline", "targets_at"]
 
@@ -132,6 +133,4 @@ def targets_at(assignment, positions: np.ndarray):
     """``assignment`` (a :class:`paper.SoftAssignment`) with its targets ``t_j = X M[:, j]`` taken at
     ``positions`` (the 2D nodes' positions, e.g. :func:`centre_in_outline`'s) instead of those it
     was computed on; ``M`` and which nodes are assigned unchanged."""
-    targets = np.full_like(assignment.targets, np.nan)
-    targets[assignment.assigned] = (assignment.M.T @ np.asarray(positions, dtype=float))[assignment.assigned]
-    return dataclasses.replace(assignment, targets=targets)
+    return dataclasses.replace(assignment, targets=targets_of(assignment.M, positions, assignment.assigned))

@@ -823,6 +823,12 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
         raise ValueError("the correspondence assigns no 3D node")
     M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n2, n3))
     M.sum_duplicates()
-    targets = np.full((n3, 2), np.nan)
-    targets[assigned] = (M.T @ g2.positions)[assigned]  # t_j = X M[:, j]
-    return SoftAssignment(M, targets, assigned, correspondence, tuple(from_exits))
+    return SoftAssignment(M, targets_of(M, g2.positions, assigned), assigned, correspondence, tuple(from_exits))
+
+
+def targets_of(M, positions: np.ndarray, assigned: np.ndarray) -> np.ndarray:
+    """The targets ``t_j = X M[:, j]`` (eqs. 4-5) of the ``assigned`` 3D nodes for the 2D node
+    ``positions`` X, (n3, 2); NaN for the nodes not assigned."""
+    targets = np.full((M.shape[1], 2), np.nan)
+    targets[assigned] = (M.T @ np.asarray(positions, dtype=float))[assigned]
+    return targets

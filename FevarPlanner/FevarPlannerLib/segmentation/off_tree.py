@@ -277,9 +277,15 @@ def cut_renal_bridges(vessel: np.ndarray, where, node_angle: np.ndarray, renal: 
     -------
     numpy.ndarray of bool, same shape: the bridge pixels (none inside ``vessel``).
     """
-    pieces, count = ndi.label(vessel)          # face-connected, as the small-object removal
-    sizes = np.bincount(pieces.ravel(), minlength=count + 1)
+    pieces, sizes = _pieces(vessel)
     return _bridges_of_pieces(pieces, sizes, where, node_angle, renal, min_area, inner_band) & ~vessel
+
+
+def _pieces(vessel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, pixel count per label, label 0 the background) of ``vessel``'s face-connected
+    pieces, as the small-object removal sees them."""
+    pieces, count = ndi.label(vessel)
+    return pieces, np.bincount(pieces.ravel(), minlength=count + 1)
 
 
 def without_small_pieces_but_cut_renals(vessel: np.ndarray, where, node_angle: np.ndarray, renal: np.ndarray,
@@ -288,8 +294,7 @@ def without_small_pieces_but_cut_renals(vessel: np.ndarray, where, node_angle: n
     smaller than ``min_area``, the bridges): one labelling when nothing is bridged."""
     from .threshold import _remove_small_objects
 
-    pieces, count = ndi.label(vessel)          # face-connected, as the small-object removal
-    sizes = np.bincount(pieces.ravel(), minlength=count + 1)
+    pieces, sizes = _pieces(vessel)
     bridges = _bridges_of_pieces(pieces, sizes, where, node_angle, renal, min_area, inner_band) & ~vessel
     if not bridges.any():
         stays = sizes >= max(min_area, 1)
@@ -300,8 +305,8 @@ def without_small_pieces_but_cut_renals(vessel: np.ndarray, where, node_angle: n
 
 def _bridges_of_pieces(pieces: np.ndarray, sizes: np.ndarray, where, node_angle: np.ndarray, renal: np.ndarray,
                        min_area: float, inner_band: np.ndarray | None) -> np.ndarray:
-    """The bridges of :func:`cut_renal_bridges` from a labelling ``pieces`` (8-connected) and
-    its ``sizes`` (per label, label 0 the background)."""
+    """The bridges of :func:`cut_renal_bridges` from a labelling ``pieces`` and its ``sizes``
+    (:func:`_pieces`)."""
     bridges = np.zeros(pieces.shape, dtype=bool)
     if len(sizes) < 3:
         return bridges
