@@ -82,6 +82,7 @@ __all__ = [
     "centerline_to_model_node",
     "path_to_curve_node",
     "fluoro_to_volume_node",
+    "picture_to_volume_node",
     "volume_to_node",
     "node_to_volume",
     "mask_to_segmentation_node",
@@ -388,15 +389,52 @@ def fluoro_to_volume_node(scene, image: np.ndarray, name: str = "FevarPlanner fl
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 2 or min(image.shape) < 1:
         raise ValueError(f"fluoroscopic frame must be a 2D array, got shape {image.shape}")
+    return _picture_node(scene, image, "vtkMRMLScalarVolumeNode", "fluoro", name)
+
+
+def _picture_node(scene, pixels: np.ndarray, node_class: str, role: str, name: str):
+    """A single-slice volume of ``pixels`` (rows, cols[, components]) laid as the C-arm monitor shows it.
+
+    Columns run to the screen's right and rows down in the axial view (1 mm per pixel,
+    origin at the first pixel).
+    """
+    rows, cols = pixels.shape[:2]
     data = vtk.vtkImageData()
-    data.SetDimensions(image.shape[1], image.shape[0], 1)  # i = column (u), j = row (v)
-    data.GetPointData().SetScalars(numpy_support.numpy_to_vtk(np.ascontiguousarray(image).ravel(), deep=True))
-    node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode")
-    _tag(node, "fluoro", name)
+    data.SetDimensions(cols, rows, 1)  # i = column (u), j = row (v)
+    flat = np.ascontiguousarray(pixels).reshape(rows * cols, -1)
+    data.GetPointData().SetScalars(numpy_support.numpy_to_vtk(flat if flat.shape[1] > 1 else flat.ravel(), deep=True,
+                                                              array_type=numpy_support.get_vtk_array_type(flat.dtype)))
+    node = scene.AddNewNodeByClass(node_class)
+    _tag(node, role, name)
     node.SetIJKToRASDirections(-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0)
     node.SetAndObserveImageData(data)
     node.CreateDefaultDisplayNodes()
     return node
+
+
+def picture_to_volume_node(scene, path, name: str = "FevarPlanner refusal (QC picture)"):
+    """Add a PNG picture (a refusal's ``segmentation_qc.png``) to ``scene`` as an RGB vector volume.
+
+    It is laid as the frame is (:func:`fluoro_to_volume_node`), so :func:`show_frame` shows
+    it upright in the frame view. Its role is ``refusal``: the next run's results replace it.
+
+    Raises
+    ------
+    OSError
+        ``path`` is not a readable PNG picture.
+    """
+    reader = vtk.vtkPNGReader()
+    if not reader.CanReadFile(str(path)):
+        raise OSError(f"{path}: not a readable PNG picture")
+    reader.SetFileName(str(path))
+    reader.Update()
+    image = reader.GetOutput()
+    cols, rows, _ = image.GetDimensions()
+    scalars = image.GetPointData().GetScalars()
+    pixels = numpy_support.vtk_to_numpy(scalars).reshape(rows, cols, scalars.GetNumberOfComponents())
+    if pixels.shape[2] < 3:
+        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+    return _picture_node(scene, pixels[::-1, :, :3], "vtkMRMLVectorVolumeNode", "refusal", name)  # VTK rows run up
 
 
 def frame_view_nodes(scene):
@@ -693,17 +731,13 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         Every view (the frame and ``extraFrameVolumes``) takes part in one registration; each
         gets its overlays, drawn on its own frame node, and the first view is shown. The
         pre-operative model comes from the cache (:mod:`FevarPlannerLib.cache`) when the
-        same CT / segmentation were seen. Returns ``(PlanResult, nodes by role)``.
+        same CT / segmentation were seen. Returns ``(PlanResult, nodes by role)``. A refusal
+        shows its QC picture in the frame view (:meth:`show_refusal`) and is raised on.
         """
-        from FevarPlannerLib import cache as preop_cache
-        from FevarPlannerLib.pipeline import check_result, run_case
-
         parameters = parameters or self.getParameterNode()
         case = self.case_from_nodes(parameters)
-        model = preop_cache.preop_model(case, progress=progress, use_cache=cache)
-        result = run_case(case, method=parameters.method, start=parameters.start, target=parameters.target,
-                          preop=model, progress=progress, drr=False, mirror_test=True)
-        result.warnings.extend(check_result(case, result))     # the gates plan runs: refuse, or warn
+        result, model = self._gated_run(case, use_cache=cache, method=parameters.method, start=parameters.start,
+                                        target=parameters.target, progress=progress, drr=False)
         loaded = {view.name: node for view, node in zip(case.views, [parameters.fluoroVolume,
                                                                      *parameters.extraFrameVolumes])}
         nodes = self.add_result(result, model=model, case=case,
@@ -741,19 +775,59 @@ class FevarPlannerLogic(ScriptedLoadableModuleLogic):
         -------
         (PlanResult, dict)
             The core's result and the nodes added, by role.
+
+        Raises
+        ------
+        FevarPlannerLib.files.InputError
+            One line naming the file and the problem; a refusal by a quality gate first
+            shows its QC picture in the frame view (:meth:`show_refusal`).
         """
-        from FevarPlannerLib import cache as preop_cache
         from FevarPlannerLib.io import load_case
-        from FevarPlannerLib.pipeline import check_result, run_case, write_outputs
+        from FevarPlannerLib.pipeline import write_outputs
 
         case = load_case(case_dir, **{key: value for key, value in (overrides or {}).items() if value})
-        model = preop_cache.preop_model(case, progress=progress)
-        result = run_case(case, method=method, start=start, target=target, preop=model, progress=progress,
-                          mirror_test=True)
-        result.warnings.extend(check_result(case, result))     # the gates plan runs: refuse, or warn
+        result, model = self._gated_run(case, out_dir=out_dir, method=method, start=start, target=target,
+                                        progress=progress)
         if out_dir is not None:
             write_outputs(result, out_dir)
         return result, self.add_result(result, model=model, show_fluoro=show_fluoro, case=case)
+
+    def _gated_run(self, case, out_dir=None, use_cache=True, progress=None, **options):
+        """The pre-operative model (cached), then :func:`run_case` with the mirror test and the
+        gates ``plan`` runs after it (refuse, or warn); ``(PlanResult, model)``.
+
+        A refusal that has a QC picture (:meth:`show_refusal`) replaces the earlier run's
+        results in the scene with the picture, then is raised on.
+        """
+        from FevarPlannerLib import cache as preop_cache
+        from FevarPlannerLib.files import InputError
+        from FevarPlannerLib.pipeline import check_result, run_case
+
+        try:
+            model = preop_cache.preop_model(case, progress=progress, use_cache=use_cache)
+            result = run_case(case, preop=model, progress=progress, mirror_test=True, **options)
+            result.warnings.extend(check_result(case, result))
+        except InputError as failure:
+            self.show_refusal(failure, out_dir)
+            raise
+        return result, model
+
+    def show_refusal(self, failure, out_dir=None):
+        """Show why a plan was refused: its QC picture in the frame view, the earlier results removed.
+
+        The picture is written where ``plan --out`` writes it (``out_dir``), or to a temporary
+        folder, and the failure's message then names it. Returns the picture's node, or None
+        when ``failure`` carries no picture (a file that cannot be read, say).
+        """
+        from FevarPlannerLib.pipeline import refusal_picture
+
+        picture = refusal_picture(failure, out_dir)
+        if picture is None:
+            return None
+        remove_result_nodes(self.scene)    # a refused case must not leave another result on show
+        node = picture_to_volume_node(self.scene, picture)
+        show_frame(self.scene, node)
+        return node
 
     def add_result(self, result, *, show_fluoro: bool = True, model=None, frame_nodes=None, case=None) -> dict:
         """Replace the nodes of an earlier run by this result's; returns the nodes by role.

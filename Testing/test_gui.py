@@ -197,6 +197,43 @@ def test_a_failing_case_reports_one_line_and_frees_the_button(window, tmp_path, 
     assert window.outcome is None
 
 
+def test_a_refused_case_shows_its_qc_picture_beside_the_one_line(window, tmp_path, qapp):
+    """A frame whose mask is a bar across the image, not this case's vessels: the frame check
+    refuses; the window shows the one line and, in a window of its own, the QC picture that
+    ``plan`` writes, saved in the output folder."""
+    from PIL import Image
+
+    folder = phantom.write_phantom_set(tmp_path / "cases", n=1, seed=0, preset="random", mask_only=True)[0]
+    bar = np.zeros(np.asarray(Image.open(folder / "fluoro_mask.png")).shape, dtype=np.uint8)
+    bar[100:112, 50:-60] = 255
+    Image.fromarray(bar).save(folder / "fluoro_mask.png")
+    window.widget("caseDirLineEdit").setText(str(folder))
+    window.widget("outputDirLineEdit").setText(str(tmp_path / "out"))
+    window.run_plan()
+    window.wait_until_done()
+    assert window.last_error.startswith("QualityError") and "aorta not found in the frame" in window.last_error
+    assert window.last_qc_picture == tmp_path / "out" / "segmentation_qc.png"
+    assert str(window.last_qc_picture) in window.last_error          # "see <the picture>"
+    assert window.outcome is None and window.widget("runButton").isEnabled()
+    dialog = window.refusal_dialog
+    assert dialog.message_label.text() == window.last_error
+    dialog.show()
+    qapp.processEvents()
+    shown = as_array(dialog.picture_label.pixmap().toImage())
+    saved = np.asarray(Image.open(window.last_qc_picture).convert("RGB"))
+    assert shown.shape[:2] == saved.shape[:2] and shown.shape[1] > 400     # at its own size (under 1100 px)
+    assert len(np.unique(shown.reshape(-1, 3), axis=0)) > 50               # a picture, not a blank
+    dialog.close()
+
+
+def test_a_failure_without_a_picture_shows_none(window, tmp_path, qapp):
+    window.widget("caseDirLineEdit").setText(str(tmp_path))
+    window.run_plan()
+    window.wait_until_done()
+    assert window.last_error.startswith("InputError")
+    assert window.last_qc_picture is None and window.refusal_dialog is None
+
+
 def test_command_line_options(tmp_path):
     with pytest.raises(SystemExit):
         cli.parse_args(["--run"])

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import vtk
+from vtk.util import numpy_support
 
 slicer = pytest.importorskip("slicer")
 
@@ -311,6 +312,35 @@ def test_logic_plans_a_phantom_case_into_the_scene(scene, tmp_path):
     assert check["start_below_aorta_mm"] > 20.0  # ... in the iliac, below the bifurcation
     assert check["end_mm"] < 10.0  # and the path ends at the left renal artery
     assert check["path_ras"][0][0] > check["path_ras"][-1][0]  # RAS: +x is the patient's right
+
+
+def test_a_refused_case_shows_its_qc_picture_in_the_frame_view_and_clears_the_last_result(scene, anatomy, tmp_path):
+    """A frame whose mask is a bar across the image: the logic raises the frame check's one
+    line, removes the earlier run's nodes and shows the QC picture, upright, in the frame view."""
+    from PIL import Image
+
+    from FevarPlannerLib.quality import QualityError
+
+    fp.FevarPlannerLogic(scene).add_result(_plan_result(anatomy))
+    assert "deformed" in fp.result_nodes(scene)
+    folder = phantom.write_phantom_set(tmp_path / "cases", n=1, seed=0, preset="random", mask_only=True)[0]
+    bar = np.zeros(np.asarray(Image.open(folder / "fluoro_mask.png")).shape, dtype=np.uint8)
+    bar[100:112, 50:-60] = 255
+    Image.fromarray(bar).save(folder / "fluoro_mask.png")
+    with pytest.raises(QualityError, match="aorta not found in the frame") as refused:
+        fp.FevarPlannerLogic(scene).run(folder, out_dir=tmp_path / "out")
+    picture = tmp_path / "out" / "segmentation_qc.png"
+    assert f"see {picture}" in str(refused.value)
+    nodes = fp.result_nodes(scene)
+    assert sorted(nodes) == ["refusal"]                   # the earlier result is gone
+    node = nodes["refusal"]
+    saved = np.asarray(Image.open(picture).convert("RGB"))
+    cols, rows, _ = node.GetImageData().GetDimensions()
+    assert (rows, cols) == saved.shape[:2] and node.GetImageData().GetNumberOfScalarComponents() == 3
+    pixels = numpy_support.vtk_to_numpy(node.GetImageData().GetPointData().GetScalars())
+    np.testing.assert_array_equal(pixels.reshape(rows, cols, 3), saved)   # row j of the node = row j of the picture
+    _, composite = fp.frame_view_nodes(scene)
+    assert composite.GetBackgroundVolumeID() == node.GetID()
 
 
 @pytest.fixture(scope="module")

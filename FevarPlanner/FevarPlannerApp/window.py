@@ -6,17 +6,17 @@ from pathlib import Path
 
 import numpy as np
 from PySide6.QtCore import QFile, QPoint, Qt, QThread, QTimer
-from PySide6.QtGui import QAction, QColor, QIcon, QImage, QKeySequence, QPainter, QPalette
+from PySide6.QtGui import QAction, QColor, QIcon, QImage, QKeySequence, QPainter, QPalette, QPixmap
 from PySide6.QtUiTools import QUiLoader
-from PySide6.QtWidgets import (QApplication, QFileDialog, QHBoxLayout, QHeaderView, QLabel, QMainWindow, QMessageBox,
-                               QPushButton, QScrollArea, QSlider, QSplitter, QTabBar, QTableWidgetItem, QVBoxLayout,
-                               QWidget)
+from PySide6.QtWidgets import (QApplication, QDialog, QDialogButtonBox, QFileDialog, QHBoxLayout, QHeaderView, QLabel,
+                               QMainWindow, QMessageBox, QPushButton, QScrollArea, QSlider, QSplitter, QTabBar,
+                               QTableWidgetItem, QVBoxLayout, QWidget)
 
 from FevarPlannerApp.views import FluoroView, View3D
 from FevarPlannerApp.worker import PlanOutcome, PlanRequest, PlanWorker
 from FevarPlannerLib.export import summary_rows
 
-__all__ = ["resource_path", "load_panel", "MainWindow", "apply_dark_palette", "as_array"]
+__all__ = ["resource_path", "load_panel", "MainWindow", "RefusalDialog", "apply_dark_palette", "as_array"]
 
 OVERRIDES = {"ct": "ct", "aortaMask": "aorta_mask", "skeleton3d": "skeleton3d", "fluoro": "fluoro",
              "fluoroMask": "fluoro_mask", "geometry": "geometry"}
@@ -96,6 +96,8 @@ class MainWindow(QMainWindow):
         self.interactive = interactive
         self.outcome: PlanOutcome | None = None
         self.last_error: str | None = None
+        self.last_qc_picture: Path | None = None
+        self.refusal_dialog: RefusalDialog | None = None
         self._thread: QThread | None = None
         self._worker: PlanWorker | None = None
         self.setWindowTitle("FevarPlanner \u2014 FEVAR path planning from one fluoroscopic frame")
@@ -244,7 +246,7 @@ class MainWindow(QMainWindow):
         """Start planning in a worker thread; the panel reports progress and the result."""
         if self._thread is not None:
             return
-        self.last_error = None
+        self.last_error, self.last_qc_picture = None, None
         self._thread = QThread(self)
         self._worker = PlanWorker(self.request())
         self._worker.moveToThread(self._thread)
@@ -291,6 +293,7 @@ class MainWindow(QMainWindow):
         Only the frame, the recovered centreline and the path are redrawn. Returns whether
         the frame was shown.
         """
+        from FevarPlannerLib.pipeline import refusal_picture
         from FevarPlannerLib.tracking import register_run_frame
 
         outcome = self.outcome
@@ -303,8 +306,9 @@ class MainWindow(QMainWindow):
             result, times = register_run_frame(outcome.model.preop, outcome.case, int(index),
                                                method=outcome.result.method, start=path.start_label,
                                                target=path.target_label)
-        except ValueError as exc:
-            self._on_failed(f"frame {index}: {str(exc).splitlines()[0]}")
+        except ValueError as exc:          # a gate's refusal of this frame comes with its QC picture
+            picture = refusal_picture(exc)
+            self._on_failed(f"frame {index}: {str(exc).splitlines()[0]}", str(picture or ""))
             return False
         outcome.result = result
         self._set_views(result)
@@ -385,11 +389,19 @@ class MainWindow(QMainWindow):
             message += f"; saved to {Path(next(iter(outcome.written.values()))).parent}"
         self._set_status(message)
 
-    def _on_failed(self, message: str) -> None:
+    def _on_failed(self, message: str, picture: str = "") -> None:
+        """One line in the status bar; a refusal's QC picture in a window beside, else a message box."""
         self.last_error = message
+        self.last_qc_picture = Path(picture) if picture else None
         self.widget("progressBar").setValue(0)
         self._set_status(message, error=True)
-        if self.interactive:
+        if self.last_qc_picture is not None:
+            if self.refusal_dialog is not None:
+                self.refusal_dialog.close()
+            self.refusal_dialog = RefusalDialog(message, self.last_qc_picture, self)
+            if self.interactive:
+                self.refusal_dialog.show()     # not modal: the case can be mended and run again
+        elif self.interactive:
             QMessageBox.critical(self, "FevarPlanner could not plan this case", message)
 
     def _on_thread_finished(self) -> None:
@@ -492,6 +504,41 @@ class MainWindow(QMainWindow):
         for view in (self.view3d, self.fluoro_view):
             view.Finalize()
         super().closeEvent(event)
+
+
+class RefusalDialog(QDialog):
+    """Why a case was refused: the gate's one line over its QC picture.
+
+    The picture is the one ``plan`` writes on a refusal (``segmentation_qc.png``: the frame
+    with its vessel mask and the projected pre-operative tree, or CT slices and a MIP with
+    the mask), shown at its own size up to ``max_width`` pixels, scrollable, with where it
+    was saved.
+    """
+
+    def __init__(self, message: str, picture: Path, parent=None, max_width: int = 1100):
+        super().__init__(parent)
+        self.setWindowTitle("FevarPlanner refused this case")
+        self.message_label = QLabel(message)
+        self.message_label.setWordWrap(True)
+        self.message_label.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        self.message_label.setStyleSheet("color: #ff6b6b; font-weight: bold;")
+        pixmap = QPixmap(str(picture))
+        if pixmap.isNull():
+            raise OSError(f"{picture}: the QC picture cannot be read")
+        if pixmap.width() > max_width:
+            pixmap = pixmap.scaledToWidth(max_width, Qt.SmoothTransformation)
+        self.picture_label = QLabel()
+        self.picture_label.setPixmap(pixmap)
+        scroll = QScrollArea()
+        scroll.setWidget(self.picture_label)
+        scroll.setMinimumSize(min(pixmap.width() + 24, max_width), min(pixmap.height() + 24, 720))
+        saved = QLabel(f"QC picture saved as {picture}")
+        saved.setTextInteractionFlags(Qt.TextSelectableByMouse)
+        buttons = QDialogButtonBox(QDialogButtonBox.Close)
+        buttons.rejected.connect(self.reject)
+        layout = QVBoxLayout(self)
+        for item in (self.message_label, scroll, saved, buttons):
+            layout.addWidget(item)
 
 
 def as_array(image: QImage) -> np.ndarray:

@@ -5,6 +5,8 @@ pre-operative model from the cache (:func:`FevarPlannerLib.cache.preop_model`: t
 segmented once per patient, not on every click), runs
 :func:`FevarPlannerLib.pipeline.run_case` (the one logic entry point) and reports progress,
 the outcome or a one-line error through Qt signals, which Qt delivers on the GUI thread.
+A refusal by a quality gate also sends the QC picture's path, written where ``plan --out``
+writes it (or to a temporary folder), so the window can show why.
 It reads nothing itself: the case, its files and the aorta surface come from the core.
 """
 
@@ -44,11 +46,15 @@ class PlanOutcome:
 
 
 class PlanWorker(QObject):
-    """Runs one :class:`PlanRequest`; emits ``progress``, then ``succeeded`` or ``failed``."""
+    """Runs one :class:`PlanRequest`; emits ``progress``, then ``succeeded`` or ``failed``.
+
+    ``failed`` carries the one-line message and the QC picture's path ("" when the failure
+    has no picture: a file that cannot be read, say).
+    """
 
     progress = Signal(float, str)
     succeeded = Signal(object)
-    failed = Signal(str)
+    failed = Signal(str, str)
     done = Signal()
 
     def __init__(self, request: PlanRequest):
@@ -78,6 +84,17 @@ class PlanWorker(QObject):
                 outcome.surface = model.surface(case)
             self.succeeded.emit(outcome)
         except Exception as exc:  # the GUI shows any failure as one line and stays usable
-            self.failed.emit(f"{type(exc).__name__}: {exc}".splitlines()[0])
+            picture = self._refusal_picture(exc)
+            self.failed.emit(f"{type(exc).__name__}: {exc}".splitlines()[0], str(picture or ""))
         finally:
             self.done.emit()
+
+    def _refusal_picture(self, failure: Exception):
+        """The QC picture of a refusal (:func:`FevarPlannerLib.pipeline.refusal_picture`); None if it has none."""
+        from FevarPlannerLib.pipeline import refusal_picture
+
+        try:
+            return refusal_picture(failure, self.request.out_dir)
+        except Exception as exc:  # the refusal's own message matters more than its picture
+            failure.args = (f"{failure} (its QC picture could not be written: {exc})".splitlines()[0],)
+            return None

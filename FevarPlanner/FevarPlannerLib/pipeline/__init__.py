@@ -20,7 +20,7 @@ The package, one module per stage of a case (every name is re-exported here):
     multiview    the deformation over several views, unseen pieces carried rigidly
     fallback     never worse than SV: per-vessel length and 2D-fit checks with fallback
     case         prepare_preop, run_case, check_result, plan_case: a whole case, gated and evaluated
-    outputs      write_outputs: the output set, staged and swapped in whole
+    outputs      write_outputs: the output set, staged and swapped in whole; refusal_picture
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ from .frame import (POSE_MODES, STABLE_VESSELS, ViewSource, _classify_2d, _prepa
 from .multiview import (CLOSEST_POINT_OUTLIER, CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM,
                         MAX_CANDIDATE_COMBINATIONS, TANGENT_MM)
 from .outputs import (DRR_NAME, OUTPUT_NAMES, OUTPUT_SUFFIXES, QC_NAME, check_output_folder, picture_title,
-                      write_outputs)
+                      refusal_picture, write_outputs)
 from .results import FrameResult, METHODS, PlanResult, ViewDrawing, ViewFrame
 from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame_visibility
 
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult",
            "preop_from_skeleton", "preop_from_lumen", "build_preop", "prepare_preop", "picture_title",
            "frame_visibility", "register_frame", "register_flipped", "register_views", "ViewSource",
-           "prepare_views", "register_prepared", "run_case", "check_result", "plan_case", "write_outputs"]
+           "prepare_views", "register_prepared", "run_case", "check_result", "plan_case", "write_outputs", "refusal_picture"]

@@ -21,7 +21,7 @@ from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
 from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_flipped, register_prepared
-from .outputs import _write_failure_qc, check_output_folder, write_outputs
+from .outputs import check_output_folder, refusal_picture, write_outputs
 from .results import PlanResult, ViewFrame
 
 
@@ -261,8 +261,8 @@ def plan_case(case_dir, out_dir=None, *, method: str = "proposed", progress=None
                           **{k: v for k, v in overrides.items() if k not in load_keys})
         gate_notes = check_result(case, result)
     except quality.QualityError as failure:    # the QC picture first, so the user sees why
-        if out_dir is not None and failure.qc is not None:
-            _write_failure_qc(Path(out_dir), failure)
+        if out_dir is not None:
+            refusal_picture(failure, out_dir)
         raise
     for note in gate_notes:
         warnings.warn(note, InputWarning, stacklevel=2)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 from pathlib import Path
 
 from .. import export, quality
@@ -43,20 +44,40 @@ QC_NAME = "segmentation_qc.png"
 DRR_NAME = "drr_check.png"
 
 
-def _write_failure_qc(out_dir: Path, failure) -> None:
+def _write_failure_qc(out_dir: Path, failure) -> Path:
     """The QC picture of a failed segmentation gate, without touching a previous output set.
 
     A new or empty output folder gets it as its only file (swapped in whole); a folder that
     holds a previous set keeps it unchanged and the picture goes beside it, as
-    ``<out>.segmentation_qc.png``.
+    ``<out>.segmentation_qc.png``. Returns the picture's path.
     """
     if os.path.isdir(out_dir) and os.listdir(out_dir):
         beside = out_dir.parent / f"{out_dir.name}.{QC_NAME}"
         quality.write_segmentation_qc(beside, failure.qc, str(failure))
         failure.args = (str(failure).replace(f"see {QC_NAME}", f"see {display_path(beside)}"),)
-        return
+        return beside
     with atomic_folder(out_dir) as staging:
         quality.write_segmentation_qc(staging / QC_NAME, failure.qc, str(failure))
+    return out_dir / QC_NAME
+
+
+def refusal_picture(failure: Exception, out_dir=None) -> Path | None:
+    """Write the QC picture of a refused plan, so that a front end can show why; its path.
+
+    ``failure`` is what a gate raised: a :class:`quality.QualityError` carries the picture's
+    data, anything else has none (``None`` is returned). With ``out_dir`` the picture goes
+    where ``plan --out`` puts it (:func:`_write_failure_qc`); without, into a new temporary
+    folder. The message's "see segmentation_qc.png" then names the written file in full.
+    """
+    if getattr(failure, "qc", None) is None:
+        return None
+    if out_dir is not None:
+        path = _write_failure_qc(Path(out_dir), failure)
+    else:
+        path = Path(tempfile.mkdtemp(prefix="fevarplanner-refused-")) / QC_NAME
+        quality.write_segmentation_qc(path, failure.qc, str(failure))
+    failure.args = (str(failure).replace(f"see {QC_NAME}", f"see {display_path(path)}"),)
+    return path
 
 
 def check_output_folder(out_dir, folders=(), files=()) -> Path:
