@@ -71,5 +71,25 @@ def test_its_right_frame_is_answered_and_the_flipped_registration_is_kept(right_
     right, _ = right_and_mirrored
     result = plan_case(right, tmp_path / "out")
     assert result.errors["3d_mm"]["mean"] < 6.0
-    assert result.flipped is not None and result.flipped.energy > result.energy
+    assert len(result.flipped) == 1 and result.flipped[0].energy > result.energy
     assert "mirror_test" in result.timings
+
+
+def test_a_mirrored_first_view_of_two_is_refused_by_its_own_mirror_test(tmp_path):
+    """Two views, scenario seed 0 case 1 (AP + RAO 50): with the first frame mirrored, the second
+    view alone pulled the registration to a tree 7.9 mm off the truth, four warnings, answered.
+    The case registered once more with each view flipped back finds the first view mirrored."""
+    from FevarPlannerLib.pipeline import plan_case
+    from FevarPlannerLib.scenarios import plan_scenarios, write_scenario
+
+    right = write_scenario(plan_scenarios("two_views", 4, 0)[1], tmp_path / "right")
+    mirrored = tmp_path / "mirrored"
+    shutil.copytree(right, mirrored)
+    mask = np.asarray(Image.open(right / "fluoro_mask.png"))
+    Image.fromarray(np.ascontiguousarray(mask[:, ::-1])).save(mirrored / "fluoro_mask.png")
+    with pytest.raises(quality.QualityError, match=r"mirrored/fluoro_mask.png: registration check: the frame looks "
+                                                   r"mirrored left-right: registered flipped"):
+        plan_case(mirrored, tmp_path / "out")
+    result = plan_case(right, tmp_path / "right_out")
+    assert result.errors["3d_mm"]["mean"] < 1.0 and len(result.views) == 2
+    assert len(result.flipped) == 2 and all(other.energy > result.energy for other in result.flipped)

@@ -20,7 +20,7 @@ from ..files import InputError, InputWarning, check_inside, display_path
 from ..io import MAIN_VIEW, Case, View, load_case
 from ..preop import Preoperative, _report, _timed, build_preop
 from ..projection import project
-from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_flipped, register_prepared
+from .frame import ViewSource, _source_mask, finish_checks, prepare_views, register_prepared, register_view_flipped
 from .outputs import check_output_folder, refusal_picture, write_outputs
 from .results import PlanResult, ViewFrame
 
@@ -111,8 +111,9 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     or a :class:`cache.PreopModel`) skips the pre-operative work; ``cache`` keeps it on disk
     (:func:`prepare_preop`). ``drr``: render the geometry check (:mod:`drr`) of the first
     view always (True), never (False) or when its ``P`` came from C-arm tags ("auto").
-    ``mirror_test``: register a single frame flipped left-right too (``PlanResult.flipped``,
-    for :func:`plausibility.check_not_mirrored`; proposed method only).
+    ``mirror_test``: register the case once more per view with that view's frame flipped
+    left-right (``PlanResult.flipped``, for :func:`plausibility.check_not_mirrored`; proposed
+    method only).
     """
     planning.check_labels(start, target)
     t0 = time.perf_counter()
@@ -159,10 +160,9 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
     flipped = None
-    if mirror_test and method == "proposed" and len(views) == 1:
+    if mirror_test and method == "proposed":
         with _timed(timings, "mirror_test"):
-            flipped = register_flipped(preop, outcomes[0].mask, views[0].P, image=views[0].fluoro.image,
-                                       refine_pose=refine_pose, alpha=alpha, beta=beta)
+            flipped = _flipped_registrations(preop, views, outcomes, refine_pose, alpha, beta)
     _report(progress, 0.85, "planning the catheter path")
     with _timed(timings, "planning"):
         path = planning.plan_path(frame.deformed, start=start, target=target)
@@ -186,6 +186,15 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
                       {k: str(v) for k, v in case.paths.items()} | {"correspondence": frame.correspondence},
                       qc=qc, geometry=geometry, drr=drr_image, views=summaries, warnings=list(frame.warnings),
                       view_frames=list(frame.views), energy=frame.energy, flipped=flipped)
+
+
+def _flipped_registrations(preop, views, outcomes, refine_pose, alpha, beta) -> list:
+    """The mirror test's other hypotheses: per view, the case registered with that view's
+    frame flipped left-right and the others as given (:func:`register_view_flipped`)."""
+    frames = [(outcome.mask, view.P) for view, outcome in zip(views, outcomes)]
+    names, images = [view.name for view in views], [view.fluoro.image for view in views]
+    return [register_view_flipped(preop, frames, k, names=names, images=images, refine_pose=refine_pose, alpha=alpha,
+                                  beta=beta) for k in range(len(views))]
 
 
 def _view_source(view: View, prior) -> ViewSource:
@@ -300,10 +309,12 @@ def check_result(case: Case, result: PlanResult) -> list[str]:
 
 def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
     """:func:`plausibility.check_registration` on every view the registration used (the
-    refusal's QC picture shows that view's frame), and the mirror test on the first
-    (:func:`plausibility.check_not_mirrored`); the warnings of those it lets pass."""
+    refusal's QC picture shows that view's frame), and on each the mirror test
+    (:func:`plausibility.check_not_mirrored`) when ``result`` holds it; the warnings of those
+    it lets pass."""
     views = {view.name: view for view in getattr(case, "views", None) or []}
     first = result.view_frames[0].classification2d if result.view_frames else None
+    names = [frame.name for frame in result.view_frames[:1]] or [MAIN_VIEW]
     checks = [(result.P, result.skeleton2d_points, result.skeleton2d_edges, case.fluoro.shape, frame_path, result.qc,
                first)]
     for frame in result.view_frames[1:]:
@@ -313,13 +324,15 @@ def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
                            view.paths.get("fluoro_mask", view.paths.get("fluoro", frame.name)),
                            _view_qc(result.qc, view, quality.FluoroPrior.from_centerline(result.preop, frame.P)),
                            frame.classification2d))
+            names.append(frame.name)
+    flipped = dict(zip(views or [MAIN_VIEW], result.flipped or []))      # run_case's mirror_test
     notes = []
-    for k, (P, points, edges, shape, path, qc, classification) in enumerate(checks):
+    for name, (P, points, edges, shape, path, qc, classification) in zip(names, checks):
         signals = plausibility.check_registration(result.preop, result.deformed, P, points, edges, shape, path, qc,
                                                   classification)
-        if k == 0:      # a single frame registered flipped too (run_case's mirror_test)
-            plausibility.check_not_mirrored(result.preop, result.deformed, P, result.energy, signals, result.flipped,
-                                            shape, path, qc)
+        other = flipped.get(name)
+        plausibility.check_not_mirrored(result.preop, result.deformed, P, result.energy, signals,
+                                        other.seen_in(name) if other is not None else None, shape, path, qc)
         notes += plausibility.registration_warnings(signals)
     return notes
 

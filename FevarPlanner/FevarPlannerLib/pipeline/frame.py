@@ -262,10 +262,28 @@ def register_flipped(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, 
     ``image`` and ``P`` are the frame's as given (:func:`register_frame`); a flipped frame
     that cannot be registered is no evidence either way.
     """
-    flipped = None if image is None else np.ascontiguousarray(np.asarray(image)[:, ::-1])
+    return register_view_flipped(preop, [(mask2d, P)], 0, images=[image], refine_pose=refine_pose, alpha=alpha,
+                                 beta=beta)
+
+
+def register_view_flipped(preop: Preoperative, frames, flip: int, *, names=None, images=None, refine_pose="auto",
+                          alpha: float = 500.0, beta: float = 10.0) -> FrameResult | None:
+    """Several views registered together (:func:`register_views`) with view ``flip``'s frame
+    flipped left-right, the others as given; None when that fails.
+
+    The mirror test of one view of several: a view shown with the wrong side convention
+    is, flipped, consistent with the others in 3D, and the joint registration needs less
+    non-rigid motion and energy. The result's first view is the first given.
+    """
+    def flipped(array):
+        return None if array is None else np.ascontiguousarray(np.asarray(array)[:, ::-1])
+
+    frames = [(flipped(mask) if k == flip else mask, P) for k, (mask, P) in enumerate(frames)]
+    images = list(images) if images is not None else [None] * len(frames)
+    images = [flipped(image) if k == flip else image for k, image in enumerate(images)]
     try:
-        return register_frame(preop, np.ascontiguousarray(np.asarray(mask2d)[:, ::-1]), P, refine_pose=refine_pose,
-                              alpha=alpha, beta=beta, image=flipped)
+        return register_views(preop, frames, names=names, images=images, refine_pose=refine_pose, alpha=alpha,
+                              beta=beta)
     except Exception:       # noqa: BLE001  (any failure of the flipped frame: no evidence)
         return None
 

@@ -4,6 +4,7 @@ per view :class:`ViewFrame`) and :class:`PlanResult` (everything a caller shows 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,6 +49,14 @@ class FrameResult:
     views: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
 
+    def seen_in(self, name: str) -> "FrameResult | None":
+        """The same registration with view ``name``'s ``P``, 2D skeleton and classification as
+        the first view's; None if that view took no part."""
+        view = next((view for view in self.views if view.name == name), None)
+        if view is None:
+            return None
+        return dataclasses.replace(self, P=view.P, skeleton2d=view.skeleton2d, classification2d=view.classification2d)
+
 
 @dataclass
 class ViewDrawing:
@@ -85,9 +94,9 @@ class PlanResult:
     ``warnings`` what the plausibility checks replaced or doubted. ``view_frames`` holds, in
     the order of ``views``, each view's :class:`ViewFrame` (its ``P`` and 2D skeleton graph),
     for front ends that draw every view; it is not written to result.json. ``energy`` is the
-    registration's eq. 6 energy; ``flipped`` the same single frame registered flipped
-    left-right (:func:`run_case` with ``mirror_test``), for the mirror test of the
-    registration check.
+    registration's eq. 6 energy; ``flipped`` holds, per view, the case registered with that
+    view's frame flipped left-right (:func:`run_case` with ``mirror_test``; None where that
+    failed), for the mirror test of the registration check.
     """
 
     method: str
@@ -108,7 +117,7 @@ class PlanResult:
     warnings: list = field(default_factory=list)
     view_frames: list = field(default_factory=list, repr=False)
     energy: float | None = None
-    flipped: FrameResult | None = field(default=None, repr=False)
+    flipped: list | None = field(default=None, repr=False)
 
     def view_drawings(self, case=None) -> list[ViewDrawing]:
         """One :class:`ViewDrawing` per view the registration used, in the order of ``views``.
