@@ -14,6 +14,8 @@ here its cases go through ``plan`` like any case folder. From each right case it
 * ``swap_geometry``: another case's frame with that case's own geometry (a whole frame of
   another patient);
 * ``mirror``: this case's frame flipped left-right (the wrong side convention);
+* ``mirror_first_view`` / ``mirror_other_view`` (not built unless asked for; cases with
+  several views only): the first view's frame / the last view's alone flipped left-right;
 * ``angle``: this case's frame with the geometry of a view 40 degrees away (LAO 40 labelled as
   the given view: the projection rotated about the patient's long axis through the tree);
 * ``late``: this case's frame taken after the bolus, the renal arteries gone (their pixels,
@@ -29,6 +31,10 @@ numbers), ``wrong_frames.png`` (refusal rate per kind) and the case folders unde
 
     .venv/bin/python Testing/benchmarks/bench_wrong_frames.py --out OUT [--scenario-seeds 0 1] [--phantom-seed 7]
         [--phantoms 4] [--paper-seed 3] [--papers 4]
+    # one view of several mirrored, every two-view case of the seeds:
+    .venv/bin/python Testing/benchmarks/bench_wrong_frames.py --out OUT --scenario-seeds 125 126 \
+        --scenario-kinds two_views --all-cases --phantoms 0 --papers 0 \
+        --wrong-kinds mirror_first_view mirror_other_view
 """
 
 from __future__ import annotations
@@ -46,6 +52,8 @@ single_threaded_blas()
 import numpy as np  # noqa: E402  (after the BLAS threads are set)
 
 WRONG_KINDS = ("swap", "swap_geometry", "mirror", "angle", "late")
+#: Wrong kinds built only when asked for (``--wrong-kinds``), from cases with several views.
+VIEW_KINDS = ("mirror_first_view", "mirror_other_view")
 #: The angle kind: the given geometry is that of a view this far (degrees) about the patient's long axis.
 ANGLE_DEG = 40.0
 RENALS = ("renal_left", "renal_right")
@@ -54,15 +62,19 @@ RIGHT_ONLY = ("paper", "large")
 
 
 def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_phantoms: int,
-                       paper_seed: int | None = None, n_papers: int = 0) -> list:
+                       paper_seed: int | None = None, n_papers: int = 0, scenario_kinds=None,
+                       all_cases: bool = False) -> list:
     """Write (or reuse) the right cases; ``[(family, kind, folder)]``. Paper-protocol phantoms
-    (kind ``paper``: several intra-operative states of one phantom) are right frames only."""
+    (kind ``paper``: several intra-operative states of one phantom) are right frames only.
+    Scenario cases: one per kind of ``scenario_kinds`` (default: the quick sets' kinds), or
+    every case of each kind with ``all_cases``."""
     from FevarPlannerLib.benchmark.independent import independent_case_folders
     from FevarPlannerLib.phantom import write_phantom_set
 
     cases = []
     for seed in scenario_seeds:
-        for kind, folder in independent_case_folders(root / f"scenarios_seed{seed}", quick=True, seed=seed):
+        for kind, folder in independent_case_folders(root / f"scenarios_seed{seed}", quick=not all_cases, seed=seed,
+                                                     kinds=scenario_kinds):
             cases.append((f"scenarios_seed{seed}", kind, Path(folder)))
     if phantom_seed is not None and n_phantoms > 0:
         where = root / f"phantom_seed{phantom_seed}"
@@ -152,10 +164,12 @@ def _swapped(case: Path, other: Path, target: Path, with_geometry: bool) -> Path
     return folder
 
 
-def _mirrored(case: Path, target: Path) -> Path:
+def _mirrored(case: Path, target: Path, views=None) -> Path:
+    """``case`` with the frames of ``views`` (names; default every view) flipped left-right."""
     folder = _copy_case(case, target)
-    for where in _frame_folders(folder).values():
-        _write_png(where / "fluoro_mask.png", _read_png(where / "fluoro_mask.png")[:, ::-1].copy())
+    for name, where in _frame_folders(folder).items():
+        if views is None or name in views:
+            _write_png(where / "fluoro_mask.png", _read_png(where / "fluoro_mask.png")[:, ::-1].copy())
     return folder
 
 
@@ -211,13 +225,17 @@ def wrong_case_folders(rights: list, root: Path, kinds=WRONG_KINDS) -> list:
     for n, (family, kind, case) in enumerate(sources):
         other = sources[(n + 1) % len(sources)][2]
         base = root / family / case.name
+        views = list(_frame_folders(case))
         builders = {"swap": lambda t: _swapped(case, other, t, False),
                     "swap_geometry": lambda t: _swapped(case, other, t, True),
                     "mirror": lambda t: _mirrored(case, t), "angle": lambda t: _angled(case, t),
-                    "late": lambda t: _late(case, t)}
+                    "late": lambda t: _late(case, t),
+                    "mirror_first_view": lambda t: _mirrored(case, t, views[:1]),
+                    "mirror_other_view": lambda t: _mirrored(case, t, views[-1:])}
         for wrong in kinds:
-            build = builders[wrong]
-            made.append((family, wrong, build(base / wrong), case))
+            if wrong in VIEW_KINDS and len(views) < 2:
+                continue
+            made.append((family, wrong, builders[wrong](base / wrong), case))
     return made
 
 
@@ -276,7 +294,7 @@ def _rate(rows: list) -> dict:
 def summarise(runs: list) -> dict:
     """Refusal rate per wrong kind and per family of right frames (false refusals)."""
     summary = {"wrong": {}, "right": {}}
-    for kind in WRONG_KINDS:
+    for kind in WRONG_KINDS + VIEW_KINDS:
         if any(r["kind"] == kind for r in runs):
             summary["wrong"][kind] = _rate([r for r in runs if r["kind"] == kind])
     right = [r for r in runs if r["kind"] == "right"]
@@ -314,7 +332,10 @@ def main(argv=None) -> int:
     parser.add_argument("--phantoms", type=int, default=4)
     parser.add_argument("--paper-seed", type=int, default=3, help="paper-protocol phantoms (right frames only)")
     parser.add_argument("--papers", type=int, default=4)
-    parser.add_argument("--wrong-kinds", nargs="*", choices=WRONG_KINDS, default=list(WRONG_KINDS),
+    parser.add_argument("--scenario-kinds", nargs="*", default=None,
+                        help="scenario kinds of the right cases (default: every quick-set kind)")
+    parser.add_argument("--all-cases", action="store_true", help="every scenario case of each kind, not one")
+    parser.add_argument("--wrong-kinds", nargs="*", choices=WRONG_KINDS + VIEW_KINDS, default=list(WRONG_KINDS),
                         help="wrong kinds to build (none: right frames only)")
     parser.add_argument("--large", type=int, default=0,
                         help="right frames of this many random phantoms with a larger deformation")
@@ -325,7 +346,7 @@ def main(argv=None) -> int:
     cases = args.cases or args.out / "cases"
     started = time.perf_counter()
     rights = right_case_folders(cases / "right", args.scenario_seeds, args.phantom_seed, args.phantoms,
-                                args.paper_seed, args.papers)
+                                args.paper_seed, args.papers, args.scenario_kinds, args.all_cases)
     if args.large:
         rights += large_deformation_folders(cases / "right", args.large_seed, args.large, args.large_scale)
     wrongs = wrong_case_folders(rights, cases / "wrong", args.wrong_kinds)
