@@ -140,3 +140,29 @@ def test_train_unet_takes_a_slice_source_and_starts_from_given_weights(tmp_path)
             assert bool((x == y).all()), name
     with pytest.raises(ValueError, match="sources"):
         MixedSlices([], [])
+
+
+@pytest.mark.parametrize("medium_hu", [0.0, -1000.0])
+def test_a_vessel_phantom_without_a_skeleton_is_segmented_without_a_spine(monkeypatch, medium_hu):
+    """A silicone or printed aorta scanned in a water tank or in air (a bench phantom) has no
+    vertebra behind the aorta: the classical route refused it ("no round blob ... in front of
+    the spine"). A scan without bone needs none: lumen Dice against the phantom's own lumen."""
+    from FevarPlannerLib import phantom
+    from FevarPlannerLib.phantom import ct as phantom_ct
+    from FevarPlannerLib.phantom.raster import rasterize_lumen
+    from FevarPlannerLib.quality import QualityError
+    from FevarPlannerLib.segmentation.classical import aorta_seed_candidates, is_boneless
+
+    case = phantom.generate_case(phantom.PhantomParams())
+    monkeypatch.setattr(phantom_ct, "_body_and_spine", lambda volume, anatomy: np.full(volume.shape, medium_hu,
+                                                                                        dtype=np.float32))
+    ct = phantom_ct.render_ct(case.preop, case.params, np.random.default_rng(0))
+    assert is_boneless(ct) and aorta_seed_candidates(ct, need_spine=True) == []
+    lumen = seg.segment_ct(ct, "classical").array > 0
+    truth = rasterize_lumen(case.preop, ct).array > 0
+    assert seg.dice(lumen, truth) > 0.97
+    monkeypatch.undo()
+    patient_like = phantom_ct.render_ct(case.preop, case.params, np.random.default_rng(0))
+    assert not is_boneless(patient_like)        # the phantom CT with its body and spine still needs the spine
+    with pytest.raises(QualityError, match=r"no round blob .* \(a scan without bone, a vessel phantom"):
+        seg.segment_ct_classical(ct.with_array(np.full(ct.shape, -1000, dtype=np.int16)))

@@ -366,8 +366,11 @@ def test_classical_ct_finds_the_phantom_tree_with_branches_not_kidneys_or_spine(
 
 
 def test_classical_ct_refuses_a_ct_without_an_aorta():
+    """The contrast lumen (350 HU) gone, the spine's cortex (900 HU) kept: a patient scan without
+    an enhancing aorta. (With the cortex gone too the scan has no bone: a vessel phantom, where
+    any round bright blob may be the lumen; the spine's 250 HU core would then be taken.)"""
     ct, _, _ = synthetic_ct()
-    plain = ct.with_array(np.where(ct.array > 300, 40.0, ct.array).astype(np.float32))
+    plain = ct.with_array(np.where((ct.array > 300) & (ct.array < 700), 40.0, ct.array).astype(np.float32))
     with pytest.raises(InputError, match="no aorta found"):
         seg.segment_ct_classical(plain)
 

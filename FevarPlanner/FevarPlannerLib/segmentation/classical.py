@@ -79,6 +79,11 @@ FLAP_MIN_HU = 0.0
 MIN_AORTA_TRACE_MM = 60.0
 #: A seed blob with the spine's bone centroid this far (mm) to its left lies where the IVC runs.
 IVC_SPINE_OFFSET_MM = 12.0
+#: A scan in which under this fraction of the voxels is cortical bone (:data:`BONE_HU`) has no
+#: skeleton: a vessel phantom (a silicone or printed aorta in water or air, as on a bench), where
+#: no spine lies behind the aorta to confirm it. A patient's lumbar spine and pelvis take several
+#: per cent of an abdominal scan; one vertebral body in a tight field of view about 1 %.
+BONELESS_FRACTION = 1e-3
 #: How many distinct seeds are tried before the CT is refused.
 MAX_SEED_TRIES = 5
 #: A traced cross-section more than this many times the area of the one before is a leak into a
@@ -287,14 +292,22 @@ def find_aorta_in_slices(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_R
     return candidates[0] if candidates else None
 
 
+def is_boneless(ct: Volume, fraction: float = BONELESS_FRACTION) -> bool:
+    """True for a scan without a skeleton (under ``fraction`` of its voxels denser than
+    :data:`BONE_HU`, counted on every second voxel): a vessel phantom, not a patient."""
+    sample = np.asarray(ct.array[::2, ::2, ::2])
+    return bool(np.count_nonzero(sample > BONE_HU) < fraction * sample.size)
+
+
 def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
-                          step_mm: float = 5.0, chest: np.ndarray | None = None) -> list:
+                          step_mm: float = 5.0, chest: np.ndarray | None = None, need_spine: bool | None = None) -> list:
     """Every aorta-like cross-section of :func:`find_aorta_in_slices`, best circle score first,
     those in the chest (:func:`chest_slices`: the heart, the pulmonary trunk, the ascending
     aorta and the arch are as round and bright, and a dissected or late-phase aorta is brightest
     there) after those below the diaphragm, and those with the spine more than
     :data:`IVC_SPINE_OFFSET_MM` to their left (the IVC's place, :func:`_spine_to_the_left_mm`)
-    after all others.
+    after all others. ``need_spine``: a blob must have a vertebral body behind it; by default
+    unless the scan has no bone at all (:func:`is_boneless`: a vessel phantom).
 
     Returns
     -------
@@ -302,12 +315,13 @@ def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_
     """
     spacing_ji = _slice_axes_mm(ct)
     posterior, left = _posterior_sign_j(ct), _left_sign_i(ct)
+    need_spine = not is_boneless(ct) if need_spine is None else need_spine
     step = max(1, int(round(step_mm / ct.spacing[2])))
     found, right_of_spine = [], []
     for k in range(step // 2, ct.shape[0], step):
         hu_slice = np.asarray(ct.array[k])
         for blob in _round_blobs(hu_slice, spacing_ji, hu_window, radius_mm):
-            if not _spine_behind(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior):
+            if need_spine and not _spine_behind(hu_slice, blob["centre"], blob["radius"], spacing_ji, posterior):
                 continue
             if _inside_bone(hu_slice, blob["centre"], blob["radius"], spacing_ji):
                 continue
@@ -579,11 +593,13 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         running estimate where it ran, interpolated between.
     """
     chest = chest_slices(ct) if chest is None else chest
-    candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm, chest=chest)
+    need_spine = not is_boneless(ct)
+    where = "in front of the spine" if need_spine else "(a scan without bone, a vessel phantom: no spine needed)"
+    candidates = aorta_seed_candidates(ct, hu_window=hu_window, radius_mm=radius_mm, chest=chest,
+                                       need_spine=need_spine)
     if not candidates:
         raise QualityError(f"no aorta found: no round blob of {radius_mm[0]:.0f}-{radius_mm[1]:.0f} mm radius in "
-                           f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} in front of the spine in any axial slice",
-                           QCData(ct=ct))
+                           f"HU {hu_window[0]:.0f}-{hu_window[1]:.0f} {where} in any axial slice", QCData(ct=ct))
     counter = _SliceCounter(ct.shape[0], progress)
     needed = min(MIN_AORTA_TRACE_MM, 0.5 * ct.shape[0] * ct.spacing[2])
     rejected = np.zeros(ct.shape[1:], dtype=bool)       # in-plane footprint of the seeds' traces that were too short
@@ -609,7 +625,7 @@ def trace_aorta(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
         rejected |= ndi.binary_dilation((labels == 1).any(axis=0), iterations=2)
         longest = max(longest, length)
         shown |= labels == 1
-    raise QualityError(f"no aorta found: the {tried} best round bright blobs in front of the spine trace at most "
+    raise QualityError(f"no aorta found: the {tried} best round bright blobs {where} trace at most "
                        f"{longest:.0f} mm along the body, an aorta at least {needed:.0f} mm (vertebral bodies or bowel?)",
                        QCData(ct=ct, lumen=ct.with_array(shown)))
 
