@@ -41,5 +41,6 @@ from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame
 
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult",
            "preop_from_skeleton", "preop_from_lumen", "build_preop", "prepare_preop", "picture_title",
-           "frame_visibility", "register_frame", "register_flipped", "register_view_flipped", "register_views", "ViewSource",
-           "prepare_views", "register_prepared", "run_case", "check_result", "plan_case", "write_outputs", "refusal_picture"]
+           "frame_visibility", "register_frame", "register_flipped", "register_view_flipped", "register_views",
+           "ViewSource", "prepare_views", "register_prepared", "run_case", "check_result", "plan_case",
+           "write_outputs", "refusal_picture"]

@@ -299,8 +299,8 @@ def is_boneless(ct: Volume, fraction: float = BONELESS_FRACTION) -> bool:
     return bool(np.count_nonzero(sample > BONE_HU) < fraction * sample.size)
 
 
-def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM,
-                          step_mm: float = 5.0, chest: np.ndarray | None = None, need_spine: bool | None = None) -> list:
+def aorta_seed_candidates(ct: Volume, *, hu_window=CONTRAST_HU, radius_mm=AORTA_RADIUS_MM, step_mm: float = 5.0,
+                          chest: np.ndarray | None = None, need_spine: bool | None = None) -> list:
     """Every aorta-like cross-section of :func:`find_aorta_in_slices`, best circle score first,
     those in the chest (:func:`chest_slices`: the heart, the pulmonary trunk, the ascending
     aorta and the arch are as round and bright, and a dissected or late-phase aorta is brightest
