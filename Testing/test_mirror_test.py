@@ -7,6 +7,7 @@ closer fit and less non-rigid motion (:func:`plausibility.mirror_verdict`); ``pl
 refuses it. Testing/benchmarks/bench_wrong_frames.py measures it on many cases.
 """
 
+import json
 import shutil
 
 import numpy as np
@@ -72,6 +73,8 @@ def test_its_right_frame_is_answered_and_the_flipped_registration_is_kept(right_
     result = plan_case(right, tmp_path / "out")
     assert result.errors["3d_mm"]["mean"] < 6.0
     assert len(result.flipped) == 1 and result.flipped[0].energy > result.energy
+    assert result.to_dict()["depth"] == {"views": 1, "view_spread_deg": 0.0, "measured": False,
+                                         "note": "from the pre-operative CT: one view does not see along its X-ray"}
     assert "mirror_test" in result.timings
 
 
@@ -93,3 +96,5 @@ def test_a_mirrored_first_view_of_two_is_refused_by_its_own_mirror_test(tmp_path
     result = plan_case(right, tmp_path / "right_out")
     assert result.errors["3d_mm"]["mean"] < 1.0 and len(result.views) == 2
     assert len(result.flipped) == 2 and all(other.energy > result.energy for other in result.flipped)
+    depth = json.loads((tmp_path / "right_out" / "result.json").read_text())["depth"]
+    assert depth["views"] == 2 and depth["measured"] and 45.0 < depth["view_spread_deg"] < 55.0    # AP + RAO 50

@@ -137,3 +137,18 @@ def test_component_major_projection_and_its_pull_back_agree_with_the_jacobian():
     fu, fv = h[0] / h[2], h[1] / h[2]
     pulled = pull_back_columns(P, fu, fv, g[:, 0] / h[2], g[:, 1] / h[2])
     np.testing.assert_allclose(pulled.T, np.einsum("nkj,nk->nj", projection_jacobian(P, points), g), rtol=1e-9)
+
+
+def test_view_spread_is_the_widest_angle_between_the_x_rays_through_the_anatomy():
+    from dataclasses import replace
+
+    from FevarPlannerLib.projection import view_spread_deg
+
+    iso = np.array([10.0, -20.0, 30.0])
+    at_angle = {angle: projection_matrix_from_carm(replace(AP, primary_angle=angle), iso)
+                for angle in (0.0, 30.0, -50.0, 90.0, 180.0)}
+    assert view_spread_deg([at_angle[0.0]], iso) == 0.0                          # one view sees no depth
+    assert view_spread_deg([at_angle[0.0], at_angle[30.0]], iso) == pytest.approx(30.0, abs=1e-6)
+    assert view_spread_deg([at_angle[0.0], at_angle[30.0], at_angle[-50.0]], iso) == pytest.approx(80.0, abs=1e-6)
+    assert view_spread_deg([at_angle[0.0], at_angle[90.0]], iso) == pytest.approx(90.0, abs=1e-6)
+    assert view_spread_deg([at_angle[0.0], at_angle[180.0]], iso) == pytest.approx(0.0, abs=1e-6)   # AP and PA: one line

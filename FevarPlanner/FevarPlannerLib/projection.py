@@ -53,6 +53,7 @@ __all__ = [
     "projection_matrix_from_carm",
     "image_directions",
     "source_position",
+    "view_spread_deg",
     "validate_projection_matrix",
     "read_geometry_json",
     "write_geometry_json",
@@ -183,6 +184,19 @@ def source_position(P: np.ndarray) -> np.ndarray:
     """The camera centre (X-ray source) of ``P``: its right null vector, in LPS mm."""
     P = np.asarray(P, dtype=float)
     return -np.linalg.solve(P[:, :3], P[:, 3])
+
+
+def view_spread_deg(Ps, at) -> float:
+    """The widest angle (degrees, 0-90) between the X-rays of several views through ``at`` (LPS).
+
+    One view sees nothing along its ray; two views whose rays through the anatomy cross at
+    an angle see depth, the better the nearer that angle is to 90 degrees. A ray and its
+    reverse are the same line, so the angle is folded into 0-90.
+    """
+    rays = [np.asarray(at, dtype=float) - source_position(P) for P in Ps]
+    rays = [ray / np.linalg.norm(ray) for ray in rays]
+    cosines = [abs(float(a @ b)) for k, a in enumerate(rays) for b in rays[k + 1:]]
+    return float(np.degrees(np.arccos(min(min(cosines), 1.0)))) if cosines else 0.0
 
 
 #: Largest magnitude accepted for an entry of P; P is defined up to scale, so a P whose

@@ -66,6 +66,8 @@ def summary_rows(result) -> list[tuple[str, str]]:
     views = getattr(result, "views", None) or []
     if views:
         rows.append(("Views used", f"{len(views)} ({', '.join(view['name'] for view in views)})"))
+    if hasattr(result, "depth_source"):
+        rows.append(("Depth along the X-ray", result.depth_source()["note"]))
     errors = result.errors or {}
     names = METRIC_NAMES if errors.get("3d_mm") is not None else {**METRIC_NAMES, **FIT_NAMES}
     for key, value in errors.items():
