@@ -21,7 +21,8 @@ from ..conventions import IOTA_MM
 from ..preop import SMOOTHING_ITERATIONS, Preoperative, _timed
 from ..projection import image_directions, pixels_per_mm, project
 from .fallback import _never_worse_than_sv
-from .multiview import MAX_CANDIDATE_COMBINATIONS, _deform_with, follow_anchor, outside_silhouette_warnings
+from .multiview import (MAX_CANDIDATE_COMBINATIONS, _deform_with, follow_anchor, outside_silhouette_warnings,
+                        score_floor)
 from .results import FrameResult, METHODS, ViewFrame
 from .visibility import Visibility, frame_visibility
 
@@ -565,10 +566,31 @@ def _pose_warning(view: "_ViewState") -> str | None:
             f"turn {turn:+.1f} deg): corrected in-plane; check the geometry")
 
 
+def _candidate_trials(preop, anchor, alpha, beta) -> tuple[list, int]:
+    """The anchor's candidate correspondences, each as (its deformation, a 1-tuple of it), and the
+    index of the one with the least score (the first of equals, as ``min`` picks).
+
+    A deformation is a cached call of :func:`_deform_with` that gives (kept positions, energy,
+    score). A candidate whose score cannot go below the best so far (:func:`multiview.score_floor`)
+    is not deformed here: only a fallback that asks for it (:func:`_alternatives`) deforms it.
+    """
+    trials, best, best_score = [], 0, None
+    for c in anchor.candidates[:MAX_CANDIDATE_COMBINATIONS]:
+        deform = functools.cache(functools.partial(_deform_with, preop, [anchor], (c,), alpha, beta))
+        trials.append((deform, (c,)))
+        if best_score is not None and not score_floor(preop, [anchor], (c,), alpha) < best_score:
+            continue
+        score = deform()[2]
+        if best_score is None or score < best_score:
+            best, best_score = len(trials) - 1, score
+    return trials, best
+
+
 def _alternatives(preop, views, trials, best, alpha, beta) -> list:
-    """The registrations to fall back on: the other candidate combinations and, with several
-    views, each view alone with its chosen correspondence."""
-    found = [(positions, f"candidate {k + 1}") for k, ((positions, _, _), combo) in enumerate(trials) if combo is not best]
+    """The registrations to fall back on: the other candidate combinations (deformed now if
+    :func:`_candidate_trials` left them) and, with several views, each view alone with its
+    chosen correspondence."""
+    found = [(result()[0], f"candidate {k + 1}") for k, (result, combo) in enumerate(trials) if combo is not best]
     if len(views) > 1:
         found += [(_deform_with(preop, [view], (chosen,), alpha, beta)[0], f"view {view.name} alone")
                   for view, chosen in zip(views, best) if chosen is not None]
@@ -630,9 +652,9 @@ def _register_views(preop, outcomes, method, alpha, beta) -> FrameResult:
                 anchor.candidates = matching.candidate_correspondences(preop.graph, preop.classification, anchor.g2,
                                                                        anchor.c2, anchor.P)
         with _timed(timings, "deformation"):
-            trials = [(_deform_with(preop, [anchor], (c,), alpha, beta), (c,))
-                      for c in anchor.candidates[:MAX_CANDIDATE_COMBINATIONS]]
-            (deformed, energy, _), best = min(trials, key=lambda t: t[0][2])
+            trials, best = _candidate_trials(preop, anchor, alpha, beta)
+            deformed, energy, _ = trials[best][0]()
+            best = trials[best][1]
             if len(views) > 1:
                 deformed, energy, best = _with_followers(preop, views, anchor, best, deformed, alpha, beta)
                 trials = [(result, _full_combination(views, anchor, combo)) for result, combo in trials]

@@ -741,13 +741,39 @@ def follow_anchor(preop: Preoperative, views: list, correspondences, deformed: n
     return deformed, energy
 
 
-def _pass_targets(preop: Preoperative, views: list, correspondences, estimate):
-    """(deformation nodes, (targets, weights) per view) of :func:`_deform_with` (its rows 6-12)."""
-    g3 = preop.graph
+def _target_nodes(preop: Preoperative, views: list, correspondences) -> tuple[dict, np.ndarray]:
+    """({view name: soft assignment}, the 3D nodes some classified view gives a target in its frame)."""
     classified = [(v, c) for v, c in zip(views, correspondences) if c is not None]
     assignments = {v.name: v.assignment(preop, c) for v, c in classified}
     has_target = [assignments[v.name].assigned & v.visible for v, _ in classified]
-    nodes = np.flatnonzero(np.logical_or.reduce(has_target))
+    return assignments, np.flatnonzero(np.logical_or.reduce(has_target))
+
+
+def _assigned_fraction(preop: Preoperative, nodes: np.ndarray) -> float:
+    """The share of the kept 3D nodes among ``nodes`` (those the deformation moves by data)."""
+    in_deformation = np.zeros(len(preop.graph.positions), dtype=bool)
+    in_deformation[nodes] = True
+    return in_deformation[preop.kept].mean()
+
+
+def score_floor(preop: Preoperative, views: list, correspondences, alpha) -> float:
+    """The least score :func:`_deform_with` can give ``correspondences`` (no estimate), found
+    without deforming: :func:`matching.candidate_score` of the undeformed nodes with zero
+    energy, which is its share for the 3D nodes left unassigned. The parts left out, the
+    energy of eq. 6 and alpha times the mean squared stretch, are sums of squares (never
+    negative), and adding a number that is not negative never rounds below the other: a
+    candidate whose floor is not below the best score so far cannot win (issue 10: the
+    LAO 30 view's second candidate, which leaves a renal without partner)."""
+    _, nodes = _target_nodes(preop, views, correspondences)
+    points = preop.centerline.points
+    return matching.candidate_score(0.0, _assigned_fraction(preop, nodes), points, points, preop.centerline.edges,
+                                    alpha)
+
+
+def _pass_targets(preop: Preoperative, views: list, correspondences, estimate):
+    """(deformation nodes, (targets, weights) per view) of :func:`_deform_with` (its rows 6-12)."""
+    g3 = preop.graph
+    assignments, nodes = _target_nodes(preop, views, correspondences)
     data = [_view_data(nodes, assignments[v.name], v.visible, v.P, g3.positions) if v.name in assignments
             else _closest_point_data(v, nodes, preop, estimate) for v in views]
     if estimate is not None:        # later passes: the classified views' targets slide with the estimate too
@@ -787,7 +813,7 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     moved[nodes] = result.points
     in_deformation = np.zeros(len(g3.positions), dtype=bool)
     in_deformation[nodes] = True
-    assigned_fraction = in_deformation[preop.kept].mean()
+    assigned_fraction = _assigned_fraction(preop, nodes)
     in_deformation[_carry_unseen(preop, moved, in_deformation, [v.visible for v in views])] = True
     filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], in_deformation[preop.kept],
                                          preop.kept_adjacency)
