@@ -288,9 +288,12 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
         phi0 = _displacements_cm(initial, n)
         start = phi0.ravel() if preconditioner is None else preconditioner.variables(phi0)
         history[0] = objective(start)[0]
-    solution = scipy.optimize.minimize(
-        objective, start, jac=True, method="L-BFGS-B", callback=stop_when_stalled,
-        options={"maxiter": int(max_iter), "gtol": float(gtol), "ftol": 1e-12, "maxcor": int(memory)})
+    options = {"maxiter": int(max_iter), "gtol": float(gtol), "ftol": 1e-12, "maxcor": int(memory)}
+    if _LEAN_LBFGSB:
+        solution = _minimize_lbfgsb(objective, start, stop_when_stalled, **options)
+    else:
+        solution = scipy.optimize.minimize(objective, start, jac=True, method="L-BFGS-B", callback=stop_when_stalled,
+                                           options=options)
     phi_cm = displacement(solution.x)
     energy, _, terms = model.evaluate(phi_cm, with_gradient=False)
     phi = np.ascontiguousarray(phi_cm.T)
@@ -299,3 +302,78 @@ def deform_assigned(points, targets, edges, P, *, alpha=DEFAULT_ALPHA, beta=DEFA
     return DeformationResult(points=model.points + phi, displacements=phi, energy_initial=float(energy0),
                              energy_final=float(energy), terms=terms, n_iter=int(solution.nit),
                              converged=converged, n_evaluations=evaluations[0], message=message)
+
+
+def _scipy_version() -> tuple[int, int]:
+    return tuple(int(part) for part in scipy.__version__.split(".")[:2])
+
+
+#: Drive scipy's compiled L-BFGS-B routine directly (:func:`_minimize_lbfgsb`) on the scipy
+#: versions whose ``minimize(method="L-BFGS-B")`` it was checked against, to the bit
+#: (Testing/test_fast_paths.py); on any other, ``scipy.optimize.minimize`` itself.
+_LEAN_LBFGSB = _scipy_version() == (1, 17)
+#: Most evaluations (scipy's ``maxfun`` default) and line-search steps (``maxls``).
+_MAX_EVALUATIONS = 15000
+_MAX_LINE_SEARCH = 20
+
+
+def _minimize_lbfgsb(objective, start: np.ndarray, callback, *, maxiter: int, gtol: float, ftol: float,
+                     maxcor: int) -> scipy.optimize.OptimizeResult:
+    """``scipy.optimize.minimize(objective, start, jac=True, method="L-BFGS-B", callback=callback,
+    options=...)`` without bounds, the same calls of scipy's L-BFGS-B routine with the same numbers,
+    without the per-call wrapping (its function objects, copies and result records cost about as
+    much as the routine itself on a frame's deformation).
+
+    ``objective(x)`` gives (value, gradient) and is evaluated once per distinct ``x`` (scipy
+    keeps the last point's values too); ``callback(result)`` sees each new iterate's ``fun`` and
+    ``x`` and may raise StopIteration to halt. Returns ``x``, ``fun``, ``nit``, ``success``,
+    ``message`` as scipy does.
+    """
+    from scipy.optimize import _lbfgsb
+    from scipy.optimize._lbfgsb_py import status_messages, task_messages
+
+    x = np.array(start, dtype=np.float64).ravel()
+    n = x.size
+    last = {"x": x.copy(), "evaluations": 1}
+    f, g = objective(x.copy())
+    f, g = _scalar(f), np.atleast_1d(g)
+    bounds_kind = np.zeros(n, np.int32)
+    lower, upper = np.zeros(n, np.float64), np.zeros(n, np.float64)
+    work = np.zeros(2 * maxcor * n + 5 * n + 11 * maxcor * maxcor + 8 * maxcor, np.float64)
+    iwork = np.zeros(3 * n, dtype=np.int32)
+    task, line_task = np.zeros(2, dtype=np.int32), np.zeros(2, dtype=np.int32)
+    lsave, isave, dsave = np.zeros(4, dtype=np.int32), np.zeros(44, dtype=np.int32), np.zeros(29, dtype=np.float64)
+    factr = ftol / np.finfo(float).eps
+    iterations, halted = 0, False
+    while True:
+        g = g.astype(np.float64)
+        _lbfgsb.setulb(maxcor, x, lower, upper, bounds_kind, f, g, factr, gtol, work, iwork, task, lsave, isave,
+                       dsave, _MAX_LINE_SEARCH, line_task)
+        if task[0] == 3:                # f and g wanted at x
+            if not np.array_equal(x, last["x"]):
+                last["x"] = x.copy()
+                last["evaluations"] += 1
+                f, g = objective(x.copy())
+                f, g = _scalar(f), np.atleast_1d(g)
+        elif task[0] == 1:              # a new iterate
+            iterations += 1
+            try:
+                callback(scipy.optimize.OptimizeResult(x=x, fun=f))
+            except StopIteration:
+                task[0], task[1], halted = 5, 505, True
+            if iterations >= maxiter:
+                task[0], task[1] = 5, 504
+            elif last["evaluations"] > _MAX_EVALUATIONS:
+                task[0], task[1] = 5, 502
+        else:
+            break
+    if halted:          # as scipy.optimize.minimize words it
+        return scipy.optimize.OptimizeResult(x=x, fun=f, nit=iterations, success=False,
+                                             message="`callback` raised `StopIteration`.")
+    return scipy.optimize.OptimizeResult(x=x, fun=f, nit=iterations, success=task[0] == 4,
+                                         message=status_messages[task[0]] + ": " + task_messages[task[1]])
+
+
+def _scalar(value):
+    """The objective's value as scipy passes it on: a true scalar."""
+    return value if np.isscalar(value) else np.asarray(value).item()
