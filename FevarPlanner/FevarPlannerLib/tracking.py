@@ -18,6 +18,7 @@ import io as _stringio
 import json
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,8 +30,16 @@ from .io import load_case, read_fluoro
 
 __all__ = ["FrameRecord", "TrackResult", "register_run_frame", "track_case", "write_track_outputs", "CSV_COLUMNS"]
 
-CSV_COLUMNS = ("frame", "fit_2d_px", "path_length_mm", "read_ms", "segmentation_ms", "registration_ms",
-               "planning_ms", "total_ms", "warnings")
+#: Runs of at least this many frames hand each frame check to the view worker process, which
+#: saves wall time only (its 10-15 ms a frame on a second core, bench_tracking.py), once the
+#: worker is ready (about 0.5 s after its start, which costs about 1.5 s of CPU and 550 MB, as
+#: ``plan`` notes); shorter runs keep the check in this process and start no worker.
+WORKER_MIN_FRAMES = 40
+
+CSV_COLUMNS = ("frame", "fit_2d_px", "path_length_mm", "read_ms", "segmentation_ms", "frame_check_ms",
+               "registration_ms", "result_checks_ms", "planning_ms", "total_ms", "warnings")
+#: The per-frame times of :func:`register_run_frame` (s), in order; ``total`` is their sum.
+TIMED_STEPS = ("read", "segmentation", "frame_check", "registration", "result_checks", "planning")
 
 
 @dataclass
@@ -44,8 +53,7 @@ class FrameRecord:
     warnings: list = field(default_factory=list)
 
     def row(self) -> dict:
-        ms = {f"{key}_ms": round(1000.0 * self.times.get(key, 0.0), 2)
-              for key in ("read", "segmentation", "registration", "planning", "total")}
+        ms = {f"{key}_ms": round(1000.0 * self.times.get(key, 0.0), 2) for key in TIMED_STEPS + ("total",)}
         return {"frame": self.frame,
                 "fit_2d_px": "" if self.fit_2d_px is None else round(self.fit_2d_px, 4),
                 "path_length_mm": "" if self.path_length_mm is None else round(self.path_length_mm, 2),
@@ -109,6 +117,11 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     ``errors`` hold the fit to its own skeleton and ``warnings`` the result's notes. Used by
     :func:`track_case` and by the workstation to play a run back.
 
+    The frame check runs in the view worker process (:mod:`pipeline.workers`) while this
+    process registers, when the worker is ready (as ``plan`` does): its failure still comes
+    first, and a registration error after it. ``times`` (:data:`TIMED_STEPS`, s): the frame
+    check's is this process's wait for it (or the check itself, done here).
+
     ``prior`` (a :class:`quality.FluoroPrior` for ``preop`` and ``case.P``) may be built
     once per run and passed in; it caches its band on the frame grid.
     """
@@ -124,13 +137,28 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     t = time.perf_counter()
     mask = segment_fluoro(fluoro.image, prior)
     times["segmentation"] = time.perf_counter() - t
-    try:
-        quality.check_frame_mask(mask, prior, frame=fluoro.image)
-    except quality.QualityError as exc:
-        raise _without_qc_picture(exc, f"{frame_path}: ") from None
+    check = _frame_check_job(preop, mask, prior, fluoro.image)
     t = time.perf_counter()
-    frame = register_frame(preop, mask, case.P, method=method)
+    try:
+        frame, failure = register_frame(preop, mask, case.P, method=method), None
+    except Exception as exc:        # noqa: BLE001  (raised after the frame check's failure)
+        frame, failure = None, exc
+    except BaseException:           # interrupted: the worker's answer must not be left in its pipe
+        check.result()
+        raise
     times["registration"] = time.perf_counter() - t
+    t = time.perf_counter()
+    check_error, caught = check.result()
+    times["frame_check"] = time.perf_counter() - t
+    for category, message in caught:        # as if the check had run here
+        warnings.warn(message, category, stacklevel=2)
+    if isinstance(check_error, quality.QualityError):
+        raise _without_qc_picture(check_error, f"{frame_path}: ") from None
+    if check_error is not None:
+        raise check_error
+    if failure is not None:
+        raise failure
+    t = time.perf_counter()
     edges_2d = frame.skeleton2d.edges()
     plausibility.check_vessel_tree(frame.skeleton2d.positions, edges_2d, frame.P, preop.centerline.points, frame_path)
     notes = plausibility.result_warnings(preop.centerline, frame.deformed, frame_path, method=method)
@@ -142,17 +170,40 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
         except quality.QualityError as exc:
             raise _without_qc_picture(exc) from None
         notes += plausibility.registration_warnings(signals)
+    times["result_checks"] = time.perf_counter() - t
     t = time.perf_counter()
     path = planning.plan_path(frame.deformed, start=start, target=target)
     times["planning"] = time.perf_counter() - t
+    t = time.perf_counter()
     fit = evaluation.evaluate(frame.deformed, None, frame.P, frame.skeleton2d.positions, edges_2d)
-    times["total"] = sum(times.values())
+    times["result_checks"] += time.perf_counter() - t
+    times["total"] = sum(times[step] for step in TIMED_STEPS)
     result = PlanResult(method, preop.centerline, frame.deformed, path, frame.P, frame.skeleton2d.positions, edges_2d,
                         fluoro.image, {"total": times["total"], "registration": frame.timings["intraop"]}, fit,
                         {"fluoro": str(case.fluoro.path), "frame": index},
                         geometry=case.geometry.to_dict() if case.geometry is not None else None, energy=frame.energy)
     result.warnings.extend(frame.warnings + notes)
     return result, times
+
+
+def _frame_check_job(preop, mask: np.ndarray, prior, image: np.ndarray):
+    """The frame check (:func:`quality.check_frame_mask`) of ``mask`` as a job of the view worker
+    (done here, when its result is asked for, if the worker is not ready): its ``result()`` is
+    (the check's error or None, its warnings as (category, message))."""
+    from .pipeline import workers
+
+    return workers.submit(_frame_check_and_warnings, preop, mask, prior, image)
+
+
+def _frame_check_and_warnings(preop, mask: np.ndarray, prior, image: np.ndarray) -> tuple:
+    """``pipeline.frame._frame_check`` with the warnings it gives, for :func:`_frame_check_job` (the
+    worker's warnings would not reach this process's record of the frame)."""
+    from .pipeline.frame import _frame_check
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        error = _frame_check(preop, mask, prior, image)
+    return error, [(w.category, str(w.message)) for w in caught]
 
 
 def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
@@ -193,6 +244,30 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
                                     use_cache=cache not in (False, None))
     preop, preop_seconds = model.preop, time.perf_counter() - t0
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
+    with _view_worker_for(len(frames)):
+        records, last = _track_frames(preop, case, frames, prior, method, start, target, progress)
+    if progress is not None:
+        progress(1.0, f"{len(records)} frames")
+    return TrackResult(records, preop_seconds, model.from_cache, method, last)
+
+
+@contextmanager
+def _view_worker_for(n_frames: int):
+    """The view worker as the caller set it for a run of at least :data:`WORKER_MIN_FRAMES` frames, off for a shorter one."""
+    from .pipeline import workers
+
+    if n_frames >= WORKER_MIN_FRAMES:
+        yield
+        return
+    previous = workers.set_enabled(False)
+    try:
+        yield
+    finally:
+        workers.set_enabled(previous)
+
+
+def _track_frames(preop, case, frames, prior, method: str, start: str, target: str, progress) -> tuple[list, object]:
+    """:func:`track_case`'s loop over ``frames``: (FrameRecord per frame, the last registered frame's PlanResult)."""
     records, last, side_checked = [], None, method != "proposed"
     for done, index in enumerate(frames):
         if progress is not None:
@@ -212,9 +287,7 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
         if not side_checked:        # once per run, on its first registered frame
             _check_run_side(preop, case, index, prior, last)
             side_checked = True
-    if progress is not None:
-        progress(1.0, f"{len(records)} frames")
-    return TrackResult(records, preop_seconds, model.from_cache, method, last)
+    return records, last
 
 
 def _check_run_side(preop, case, index: int, prior, given) -> None:

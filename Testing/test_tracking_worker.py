@@ -1,0 +1,113 @@
+"""``track``: each frame's check in the view worker while this process registers (issue 10).
+
+The frame check (:func:`quality.check_frame_mask`) runs in the worker process on runs of
+``tracking.WORKER_MIN_FRAMES`` frames or more; the frame's answer, warnings and refusal are
+the ones of the check done here, and a short run starts no worker.
+"""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import io, phantom, quality, tracking
+from FevarPlannerLib.cache import preop_model
+from FevarPlannerLib.pipeline import workers
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """(case, pre-operative model, prior) of a phantom run: two noisy angiograms and a frame of noise."""
+    generated = phantom.generate_case(phantom.random_params(np.random.default_rng(4), misalign_shift_px=(0.0, 0.0),
+                                                            misalign_rotation_deg=0.0), name="run")
+    folder = phantom.write_case(generated, tmp_path_factory.mktemp("run") / "case", mask_only=True)
+    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                    np.random.default_rng(seed))[0] for seed in range(2)]
+    frames.insert(1, np.random.default_rng(7).integers(0, 4096, size=frames[0].shape).astype(frames[0].dtype))
+    io.write_fluoro_dicom(folder / "fluoro.dcm", np.stack(frames), generated.carm)
+    (folder / "fluoro_mask.png").unlink()
+    case = io.load_case(folder, frame=0)
+    preop = preop_model(case, use_cache=False).preop
+    return case, preop, quality.FluoroPrior.from_centerline(preop.centerline, case.P)
+
+
+@pytest.fixture
+def sent(monkeypatch):
+    """The jobs given to workers.submit, as (function name, remote)."""
+    found = []
+    submit = workers.submit
+
+    def recorded(function, *args):
+        job = submit(function, *args)
+        found.append((function.__name__, job.remote))
+        return job
+
+    monkeypatch.setattr(workers, "submit", recorded)
+    yield found
+    workers.set_enabled(None)
+
+
+def _frame(run, index):
+    """register_run_frame of frame ``index``: (result or the InputError's text, warnings, times)."""
+    case, preop, prior = run
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            result, times = tracking.register_run_frame(preop, case, index, prior=prior)
+        except io.InputError as exc:
+            return str(exc), [], {}
+    return result, sorted(str(w.message) for w in caught), times
+
+
+def test_a_frame_checked_in_the_worker_registers_and_is_refused_as_checked_here(run, sent):
+    workers.set_enabled(True)
+    assert workers.wait_until_ready(120.0)
+    remote = [_frame(run, index) for index in range(3)]
+    workers.set_enabled(False)
+    local = [_frame(run, index) for index in range(3)]
+    assert sent == [("_frame_check_and_warnings", True)] * 3 + [("_frame_check_and_warnings", False)] * 3
+    for (far, far_warnings, far_times), (near, near_warnings, near_times) in zip(remote, local):
+        assert far_warnings == near_warnings
+        if isinstance(near, str):
+            assert far == near and "not a usable angiogram" in near
+            continue
+        np.testing.assert_array_equal(far.deformed.points, near.deformed.points)
+        assert far.warnings == near.warnings and far.energy == near.energy
+        assert set(far_times) == set(near_times) == set(tracking.TIMED_STEPS) | {"total"}
+        assert far_times["total"] == pytest.approx(sum(far_times[step] for step in tracking.TIMED_STEPS))
+    assert isinstance(local[1][0], str) and not isinstance(local[0][0], str) and not isinstance(local[2][0], str)
+
+
+def test_the_checks_warnings_reach_the_frame_as_if_it_ran_here(run, monkeypatch):
+    case, preop, prior = run
+    check = quality.check_frame_mask
+
+    def warning_check(*args, **kwargs):
+        warnings.warn("contrast is low here", RuntimeWarning)
+        return check(*args, **kwargs)
+
+    monkeypatch.setattr(quality, "check_frame_mask", warning_check)
+    mask = np.zeros(case.fluoro.image.shape, dtype=bool)
+    error, caught = tracking._frame_check_and_warnings(preop, mask, prior, case.fluoro.image)
+    assert isinstance(error, quality.QualityError) and caught == [(RuntimeWarning, "contrast is low here")]
+    workers.set_enabled(False)
+    try:
+        _, messages, _ = _frame(run, 0)
+    finally:
+        workers.set_enabled(None)
+    assert "contrast is low here" in messages
+
+
+def test_a_short_run_starts_no_worker_and_a_long_one_uses_it(run, sent, monkeypatch):
+    case, _, _ = run
+    workers.set_enabled(None)
+    tracking.track_case(case.case_dir, count=2)
+    assert sent and not any(remote for _, remote in sent)
+    assert workers._state["enabled"] is None            # the caller's setting is back
+    sent.clear()
+    monkeypatch.setattr(tracking, "WORKER_MIN_FRAMES", 2)
+    workers.set_enabled(True)
+    assert workers.wait_until_ready(120.0)
+    result = tracking.track_case(case.case_dir)
+    assert [remote for _, remote in sent] == [True] * 3
+    assert [r.fit_2d_px is None for r in result.records] == [False, True, False]
