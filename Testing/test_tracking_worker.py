@@ -9,6 +9,7 @@ import warnings
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from FevarPlannerLib import io, phantom, quality, tracking
 from FevarPlannerLib.cache import preop_model
@@ -111,3 +112,25 @@ def test_a_short_run_starts_no_worker_and_a_long_one_uses_it(run, sent, monkeypa
     result = tracking.track_case(case.case_dir)
     assert [remote for _, remote in sent] == [True] * 3
     assert [r.fit_2d_px is None for r in result.records] == [False, True, False]
+
+
+def test_a_run_parsed_once_gives_read_fluoros_frames_and_errors(run, tmp_path):
+    case, _, _ = run
+    frames = io.FluoroRun(case.fluoro.path)
+    for index in (2, 0, 1):
+        once, each = frames.frame(index), io.read_fluoro(case.fluoro.path, frame=index)
+        np.testing.assert_array_equal(once.image, each.image)
+        assert once.image.dtype == each.image.dtype
+        assert (once.carm, once.pixel_spacing, once.frame, once.n_frames, once.missing_tags) == \
+            (each.carm, each.pixel_spacing, each.frame, each.n_frames, each.missing_tags)
+    for bad in (3, -1):
+        with pytest.raises(io.InputError) as once:
+            frames.frame(bad)
+        with pytest.raises(io.InputError) as each:
+            io.read_fluoro(case.fluoro.path, frame=bad)
+        assert str(once.value) == str(each.value)
+    picture = tmp_path / "frame.png"
+    Image.fromarray(np.arange(64, dtype=np.uint8).reshape(8, 8)).save(picture)
+    np.testing.assert_array_equal(io.FluoroRun(picture).frame(0).image, io.read_fluoro(picture).image)
+    with pytest.raises(io.InputError, match="missing.dcm: no such file"):
+        io.FluoroRun(tmp_path / "missing.dcm").frame(0)

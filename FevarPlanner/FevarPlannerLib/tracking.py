@@ -26,7 +26,7 @@ import numpy as np
 
 from . import evaluation, planning, plausibility, quality
 from .files import InputError, write_text_atomic
-from .io import load_case, read_fluoro
+from .io import FluoroRun, load_case, read_fluoro
 
 __all__ = ["FrameRecord", "TrackResult", "register_run_frame", "track_case", "write_track_outputs", "CSV_COLUMNS"]
 
@@ -106,7 +106,7 @@ def _without_qc_picture(failure: quality.QualityError, prefix: str = "") -> Inpu
 
 
 def register_run_frame(preop, case, index: int, *, method: str = "proposed", start: str = "iliac_right",
-                       target: str = "renal_left", prior=None):
+                       target: str = "renal_left", prior=None, run: FluoroRun | None = None):
     """Frame ``index`` of the case's run registered against ``preop``: ``(PlanResult, times in s)``.
 
     The frame is read (the loaded one when it is ``case.fluoro``'s), segmented with the
@@ -123,7 +123,8 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     check's is this process's wait for it (or the check itself, done here).
 
     ``prior`` (a :class:`quality.FluoroPrior` for ``preop`` and ``case.P``) may be built
-    once per run and passed in; it caches its band on the frame grid.
+    once per run and passed in; it caches its band on the frame grid. So may ``run``
+    (:class:`io.FluoroRun` of ``case.fluoro.path``): the file is then parsed once per run.
     """
     from .pipeline import PlanResult, register_frame
     from .segmentation import segment_fluoro
@@ -131,7 +132,7 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P) if prior is None else prior
     times = {}
     t = time.perf_counter()
-    fluoro = case.fluoro if index == case.fluoro.frame else read_fluoro(case.fluoro.path, frame=index)
+    fluoro = _run_frame(case, index, run)
     frame_path = f"{case.fluoro.path} (frame {index})"
     times["read"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -184,6 +185,13 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
                         geometry=case.geometry.to_dict() if case.geometry is not None else None, energy=frame.energy)
     result.warnings.extend(frame.warnings + notes)
     return result, times
+
+
+def _run_frame(case, index: int, run: FluoroRun | None):
+    """Frame ``index`` of the case's run: the loaded one when it is ``case.fluoro``'s, else read (from ``run``)."""
+    if index == case.fluoro.frame:
+        return case.fluoro
+    return read_fluoro(case.fluoro.path, frame=index) if run is None else run.frame(index)
 
 
 def _frame_check_job(preop, mask: np.ndarray, prior, image: np.ndarray):
@@ -245,7 +253,8 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
     preop, preop_seconds = model.preop, time.perf_counter() - t0
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
     with _view_worker_for(len(frames)):
-        records, last = _track_frames(preop, case, frames, prior, method, start, target, progress)
+        records, last = _track_frames(preop, case, frames, prior, FluoroRun(case.fluoro.path), method, start, target,
+                                      progress)
     if progress is not None:
         progress(1.0, f"{len(records)} frames")
     return TrackResult(records, preop_seconds, model.from_cache, method, last)
@@ -266,7 +275,8 @@ def _view_worker_for(n_frames: int):
         workers.set_enabled(previous)
 
 
-def _track_frames(preop, case, frames, prior, method: str, start: str, target: str, progress) -> tuple[list, object]:
+def _track_frames(preop, case, frames, prior, run: FluoroRun, method: str, start: str, target: str,
+                  progress) -> tuple[list, object]:
     """:func:`track_case`'s loop over ``frames``: (FrameRecord per frame, the last registered frame's PlanResult)."""
     records, last, side_checked = [], None, method != "proposed"
     for done, index in enumerate(frames):
@@ -277,7 +287,7 @@ def _track_frames(preop, case, frames, prior, method: str, start: str, target: s
             warnings.simplefilter("always")
             try:
                 last, times = register_run_frame(preop, case, index, method=method, start=start, target=target,
-                                                 prior=prior)
+                                                 prior=prior, run=run)
             except (ValueError, RuntimeError) as exc:
                 records.append(FrameRecord(index, None, None, {"total": time.perf_counter() - t},
                                            [str(exc).splitlines()[0]]))
@@ -285,12 +295,12 @@ def _track_frames(preop, case, frames, prior, method: str, start: str, target: s
         records.append(FrameRecord(index, last.errors["2d_px"]["mean"], last.path.length_mm, times,
                                    sorted({str(w.message).splitlines()[0] for w in caught} | set(last.warnings))))
         if not side_checked:        # once per run, on its first registered frame
-            _check_run_side(preop, case, index, prior, last)
+            _check_run_side(preop, case, index, prior, last, run)
             side_checked = True
     return records, last
 
 
-def _check_run_side(preop, case, index: int, prior, given) -> None:
+def _check_run_side(preop, case, index: int, prior, given, run: FluoroRun) -> None:
     """Refuse the whole run when frame ``index``, its first registered frame (``given``, its
     :class:`pipeline.PlanResult`), looks mirrored left-right: the side convention is the run's,
     so the mirror test (:func:`plausibility.check_not_mirrored`) runs once, on that frame
@@ -298,7 +308,7 @@ def _check_run_side(preop, case, index: int, prior, given) -> None:
     from .pipeline import register_flipped
     from .segmentation import segment_fluoro
 
-    fluoro = case.fluoro if index == case.fluoro.frame else read_fluoro(case.fluoro.path, frame=index)
+    fluoro = _run_frame(case, index, run)
     mask = segment_fluoro(fluoro.image, prior)
     signals = plausibility.registration_signals(preop.centerline, given.deformed, given.P, given.skeleton2d_points,
                                                 given.skeleton2d_edges, mask.shape)

@@ -29,7 +29,7 @@ from ..files import (MAX_JSON_BYTES, InputError, InputWarning, atomic_folder, at
 from .case import Case, PRECEDENCE_3D, load_case
 from .ct import SLICE_TAGS, check_same_grid, read_ct, read_mask
 from .dicom_writers import write_ct_dicom_series, write_fluoro_dicom, write_mask_png, write_png
-from .fluoro import CARM_TAGS, Fluoro, read_fluoro, read_mask_2d
+from .fluoro import CARM_TAGS, Fluoro, FluoroRun, read_fluoro, read_mask_2d
 from .folder import CASE_INPUTS, find_case_file, frame_from_mask, projection_for_frame
 from .truth import read_ground_truth
 from .views import MAIN_VIEW, VIEWS_FOLDER, VIEW_INPUTS, View, load_views
@@ -64,6 +64,7 @@ __all__ = [
     "check_same_grid",
     "Fluoro",
     "read_fluoro",
+    "FluoroRun",
     "read_mask_2d",
     "Case",
     "View",

@@ -70,14 +70,39 @@ def read_fluoro(path, frame: int = 0) -> Fluoro:
     if path.is_dir():
         raise InputError(f"{display_path(path)}: is a folder; expected a fluoroscopy image file")
     if _is_dicom_file(path):
-        fluoro = _read_fluoro_dicom(path, frame)
+        fluoro = _fluoro_of_dataset(_dicom_dataset(path), path, frame)
     elif path.suffix.lower() in RASTER_SUFFIXES:
         fluoro = _read_fluoro_raster(path, frame)
     else:
         raise InputError(f"{path}: unknown image format (expected DICOM, PNG, JPG, TIFF or BMP)")
+    return _finite(fluoro, path)
+
+
+def _finite(fluoro: Fluoro, path: Path) -> Fluoro:
     if not np.all(np.isfinite(fluoro.image)):
         raise InputError(f"{path}: image contains NaN or infinite values")
     return fluoro
+
+
+class FluoroRun:
+    """The frames of one fluoroscopy file, its DICOM parsed once (a run's frames one after another).
+
+    ``frame(index)`` is ``read_fluoro(path, index)``: the same image and tags, the same errors;
+    a DICOM file is read and parsed at the first call only (``read_fluoro`` parses the whole
+    file, every frame's pixel data included, for each frame it reads).
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._dataset = None
+
+    def frame(self, index: int) -> Fluoro:
+        if self._dataset is None:
+            check_readable(self.path)
+            if self.path.is_dir() or not _is_dicom_file(self.path):
+                return read_fluoro(self.path, index)
+            self._dataset = _dicom_dataset(self.path)
+        return _finite(_fluoro_of_dataset(self._dataset, self.path, index), self.path)
 
 
 def _check_frame_index(path: Path, frame: int, n_frames: int) -> int:
@@ -99,13 +124,19 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
     return (rgb[..., :3].astype(np.float64) @ LUMA_WEIGHTS).astype(np.float32)
 
 
-def _read_fluoro_dicom(path: Path, frame: int) -> Fluoro:
+def _dicom_dataset(path: Path) -> pydicom.Dataset:
+    """The parsed DICOM file, which must hold pixel data."""
     try:
         ds = pydicom.dcmread(path)
     except Exception as exc:  # any parser failure of a foreign file is bad input
         raise InputError(f"{path}: not a readable DICOM file ({_last_line(exc)})") from None
     if "PixelData" not in ds:
         raise InputError(f"{path}: DICOM file holds no pixel data")
+    return ds
+
+
+def _fluoro_of_dataset(ds: pydicom.Dataset, path: Path, frame: int) -> Fluoro:
+    """Frame ``frame`` of the parsed DICOM file ``ds`` (read from ``path``)."""
     rows, cols = _tag_int(ds, "Rows", path, default=0), _tag_int(ds, "Columns", path, default=0)
     _check_frame_size(path, rows, cols)
     n_frames = _tag_int(ds, "NumberOfFrames", path, default=1)
