@@ -104,7 +104,7 @@ def test_a_short_run_starts_no_worker_and_a_long_one_uses_it(run, sent, monkeypa
     workers.set_enabled(None)
     tracking.track_case(case.case_dir, count=2)
     assert sent and not any(remote for _, remote in sent)
-    assert workers._state["enabled"] is None            # the caller's setting is back
+    assert workers.set_enabled(None) is None            # the caller's setting is back
     sent.clear()
     monkeypatch.setattr(tracking, "WORKER_MIN_FRAMES", 2)
     workers.set_enabled(True)
