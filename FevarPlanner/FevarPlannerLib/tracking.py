@@ -262,7 +262,8 @@ def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right"
 
 @contextmanager
 def _view_worker_for(n_frames: int):
-    """The view worker as the caller set it for a run of at least :data:`WORKER_MIN_FRAMES` frames, off for a shorter one."""
+    """The view worker as the caller set it for a run of at least :data:`WORKER_MIN_FRAMES` frames,
+    off for a shorter one."""
     from .pipeline import workers
 
     if n_frames >= WORKER_MIN_FRAMES:
