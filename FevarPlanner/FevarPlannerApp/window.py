@@ -95,6 +95,7 @@ class MainWindow(QMainWindow):
         super().__init__()
         self.interactive = interactive
         self.outcome: PlanOutcome | None = None
+        self._run: tuple = (None, None, None)      # (outcome, its run's FluoroRun, its prior): see _run_of
         self.last_error: str | None = None
         self.last_qc_picture: Path | None = None
         self.refusal_dialog: RefusalDialog | None = None
@@ -287,6 +288,18 @@ class MainWindow(QMainWindow):
                          f"{result.path.length_mm:.1f} mm")
         return True
 
+    def _run_of(self, outcome: PlanOutcome) -> tuple:
+        """(io.FluoroRun, quality.FluoroPrior) of ``outcome``'s run, made once per outcome: the file
+        parsed and the prior's band rasterised once, not for every frame shown."""
+        from FevarPlannerLib.io import FluoroRun
+        from FevarPlannerLib.quality import FluoroPrior
+
+        if self._run[0] is not outcome:
+            preop = outcome.model.preop
+            self._run = (outcome, FluoroRun(outcome.case.fluoro.path),
+                         FluoroPrior.from_centerline(preop.centerline, outcome.case.P))
+        return self._run[1:]
+
     def show_frame(self, index: int) -> bool:
         """Register frame ``index`` of the shown case's run against the cached pre-operative model and show it.
 
@@ -302,10 +315,11 @@ class MainWindow(QMainWindow):
         if outcome.result.inputs.get("frame", outcome.case.fluoro.frame) == index:
             return False  # already shown
         path = outcome.result.path
+        run, prior = self._run_of(outcome)
         try:
             result, times = register_run_frame(outcome.model.preop, outcome.case, int(index),
                                                method=outcome.result.method, start=path.start_label,
-                                               target=path.target_label)
+                                               target=path.target_label, prior=prior, run=run)
         except ValueError as exc:          # a gate's refusal of this frame comes with its QC picture
             picture = refusal_picture(exc)
             self._on_failed(f"frame {index}: {str(exc).splitlines()[0]}", str(picture or ""))
