@@ -30,7 +30,9 @@ wall time of each. The two-view variant runs with the view worker and, alternati
 it, without ("two views (serial)") and with the follower passes of the deformation as they
 were before issue 10's cheaper passes ("two views (cold passes)": the solver's own stall
 window on the refinement, no preconditioner kept between solves; ``over_cold_passes_cpu``
-holds the ratios).
+holds the ratios). "AP (run: prior kept)" is the AP view as a frame of a run: its
+:class:`quality.FluoroPrior` kept from frame to frame, as ``track`` keeps its run's (the prior's
+band on the frame grid is rasterised once per run, not per frame).
 Each run starts with an empty preconditioner cache: repeats of one frame must not find what
 a new frame would not. Wall time
 (``time.perf_counter``) and CPU time of this process (``time.process_time``) are both
@@ -140,14 +142,16 @@ def _cpu_stage_timer(cpu: dict):
             module._timed = wall_timer
 
 
-def time_views(preop, views, worker: bool = True) -> tuple[dict, dict, dict]:
+def time_views(preop, views, worker: bool = True, priors=None) -> tuple[dict, dict, dict]:
     """One pass of the per-frame path over ``views`` (registered jointly): ({stage: wall s}, {stage: CPU s}, facts).
 
     The pipeline's own route from raw frames (:func:`pipeline.frame.prepare_views`, then
     :func:`pipeline.frame.register_prepared`): with two views and ``worker``, the second
     view's 2D side runs in the view worker process. Stage wall times are the work done
     (summed over the views, whichever process did it); stage CPU times are this process's,
-    the worker's CPU time is the stage "worker"; ``total`` wall is the elapsed time.
+    the worker's CPU time is the stage "worker"; ``total`` wall is the elapsed time. ``priors``
+    (one :class:`FluoroPrior` per view, kept from run to run as ``track`` keeps its run's): the
+    prior's band is then rasterised once, not per frame.
     """
     workers.set_enabled(worker)
     solve._preconditioner_cache.clear()     # a new frame's solves share nothing with the last frame's
@@ -155,8 +159,8 @@ def time_views(preop, views, worker: bool = True) -> tuple[dict, dict, dict]:
     start = _clock()
     with _cpu_stage_timer(cpu):
         prior_start = _clock()
-        sources = [frame_module.ViewSource(name, P, image, prior=FluoroPrior.from_centerline(preop.centerline, P))
-                   for name, image, _, P in views]
+        priors = priors or [FluoroPrior.from_centerline(preop.centerline, P) for _, _, _, P in views]
+        sources = [frame_module.ViewSource(name, P, image, prior=prior) for (name, image, _, P), prior in zip(views, priors)]
         prior_wall, prior_cpu = _since(prior_start)
         outcomes = frame_module.prepare_views(preop, sources)
         result = frame_module.register_prepared(preop, outcomes)
@@ -365,22 +369,25 @@ def _settings(changes):
 
 
 def pipeline_runs(preop, views, repeats: int) -> dict:
-    """{variant: :func:`summarise` of its runs}: each view alone, both jointly with the view worker
+    """{variant: :func:`summarise` of its runs}: each view alone, the first as a frame of a run
+    (its prior kept from frame to frame, as ``track`` keeps it), both jointly with the view worker
     and without it, and both with the earlier follower passes (:data:`COLD_PASSES`),
     alternating over ``repeats`` (the shared machine's load hits them alike)."""
     runs = {}
-    variants = [(view[0], [view], True, ()) for view in views] + [("two views", views, True, ()),
-                                                                  ("two views (serial)", views, False, ()),
-                                                                  ("two views (cold passes)", views, True, COLD_PASSES)]
-    for _, chosen, worker, changes in variants:
+    kept = [FluoroPrior.from_centerline(preop.centerline, views[0][3])]
+    variants = [(view[0], [view], True, (), None) for view in views] + [
+        (f"{views[0][0]} (run: prior kept)", [views[0]], True, (), kept),
+        ("two views", views, True, (), None), ("two views (serial)", views, False, (), None),
+        ("two views (cold passes)", views, True, COLD_PASSES, None)]
+    for _, chosen, worker, changes, priors in variants:
         with _settings(changes):
-            time_views(preop, chosen, worker)     # warm-up: imports, caches, the worker's copy of the model
-    found = {name: [] for name, _, _, _ in variants}
+            time_views(preop, chosen, worker, priors)     # warm-up: imports, caches, the worker's copy of the model
+    found = {name: [] for name, _, _, _, _ in variants}
     for _ in range(repeats):
-        for name, chosen, worker, changes in variants:
+        for name, chosen, worker, changes, priors in variants:
             with _settings(changes):
-                found[name].append(time_views(preop, chosen, worker))
-    for name, _, _, _ in variants:
+                found[name].append(time_views(preop, chosen, worker, priors))
+    for name, _, _, _, _ in variants:
         runs[name] = summarise(found[name])
         print(name, {k: round(v, 2) for k, v in runs[name]["cpu_ms"].items()}, "CPU ms;",
               f"wall total {runs[name]['wall_ms']['total']:.1f} ms", flush=True)
