@@ -49,7 +49,8 @@ truth over the open field and within the prior's band (``FluoroPrior.band``: the
 widened by its radius and the expected deformation), the mask's pixels in the prior's renal bands
 that the truth does not have (the renal arteries are real contrast the labels lack),
 ``check_frame_mask``'s verdict (with the frame: every frame here is a usable angiogram, so a
-refusal is a false refusal) and the CPU ms of the segmentation (the prior's maps warmed, as a
+refusal is a false refusal), the per-pixel contrast to noise (``quality.vessel_contrast_to_noise``,
+the check's measure) of the mask and of the truth, and the CPU ms of the segmentation (the prior's maps warmed, as a
 run's frames find them). Writes ``bench_real_drr.json`` and ``bench_real_drr.png`` (the dark
 frames, truth green, result red, prior's centre line cyan) into ``--out``; ``--pngs`` also one
 overlay per frame (true positives white, misses red, extra blue).
@@ -283,7 +284,9 @@ def score_frame(frame: np.ndarray, truth: np.ndarray, field: np.ndarray, prior: 
     row = {"open_field": overlap(mask, truth, field), "prior_band": overlap(mask, truth, band),
            "extra_px_in_renal_band": int((mask & ~truth & renal).sum()),
            "extra_px_outside_band": int((mask & ~truth & field & ~band).sum()),
-           "frame_check": frame_check(mask, prior, frame), "cpu_ms": cpu_ms}
+           "frame_check": frame_check(mask, prior, frame), "cpu_ms": cpu_ms,
+           "cnr_of_mask": quality.vessel_contrast_to_noise(frame, mask),
+           "cnr_of_truth": quality.vessel_contrast_to_noise(frame, truth)}
     return row, mask
 
 
