@@ -31,7 +31,7 @@ the 1024 grid; the CT's 0.7 mm voxels are coarser than the grid at the isocentre
 X-ray physics: primary ``I0 g exp(-mu_w A)`` (``mu_w`` = ``--mu-water`` per mm of water, ``g``
 the exposure gradient of the heel effect, ``--gradient``), plus scatter (``--scatter`` times the
 primary blurred over 40 mm), Poisson quantum noise (``--quanta`` quanta per unattenuated pixel),
-log display windowed to 12 bits (MONOCHROME2: vessels dark). Two kinds of frame:
+``--iodine-gain`` times the CT's iodine excess (1: the CT's numbers), log display windowed to 12 bits (MONOCHROME2: vessels dark). Two kinds of frame:
 ``plain``: the unsubtracted frame (everything); ``dsa``: the log frame minus the log of a second
 exposure of the same view with ``A - E`` (only the labelled arteries' iodine differs; their own
 noise each). Each in both polarities: ``dark`` (vessels dark, as on the monitor) and ``bright``
@@ -180,19 +180,22 @@ def _window(image: np.ndarray, field: np.ndarray, low_q: float = 0.5, high_q: fl
 
 
 def xray_frames(integrals: dict, field: np.ndarray, rng: np.random.Generator, *, quanta: float = 1e5,
-                mu_water: float = 0.02, scatter: float = 0.5, gradient: float = 0.3, px_mm: float = 5.0) -> dict:
+                mu_water: float = 0.02, scatter: float = 0.5, gradient: float = 0.3, px_mm: float = 5.0,
+                iodine_gain: float = 1.0) -> dict:
     """``{"plain": frame, "dsa": frame}``: 12-bit MONOCHROME2 frames, vessels dark.
 
     ``plain``: the log of the detected quanta, windowed over the open field. ``dsa``: that log
     minus the log of a second exposure with the arteries' iodine replaced by blood (``A - E``),
     windowed so that the field's median is mid-grey. Outside ``field`` a shutter passes
     :data:`SHUTTER_TRANSMISSION` (blurred edge). ``px_mm`` is the frame's pixels per mm at the
-    isocentre (for the scatter's blur).
+    isocentre (for the scatter's blur). ``iodine_gain`` scales the iodine's excess ``E`` over
+    its CT value (iodine attenuates relatively more in a fluoroscopy beam of 70-80 kVp than in
+    the CT's; 1.0 keeps the CT's numbers).
     """
     shutter = ndimage.gaussian_filter(np.where(field, 1.0, SHUTTER_TRANSMISSION).astype(np.float32), 3.0)
     exposure = exposure_field(field.shape, gradient) * shutter
     kwargs = {"quanta": quanta, "mu_water": mu_water, "scatter": scatter, "px_mm": px_mm}
-    fill = np.log(np.maximum(detected(integrals["A"], exposure, rng, **kwargs), 0.5))
+    fill = np.log(np.maximum(detected(integrals["A"] + (iodine_gain - 1.0) * integrals["E"], exposure, rng, **kwargs), 0.5))
     mask_run = np.log(np.maximum(detected(integrals["A"] - integrals["E"], exposure, rng, **kwargs), 0.5))
     difference = fill - mask_run
     spread = np.percentile(np.abs(difference[field]), 99.9) if field.any() else 1.0
@@ -346,7 +349,8 @@ def run_view(ct, labels, arteries, view, priors, args, pngs) -> tuple[list, list
     truth = truth_mask(integrals["L"], field, args.truth_path_mm)
     px_mm = 1100.0 / 750.0 / args.pixel_mm
     frames = xray_frames(integrals, field, np.random.default_rng(args.seed), quanta=args.quanta,
-                         mu_water=args.mu_water, scatter=args.scatter, gradient=args.gradient, px_mm=px_mm)
+                         mu_water=args.mu_water, scatter=args.scatter, gradient=args.gradient, px_mm=px_mm,
+                         iodine_gain=args.iodine_gain)
     facts = {"isocenter_lps": isocenter.round(1).tolist(), "render_s": render_s,
              "open_field_share": float(field.mean()), "truth_px": int(truth.sum()),
              "water_mm_p5_p50_p95": np.percentile(integrals["A"][field], [5, 50, 95]).round(1).tolist(),
@@ -405,6 +409,7 @@ def main() -> None:
     parser.add_argument("--mu-water", type=float, default=0.02, help="water's attenuation per mm")
     parser.add_argument("--scatter", type=float, default=0.5, help="scatter to primary ratio (blurred primary)")
     parser.add_argument("--gradient", type=float, default=0.3, help="exposure fall-off across the columns")
+    parser.add_argument("--iodine-gain", type=float, default=1.0, help="iodine's attenuation over its CT value")
     parser.add_argument("--truth-path-mm", type=float, default=1.0, help="path through the labels that counts as vessel")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--pngs", action="store_true", help="also one overlay PNG per frame")
