@@ -53,7 +53,8 @@ refusal is a false refusal), the per-pixel contrast to noise (``quality.vessel_c
 the check's measure) of the mask and of the truth, and the CPU ms of the segmentation (the prior's maps warmed, as a
 run's frames find them). Writes ``bench_real_drr.json`` and ``bench_real_drr.png`` (the dark
 frames, truth green, result red, prior's centre line cyan) into ``--out``; ``--pngs`` also one
-overlay per frame (true positives white, misses red, extra blue).
+picture per frame (the frame windowed on the prior's band | true positives white, misses red,
+extra blue).
 """
 
 from __future__ import annotations
@@ -284,7 +285,7 @@ def score_frame(frame: np.ndarray, truth: np.ndarray, field: np.ndarray, prior: 
     cpu_ms = 1e3 * (time.process_time() - start)
     band = prior_band(prior, frame.shape) & field
     renal = renal_band(prior, frame.shape) & field
-    row = {"open_field": overlap(mask, truth, field), "prior_band": overlap(mask, truth, band),
+    row = {"band_px": band, "open_field": overlap(mask, truth, field), "prior_band": overlap(mask, truth, band),
            "extra_px_in_renal_band": int((mask & ~truth & renal).sum()),
            "extra_px_outside_band": int((mask & ~truth & field & ~band).sum()),
            "frame_check": frame_check(mask, prior, frame), "cpu_ms": cpu_ms,
@@ -293,17 +294,19 @@ def score_frame(frame: np.ndarray, truth: np.ndarray, field: np.ndarray, prior: 
     return row, mask
 
 
-def overlay_png(frame: np.ndarray, mask: np.ndarray, truth: np.ndarray, path: Path) -> None:
-    """The frame (dimmed) with true positives white, misses red, extra blue."""
+def overlay_png(frame: np.ndarray, mask: np.ndarray, truth: np.ndarray, band: np.ndarray, path: Path) -> None:
+    """Side by side: the frame windowed on the prior's band (1st-99th percentile there) | the frame
+    dimmed with true positives white, misses red, extra blue."""
     from PIL import Image
 
     grey = frame.astype(np.float32)
-    grey = 0.55 * (grey - grey.min()) / max(float(np.ptp(grey)), 1.0)
-    rgb = np.repeat(grey[..., None], 3, axis=2)
+    low, high = np.percentile(grey[band], [1, 99]) if band.any() else (grey.min(), grey.max())
+    windowed = np.repeat(np.clip((grey - low) / max(high - low, 1.0), 0.0, 1.0)[..., None], 3, axis=2)
+    rgb = np.repeat((0.55 * (grey - grey.min()) / max(float(np.ptp(grey)), 1.0))[..., None], 3, axis=2)
     rgb[mask & truth] = 1.0
     rgb[truth & ~mask] = (1.0, 0.0, 0.0)
     rgb[mask & ~truth] = (0.0, 0.45, 1.0)
-    Image.fromarray((255 * rgb).astype(np.uint8)).save(path)
+    Image.fromarray((255 * np.concatenate([windowed, rgb], axis=1)).astype(np.uint8)).save(path)
 
 
 def plot(panels: list, path: Path) -> None:
@@ -362,13 +365,14 @@ def run_view(ct, labels, arteries, view, priors, args, pngs) -> tuple[list, list
             for polarity in POLARITIES:
                 image = frames[kind] if polarity == "dark" else (FULL_SCALE - frames[kind]).astype(np.uint16)
                 row, mask = score_frame(image, truth, field, prior)
+                band = row.pop("band_px")
                 row = {"view": name, "kind": kind, "polarity": polarity, "prior": prior_name, **row}
                 rows.append(row)
                 print(json.dumps({k: row[k] for k in ("view", "kind", "polarity", "prior")}),
                       {k: round(row[k]["dice"], 3) for k in ("open_field", "prior_band")},
                       "check", row["frame_check"].get("refusal", "accepted"), f"{row['cpu_ms']:.0f} ms", flush=True)
                 if pngs is not None:
-                    overlay_png(image, mask, truth, pngs / f"{name}_{kind}_{polarity}_{prior_name}.png")
+                    overlay_png(image, mask, truth, band, pngs / f"{name}_{kind}_{polarity}_{prior_name}.png")
                 if polarity == "dark" and prior_name == next(iter(priors)):
                     panels.append({"frame": image, "truth": truth, "mask": mask, "prior": prior, "row": row,
                                    "title": f"{name} {kind} (prior: {prior_name})"})
