@@ -49,7 +49,9 @@ truth over the open field and within the prior's band (``FluoroPrior.band``: the
 widened by its radius and the expected deformation), the mask's pixels in the prior's renal bands
 that the truth does not have (the renal arteries are real contrast the labels lack),
 ``check_frame_mask``'s verdict (with the frame: every frame here is a usable angiogram, so a
-refusal is a false refusal), the per-pixel contrast to noise (``quality.vessel_contrast_to_noise``,
+refusal is a false refusal; except a renal artery "not found" in a DSA-like frame: the
+subtraction here removes only the labelled arteries' iodine, so the renals are absent from it by
+construction), the per-pixel contrast to noise (``quality.vessel_contrast_to_noise``,
 the check's measure) of the mask and of the truth, and the CPU ms of the segmentation (the prior's maps warmed, as a
 run's frames find them). Writes ``bench_real_drr.json`` and ``bench_real_drr.png`` (the dark
 frames, truth green, result red, prior's centre line cyan) into ``--out``; ``--pngs`` also one
@@ -379,6 +381,17 @@ def run_view(ct, labels, arteries, view, priors, args, pngs) -> tuple[list, list
     return rows, panels, facts
 
 
+def refusal_kind(refusal: str) -> str:
+    """The class of a frame check's refusal: its measure, and for a vessel not found which one."""
+    for marker, kind in (("stand out of the noise", "contrast_to_noise"), ("fall apart", "pieces"),
+                         ("covers", "mask_too_large"), ("no vessel found", "empty")):
+        if marker in refusal:
+            return kind
+    if "not found in the frame" in refusal:
+        return "not_found:" + refusal.split("frame check: ")[-1].split(" ")[0]
+    return "other"
+
+
 def summarise(rows: list) -> dict:
     """Per prior and kind: median Dice (field, band), refusals, median CPU ms."""
     summary = {}
@@ -395,7 +408,11 @@ def summarise(rows: list) -> dict:
                 "dice_prior_band": [round(min(r["prior_band"]["dice"] for r in chosen), 3),
                                     round(float(np.median([r["prior_band"]["dice"] for r in chosen])), 3),
                                     round(max(r["prior_band"]["dice"] for r in chosen), 3)],
-                "false_refusals": sum(not r["frame_check"]["accepted"] for r in chosen),
+                "refusals": sum(not r["frame_check"]["accepted"] for r in chosen),
+                "refusals_by_kind": {kind: sum(refusal_kind(r["frame_check"].get("refusal", "")) == kind
+                                               for r in chosen if not r["frame_check"]["accepted"])
+                                     for kind in sorted({refusal_kind(r["frame_check"]["refusal"]) for r in chosen
+                                                         if not r["frame_check"]["accepted"]})},
                 "cpu_ms_median": round(float(np.median([r["cpu_ms"] for r in chosen])), 1)}
     return summary
 
