@@ -51,11 +51,14 @@ that the truth does not have (the renal arteries are real contrast the labels la
 ``check_frame_mask``'s verdict (with the frame: every frame here is a usable angiogram, so a
 refusal is a false refusal; except a renal artery "not found" in a DSA-like frame: the
 subtraction here removes only the labelled arteries' iodine, so the renals are absent from it by
-construction), the per-pixel contrast to noise (``quality.vessel_contrast_to_noise``,
-the check's measure) of the mask and of the truth, and the CPU ms of the segmentation (the prior's maps warmed, as a
-run's frames find them). Writes ``bench_real_drr.json`` and ``bench_real_drr.png`` (the dark
-frames, truth green, result red, prior's centre line cyan) into ``--out``; ``--pngs`` also one
-picture per frame (the frame windowed on the prior's band | true positives white, misses red,
+construction), the per-pixel contrast to noise (``quality.vessel_contrast_to_noise``, the
+check's measure) of the mask and of the truth, and the CPU ms of the segmentation (the prior's
+maps warmed, as a run's frames find them). ``--attribute`` adds, per frame, the share of the
+extra and of the missed pixels lying in the shadow (path > 1 mm) of each labelled structure
+group (:data:`STRUCTURES`: kidneys, bowel and stomach, liver and spleen, vertebrae, ribs, heart,
+veins, back muscles and psoas). Writes ``bench_real_drr.json`` and ``bench_real_drr.png`` (the
+dark frames, truth green, result red, prior's centre line cyan) into ``--out``; ``--pngs`` also
+one picture per frame (the frame windowed on the prior's band | true positives white, misses red,
 extra blue).
 """
 
@@ -82,6 +85,10 @@ ARTERIAL_LABELS = (52, 54, 55, 56, 57, 58, 65, 66)
 AORTA_LABEL, T12_LABEL = 52, 32
 #: (name, primary angle LAO +, secondary angle cranial +), degrees.
 VIEWS = (("AP", 0.0, 0.0), ("LAO30", 30.0, 0.0), ("RAO30", -30.0, 0.0), ("AP_cranial15", 0.0, 15.0))
+#: Labelled structures an extra or missed pixel may lie on (``--attribute``), TotalSegmentator v1 numbers.
+STRUCTURES = {"kidneys": (2, 3), "bowel_and_stomach": (6, 18, 19, 20), "liver_and_spleen": (1, 5),
+              "vertebrae": tuple(range(25, 51)), "ribs_and_sternum": tuple(range(92, 117)) + (118,), "heart": (51,),
+              "veins": (53, 59, 60, 62, 63, 64, 67, 68), "back_muscles_and_psoas": (86, 87, 88, 89)}
 KINDS = ("plain", "dsa")
 POLARITIES = ("dark", "bright")
 FULL_SCALE = 4095.0
@@ -155,6 +162,25 @@ def open_field(ct: io.Volume, P: np.ndarray, shape, isocenter, half_depth_mm: fl
         z = source[2] + w * directions[2]
         inside &= (z >= low) & (z <= high)
     return inside.reshape(shape)
+
+
+def structure_shadows(ct: io.Volume, labels: np.ndarray, P: np.ndarray, shape, render_size: int,
+                      min_path_mm: float = 1.0) -> dict:
+    """``{structure: pixels whose ray crosses more than min_path_mm of it}`` for :data:`STRUCTURES`."""
+    shadows = {}
+    for name, values in STRUCTURES.items():
+        inside = np.isin(labels, values)
+        if inside.any():
+            path = drr.render_drr(cropped(ct, inside, inside), P, shape, size=min(render_size, max(shape)),
+                                  step_mm=float(ct.spacing.min()))
+            shadows[name] = upsample_to_frame(path, shape) > min_path_mm
+    return shadows
+
+
+def shares_on(pixels: np.ndarray, shadows: dict) -> dict:
+    """The share of ``pixels`` on each structure's shadow (they overlap: the shares need not sum to 1)."""
+    total = max(int(pixels.sum()), 1)
+    return {name: round(float((pixels & shadow).sum()) / total, 3) for name, shadow in shadows.items()}
 
 
 def truth_mask(L: np.ndarray, field: np.ndarray, min_path_mm: float = 1.0) -> np.ndarray:
@@ -360,6 +386,7 @@ def run_view(ct, labels, arteries, view, priors, args, pngs) -> tuple[list, list
              "open_field_share": float(field.mean()), "truth_px": int(truth.sum()),
              "water_mm_p5_p50_p95": np.percentile(integrals["A"][field], [5, 50, 95]).round(1).tolist(),
              "aorta_iodine_excess_p50_on_truth": float(np.median(integrals["E"][truth])) if truth.any() else None}
+    shadows = structure_shadows(ct, labels, P, shape, args.render_size) if args.attribute else None
     rows, panels = [], []
     for prior_name, (centerline, _, _) in priors.items():
         prior = quality.FluoroPrior.from_centerline(centerline, P)
@@ -368,6 +395,9 @@ def run_view(ct, labels, arteries, view, priors, args, pngs) -> tuple[list, list
                 image = frames[kind] if polarity == "dark" else (FULL_SCALE - frames[kind]).astype(np.uint16)
                 row, mask = score_frame(image, truth, field, prior)
                 band = row.pop("band_px")
+                if shadows is not None:
+                    row["extra_on"] = shares_on(mask & ~truth & field, shadows)
+                    row["missed_on"] = shares_on(truth & ~mask, shadows)
                 row = {"view": name, "kind": kind, "polarity": polarity, "prior": prior_name, **row}
                 rows.append(row)
                 print(json.dumps({k: row[k] for k in ("view", "kind", "polarity", "prior")}),
@@ -433,6 +463,8 @@ def main() -> None:
     parser.add_argument("--iodine-gain", type=float, default=1.0, help="iodine's attenuation over its CT value")
     parser.add_argument("--truth-path-mm", type=float, default=1.0, help="path through the labels that counts as vessel")
     parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--attribute", action="store_true",
+                        help="also the share of extra and missed pixels on each labelled structure's shadow")
     parser.add_argument("--pngs", action="store_true", help="also one overlay PNG per frame")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
