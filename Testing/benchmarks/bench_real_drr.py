@@ -31,7 +31,8 @@ the 1024 grid; the CT's 0.7 mm voxels are coarser than the grid at the isocentre
 X-ray physics: primary ``I0 g exp(-mu_w A)`` (``mu_w`` = ``--mu-water`` per mm of water, ``g``
 the exposure gradient of the heel effect, ``--gradient``), plus scatter (``--scatter`` times the
 primary blurred over 40 mm), Poisson quantum noise (``--quanta`` quanta per unattenuated pixel),
-``--iodine-gain`` times the CT's iodine excess (1: the CT's numbers), log display windowed to 12 bits (MONOCHROME2: vessels dark). Two kinds of frame:
+the iodine's excess ``--iodine-gain`` times the CT's (1: the CT's numbers), log display windowed
+to 12 bits (MONOCHROME2: vessels dark). Two kinds of frame:
 ``plain``: the unsubtracted frame (everything); ``dsa``: the log frame minus the log of a second
 exposure of the same view with ``A - E`` (only the labelled arteries' iodine differs; their own
 noise each). Each in both polarities: ``dark`` (vessels dark, as on the monitor) and ``bright``
@@ -224,7 +225,8 @@ def xray_frames(integrals: dict, field: np.ndarray, rng: np.random.Generator, *,
     shutter = ndimage.gaussian_filter(np.where(field, 1.0, SHUTTER_TRANSMISSION).astype(np.float32), 3.0)
     exposure = exposure_field(field.shape, gradient) * shutter
     kwargs = {"quanta": quanta, "mu_water": mu_water, "scatter": scatter, "px_mm": px_mm}
-    fill = np.log(np.maximum(detected(integrals["A"] + (iodine_gain - 1.0) * integrals["E"], exposure, rng, **kwargs), 0.5))
+    fill_integral = integrals["A"] + (iodine_gain - 1.0) * integrals["E"]
+    fill = np.log(np.maximum(detected(fill_integral, exposure, rng, **kwargs), 0.5))
     mask_run = np.log(np.maximum(detected(integrals["A"] - integrals["E"], exposure, rng, **kwargs), 0.5))
     difference = fill - mask_run
     spread = np.percentile(np.abs(difference[field]), 99.9) if field.any() else 1.0
@@ -461,7 +463,8 @@ def main() -> None:
     parser.add_argument("--scatter", type=float, default=0.5, help="scatter to primary ratio (blurred primary)")
     parser.add_argument("--gradient", type=float, default=0.3, help="exposure fall-off across the columns")
     parser.add_argument("--iodine-gain", type=float, default=1.0, help="iodine's attenuation over its CT value")
-    parser.add_argument("--truth-path-mm", type=float, default=1.0, help="path through the labels that counts as vessel")
+    parser.add_argument("--truth-path-mm", type=float, default=1.0,
+                        help="path through the labels that counts as vessel")
     parser.add_argument("--seed", type=int, default=11)
     parser.add_argument("--attribute", action="store_true",
                         help="also the share of extra and missed pixels on each labelled structure's shadow")
