@@ -530,14 +530,26 @@ def _pixel_noise(grey: np.ndarray) -> float:
     return 1.4826 * float(_median_reordering(detail)) / 0.78 + 1e-6
 
 
-def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int = 6) -> float:
-    """|median inside the mask - median of a ring around it| over the frame's pixel noise
-    (robust: 1.4826 MAD of the difference between the frame and its 1-pixel Gaussian blur,
-    rescaled to the noise of a single pixel).
+def block_means(image: np.ndarray, block: int) -> np.ndarray:
+    """``image`` averaged over ``block`` x ``block`` pixel blocks (rows and columns beyond the
+    last whole block dropped); ``image`` itself, as float32, for ``block`` 1."""
+    grey = np.asarray(image, dtype=np.float32)
+    if block <= 1:
+        return grey
+    rows, cols = (n // block * block for n in grey.shape)
+    return grey[:rows, :cols].reshape(rows // block, block, cols // block, block).mean(axis=(1, 3))
+
+
+def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int = 6, block: int = 1) -> float:
+    """|median inside the mask - median of a ring around it| over the frame's noise at the
+    scale of ``block`` x ``block`` pixels (robust: 1.4826 MAD of the difference between the
+    block-averaged frame and its 1-pixel Gaussian blur, rescaled to the noise of one block).
 
     The ring (between 2 and ``ring_px`` dilations of the mask by the 4-neighbour cross: the
     pixels at city-block distance 3 to ``ring_px`` from it) is built in the mask's bounding box
-    widened by ``ring_px``: the dilations cannot reach past it.
+    widened by ``ring_px``: the dilations cannot reach past it. The noise is measured on the
+    averaged frame itself, so noise correlated between neighbouring pixels (a real detector's)
+    is not taken to average out.
     """
     grey = np.asarray(frame, dtype=np.float32)
     if grey.ndim == 3:
@@ -551,7 +563,13 @@ def vessel_contrast_to_noise(frame: np.ndarray, mask: np.ndarray, ring_px: int =
     if not ring.any():
         return 0.0
     values = grey[box]
-    return abs(float(np.median(values[mask[box]]) - np.median(values[ring]))) / _pixel_noise(grey)
+    noise = _pixel_noise(block_means(grey, block)) if min(grey.shape) >= 4 * block else _pixel_noise(grey)
+    return abs(float(np.median(values[mask[box]]) - np.median(values[ring]))) / noise
+
+
+def _working_scale(shape) -> int:
+    """Pixels per side of the blocks a frame's vessel tree is judged on: about 256 of them across."""
+    return max(1, int(round(max(shape) / 256)))
 
 
 def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame: np.ndarray | None = None,
@@ -563,8 +581,10 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     and be one tree rather than scattered pieces (:data:`MIN_LARGEST_PIECE`), or a tree broken
     by bone edges into pieces that lie along the projected tree and cover most of it
     (:func:`_check_one_tree`);
-    with the ``frame``, the masked vessels must stand out of the pixel noise (contrast to
-    noise at least ``min_cnr``: noise and blank frames do not); after the in-plane shift (up
+    with the ``frame``, the masked vessels must stand out of the noise at the scale the tree is
+    segmented and judged on (:func:`_working_scale`: contrast to the noise of 4 x 4 pixel blocks
+    of a 1024 x 1024 frame at least ``min_cnr``; noise and blank frames do not, while a low-dose
+    subtracted frame of a wide vessel does); after the in-plane shift (up
     to ``shift_mm``) that best lays the projected tree onto the mask's skeleton, at least
     ``min_fraction`` of each main vessel projected inside the frame must lie within
     ``tolerance_mm`` of the skeleton (default: the vessel's expected deformation,
@@ -597,13 +617,13 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
         raise QualityError(f"frame check: the vessel mask covers {100 * fraction:.0f}% of the frame (noise, not an "
                            f"angiogram; see segmentation_qc.png)", qc)
     _check_one_tree(mask, prior, qc)
-    if frame is not None:
-        cnr = vessel_contrast_to_noise(frame, mask)
+    if frame is not None:      # at the scale the segmentation works on (a 1024 frame: 4 x 4 pixel blocks)
+        cnr = vessel_contrast_to_noise(frame, mask, block=_working_scale(mask.shape))
         if cnr < min_cnr:
             raise QualityError(f"frame check: the segmented vessels do not stand out of the noise (contrast to noise "
                                f"{cnr:.1f} < {min_cnr:.1f}): not a usable angiogram (see segmentation_qc.png)", qc)
     px_per_mm = float(np.median(prior.px_per_mm))
-    factor = max(1, int(round(max(mask.shape) / 256)))
+    factor = _working_scale(mask.shape)
     small = ndi.zoom(mask.astype(np.float32), 1.0 / factor, order=1) > 0.25
     distance = ndi.distance_transform_edt(~skeletonize(small))
     uv = (prior.uv + 0.5) / factor - 0.5
