@@ -25,9 +25,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..graph import SkeletonGraph, smooth_positions
+from ..projection import pixels_per_mm, project
 from .paper import targets_of
 
-__all__ = ["WALL_SEARCH_RADII", "COARSE_SAMPLES", "centre_in_outline", "targets_at"]
+__all__ = ["WALL_SEARCH_RADII", "COARSE_SAMPLES", "centre_in_outline", "targets_at", "render_lumen",
+           "skeleton_offsets", "offset_targets"]
 
 #: How far along its normal a node looks for each wall: this many times its 2D radius (the
 #: distance to the nearest background pixel), plus 2 px.
@@ -134,3 +136,87 @@ def targets_at(assignment, positions: np.ndarray):
     ``positions`` (the 2D nodes' positions, e.g. :func:`centre_in_outline`'s) instead of those it
     was computed on; ``M`` and which nodes are assigned unchanged."""
     return dataclasses.replace(assignment, targets=targets_of(assignment.M, positions, assignment.assigned))
+
+
+
+#: Spacing (projected px) of the spheres :func:`render_lumen` sweeps along each 3D edge.
+DISC_SPACING_PX = 1.0
+#: A node's offset (:func:`skeleton_offsets`) is taken only from a centred 2D skeleton point within
+#: this share of the node's projected radius (plus 1 px); farther, it is another vessel's.
+OFFSET_REACH_RADII = 0.5
+
+
+def _lumen_discs(g3: SkeletonGraph, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The projected 3D lumen as a union of discs ``(centres (k, 2) px, radii (k,) px)``: every edge of
+    ``g3`` sampled every :data:`DISC_SPACING_PX` projected px, each sample's sphere (its radius
+    interpolated between the edge's nodes) projected to a disc of its radius times the
+    magnification at its depth (eq. 1)."""
+    edges = g3.edges()
+    a, b = g3.positions[edges[:, 0]], g3.positions[edges[:, 1]]
+    span = np.linalg.norm(project(P, a) - project(P, b), axis=1)
+    counts = np.maximum(np.ceil(span / DISC_SPACING_PX).astype(np.int64), 1)
+    edge_of = np.repeat(np.arange(len(edges)), counts)
+    step = np.arange(len(edge_of)) - np.repeat(np.cumsum(counts) - counts, counts)
+    t = (step / counts[edge_of])[:, None]
+    points = np.concatenate([a[edge_of] * (1.0 - t) + b[edge_of] * t, g3.positions])
+    radii = np.asarray(g3.radii, dtype=float)
+    r_mm = np.concatenate([radii[edges[edge_of, 0]] * (1.0 - t[:, 0]) + radii[edges[edge_of, 1]] * t[:, 0], radii])
+    return project(P, points), r_mm * pixels_per_mm(P, points)
+
+
+def render_lumen(g3: SkeletonGraph, P: np.ndarray, shape: tuple) -> np.ndarray:
+    """The pre-operative lumen projected through ``P`` onto a frame of ``shape`` (rows, cols), boolean:
+    the union of the projected spheres swept along the 3D skeleton (:func:`_lumen_discs`)."""
+    rows, cols = shape
+    image = np.zeros(shape, dtype=bool)
+    centres, radii = _lumen_discs(g3, P)
+    low = np.floor(centres - radii[:, None]).astype(np.int64)
+    high = np.ceil(centres + radii[:, None]).astype(np.int64) + 1
+    for (u, v), r, (u0, v0), (u1, v1) in zip(centres, radii, low, high):
+        u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, cols), min(v1, rows)
+        if u0 >= u1 or v0 >= v1:
+            continue
+        du = (np.arange(u0, u1) - u) ** 2
+        dv = (np.arange(v0, v1) - v) ** 2
+        image[v0:v1, u0:u1] |= (dv[:, None] + du[None, :]) <= r * r
+    return image
+
+
+def skeleton_offsets(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) -> np.ndarray:
+    """How far each 3D node's projection lies across from where the 2D route puts its vessel, (n3, 2) px.
+
+    ``rendered`` is the centred 2D skeleton graph (:func:`centre_in_outline`) of the
+    pre-operative lumen's own projection (:func:`render_lumen`), built as the frame's is.
+    Where a wide vessel bends within its own radius (a tortuous neck, a sac's drift), or a
+    side branch's mouth pulls the thinned skeleton beside a junction, the 2D skeleton is
+    not the projected centre line (on the patient-like sets the targets lay 2-6 px across
+    from the true aorta beside the renal ostia); the frame, showing the same lumen
+    deformed, does the same. The offset is from the nearest point of ``rendered`` to the
+    projected node, across the node's projected tangent only (a slide along the vessel is
+    eq. (4)-(5)'s business); zero where that point lies more than
+    :data:`OFFSET_REACH_RADII` of the node's projected radius + 1 px away, and without radii.
+    """
+    offsets = np.zeros((len(g3.positions), 2))
+    if g3.radii is None or len(rendered.positions) == 0:
+        return offsets
+    from ..evaluation.depth import closest_points_on_graph
+
+    at = project(P, g3.positions)
+    distance, nearest = closest_points_on_graph(at, rendered.positions, rendered.edges())
+    along = project(P, smooth_positions(g3, TANGENT_SMOOTHING).positions)
+    slot = g3.adjacency.indptr
+    nodes = np.flatnonzero((g3.degrees == 2)
+                           & (distance <= OFFSET_REACH_RADII * g3.radii * pixels_per_mm(P, g3.positions) + 1.0))
+    tangent = along[g3.adjacency.indices[slot[nodes] + 1]] - along[g3.adjacency.indices[slot[nodes]]]
+    length = np.linalg.norm(tangent, axis=1)
+    keep = length > 0
+    nodes, tangent = nodes[keep], tangent[keep] / length[keep, None]
+    offset = at[nodes] - nearest[nodes]
+    offsets[nodes] = offset - np.sum(offset * tangent, axis=1)[:, None] * tangent
+    return offsets
+
+
+def offset_targets(assignment, offsets: np.ndarray):
+    """``assignment`` (a :class:`paper.SoftAssignment`) with ``offsets`` (n3, 2) px added to its targets
+    (:func:`skeleton_offsets`: from the 2D route's skeleton to the centre line)."""
+    return dataclasses.replace(assignment, targets=assignment.targets + offsets)

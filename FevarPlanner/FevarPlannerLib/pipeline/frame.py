@@ -153,9 +153,33 @@ def _centred_targets(preop: Preoperative, g2: graph.SkeletonGraph, centred: grap
     (:func:`matching.centre_in_outline`; the matching itself stays on the skeleton as thinned),
     then the upper aorta's held (:func:`_held_upper_aorta`, on the thinned aorta: held on the
     centred one, the bench phantom's upper aorta slid by up to 13 px along itself)."""
-    if centred is not None:
-        assignment = matching.targets_at(assignment, centred.positions)
-    return _held_upper_aorta(preop, g2, c2, P, visibility, assignment)
+    if centred is None:
+        return _held_upper_aorta(preop, g2, c2, P, visibility, assignment)
+    held = _held_upper_aorta(preop, g2, c2, P, visibility, matching.targets_at(assignment, centred.positions))
+    return matching.offset_targets(held, _silhouette_offsets(preop, P, visibility))
+
+
+def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> np.ndarray:
+    """:func:`matching.skeleton_offsets` of every pre-operative node under ``P``: the pre-operative
+    lumen projected onto the frame (cut to what it exposes), thinned, classified and centred as
+    the frame is; once per ``P``."""
+    key = (np.asarray(P, dtype=float).tobytes(), visibility.shape, visibility.exposed)
+    cache = preop.__dict__.setdefault("_silhouette_offsets", {})
+    if key not in cache:
+        cache.clear()
+        cache[key] = np.zeros((len(preop.graph.positions), 2))
+        if preop.graph.radii is not None:
+            rendered = np.zeros(visibility.shape, dtype=bool)
+            r0, r1, c0, c1 = visibility.exposed
+            rendered[r0:r1 + 1, c0:c1 + 1] = matching.render_lumen(preop.graph, P, visibility.shape)[r0:r1 + 1, c0:c1 + 1]
+            g2 = _skeleton2d_graph(rendered, 1.0 / pixels_per_mm(P, preop.centre))
+            try:
+                g2 = _classify_2d(g2, P, preop.centre).graph
+            except ValueError:
+                return cache[key]
+            g2 = matching.centre_in_outline(graph.smooth_positions(g2, SMOOTHING_ITERATIONS), rendered)
+            cache[key] = matching.skeleton_offsets(preop.graph, P, g2)
+    return cache[key]
 
 
 def _uncentred(preop: Preoperative, view: "_ViewState") -> None:
