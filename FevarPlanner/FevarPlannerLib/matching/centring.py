@@ -139,47 +139,70 @@ def targets_at(assignment, positions: np.ndarray):
 
 
 
-#: Spacing (projected px) of the spheres :func:`render_lumen` sweeps along each 3D edge.
-DISC_SPACING_PX = 1.0
+#: Spacing of the spheres :func:`render_lumen` sweeps along each 3D edge: this share of the smaller
+#: projected radius at the edge's ends (the union's scallops are then under 1 % of the radius
+#: deep), at least :data:`MIN_DISC_SPACING_PX`.
+DISC_SPACING_RADII = 0.25
+MIN_DISC_SPACING_PX = 1.0
 #: A node's offset (:func:`skeleton_offsets`) is taken only from a centred 2D skeleton point within
 #: this share of the node's projected radius (plus 1 px); farther, it is another vessel's.
 OFFSET_REACH_RADII = 0.5
+#: Samples per px along the centred 2D skeleton's edges for the nearest-point search.
+CURVE_SAMPLES_PER_PX = 4.0
 
 
 def _lumen_discs(g3: SkeletonGraph, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The projected 3D lumen as a union of discs ``(centres (k, 2) px, radii (k,) px)``: every edge of
-    ``g3`` sampled every :data:`DISC_SPACING_PX` projected px, each sample's sphere (its radius
-    interpolated between the edge's nodes) projected to a disc of its radius times the
-    magnification at its depth (eq. 1)."""
+    ``g3`` sampled every :data:`DISC_SPACING_RADII` of its projected radius, each sample's sphere
+    (its radius interpolated between the edge's nodes) projected to a disc of its radius times
+    the magnification at its depth (eq. 1)."""
     edges = g3.edges()
-    a, b = g3.positions[edges[:, 0]], g3.positions[edges[:, 1]]
-    span = np.linalg.norm(project(P, a) - project(P, b), axis=1)
-    counts = np.maximum(np.ceil(span / DISC_SPACING_PX).astype(np.int64), 1)
+    ends = project(P, g3.positions)
+    radii = np.asarray(g3.radii, dtype=float) * pixels_per_mm(P, g3.positions)
+    span = np.linalg.norm(ends[edges[:, 0]] - ends[edges[:, 1]], axis=1)
+    spacing = np.maximum(DISC_SPACING_RADII * radii[edges].min(axis=1), MIN_DISC_SPACING_PX)
+    counts = np.maximum(np.ceil(span / spacing).astype(np.int64), 1)
     edge_of = np.repeat(np.arange(len(edges)), counts)
     step = np.arange(len(edge_of)) - np.repeat(np.cumsum(counts) - counts, counts)
-    t = (step / counts[edge_of])[:, None]
-    points = np.concatenate([a[edge_of] * (1.0 - t) + b[edge_of] * t, g3.positions])
-    radii = np.asarray(g3.radii, dtype=float)
-    r_mm = np.concatenate([radii[edges[edge_of, 0]] * (1.0 - t[:, 0]) + radii[edges[edge_of, 1]] * t[:, 0], radii])
-    return project(P, points), r_mm * pixels_per_mm(P, points)
+    t = step / counts[edge_of]
+    a, b = edges[edge_of, 0], edges[edge_of, 1]
+    centres = ends[a] * (1.0 - t)[:, None] + ends[b] * t[:, None]
+    return (np.concatenate([centres, ends]),
+            np.concatenate([radii[a] * (1.0 - t) + radii[b] * t, radii]))
 
 
 def render_lumen(g3: SkeletonGraph, P: np.ndarray, shape: tuple) -> np.ndarray:
     """The pre-operative lumen projected through ``P`` onto a frame of ``shape`` (rows, cols), boolean:
-    the union of the projected spheres swept along the 3D skeleton (:func:`_lumen_discs`)."""
+    the union of the projected spheres swept along the 3D skeleton (:func:`_lumen_discs`).
+
+    A pixel is inside when its centre lies in a disc; each disc is drawn as its runs along
+    the rows it crosses, all runs at once (a +1 / -1 pair per run, summed along each row).
+    """
     rows, cols = shape
-    image = np.zeros(shape, dtype=bool)
     centres, radii = _lumen_discs(g3, P)
-    low = np.floor(centres - radii[:, None]).astype(np.int64)
-    high = np.ceil(centres + radii[:, None]).astype(np.int64) + 1
-    for (u, v), r, (u0, v0), (u1, v1) in zip(centres, radii, low, high):
-        u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, cols), min(v1, rows)
-        if u0 >= u1 or v0 >= v1:
-            continue
-        du = (np.arange(u0, u1) - u) ** 2
-        dv = (np.arange(v0, v1) - v) ** 2
-        image[v0:v1, u0:u1] |= (dv[:, None] + du[None, :]) <= r * r
-    return image
+    first = np.maximum(np.ceil(centres[:, 1] - radii), 0).astype(np.int64)
+    last = np.minimum(np.floor(centres[:, 1] + radii), rows - 1).astype(np.int64)
+    counts = np.maximum(last - first + 1, 0)
+    disc = np.repeat(np.arange(len(radii)), counts)
+    row = first[disc] + np.arange(len(disc)) - np.repeat(np.cumsum(counts) - counts, counts)
+    half = np.sqrt(np.maximum(radii[disc] ** 2 - (row - centres[disc, 1]) ** 2, 0.0))
+    begin = np.clip(np.ceil(centres[disc, 0] - half), 0, cols).astype(np.int64)
+    end = np.clip(np.floor(centres[disc, 0] + half) + 1, 0, cols).astype(np.int64)
+    run = begin < end
+    width = cols + 1
+    steps = (np.bincount(row[run] * width + begin[run], minlength=rows * width)
+             - np.bincount(row[run] * width + end[run], minlength=rows * width))
+    return np.cumsum(steps.reshape(rows, width), axis=1)[:, :cols] > 0
+
+
+def _sampled_curve(curve: SkeletonGraph) -> np.ndarray:
+    """Points along every edge of a 2D graph, :data:`CURVE_SAMPLES_PER_PX` per px."""
+    edges = curve.edges()
+    a, b = curve.positions[edges[:, 0]], curve.positions[edges[:, 1]]
+    counts = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) * CURVE_SAMPLES_PER_PX).astype(np.int64), 1)
+    edge_of = np.repeat(np.arange(len(edges)), counts)
+    t = (np.arange(len(edge_of)) - np.repeat(np.cumsum(counts) - counts, counts)) / counts[edge_of]
+    return np.concatenate([a[edge_of] * (1.0 - t)[:, None] + b[edge_of] * t[:, None], curve.positions])
 
 
 def skeleton_offsets(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) -> np.ndarray:
@@ -199,19 +222,21 @@ def skeleton_offsets(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) 
     offsets = np.zeros((len(g3.positions), 2))
     if g3.radii is None or len(rendered.positions) == 0:
         return offsets
-    from ..evaluation.depth import closest_points_on_graph
-
     at = project(P, g3.positions)
-    distance, nearest = closest_points_on_graph(at, rendered.positions, rendered.edges())
+    own = g3.radii * pixels_per_mm(P, g3.positions)
+    nodes = np.flatnonzero(g3.degrees == 2)
+    curve = _sampled_curve(rendered)
+    distance, index = cKDTree(curve).query(at[nodes], distance_upper_bound=OFFSET_REACH_RADII * own[nodes].max() + 1.0)
+    close = np.isfinite(distance)
+    close[close] &= distance[close] <= OFFSET_REACH_RADII * own[nodes[close]] + 1.0
+    nodes, nearest = nodes[close], curve[index[close]]
     along = project(P, smooth_positions(g3, TANGENT_SMOOTHING).positions)
     slot = g3.adjacency.indptr
-    nodes = np.flatnonzero((g3.degrees == 2)
-                           & (distance <= OFFSET_REACH_RADII * g3.radii * pixels_per_mm(P, g3.positions) + 1.0))
     tangent = along[g3.adjacency.indices[slot[nodes] + 1]] - along[g3.adjacency.indices[slot[nodes]]]
     length = np.linalg.norm(tangent, axis=1)
     keep = length > 0
-    nodes, tangent = nodes[keep], tangent[keep] / length[keep, None]
-    offset = at[nodes] - nearest[nodes]
+    nodes, nearest, tangent = nodes[keep], nearest[keep], tangent[keep] / length[keep, None]
+    offset = at[nodes] - nearest
     offsets[nodes] = offset - np.sum(offset * tangent, axis=1)[:, None] * tangent
     return offsets
 
