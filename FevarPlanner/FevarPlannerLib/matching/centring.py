@@ -29,7 +29,7 @@ from ..projection import pixels_per_mm, project
 from .paper import targets_of
 
 __all__ = ["WALL_SEARCH_RADII", "COARSE_SAMPLES", "centre_in_outline", "targets_at", "render_lumen",
-           "skeleton_offsets", "offset_targets"]
+           "skeleton_offsets", "offset_targets", "off_the_route"]
 
 #: How far along its normal a node looks for each wall: this many times its 2D radius (the
 #: distance to the nearest background pixel), plus 2 px.
@@ -241,7 +241,36 @@ def skeleton_offsets(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) 
     return offsets
 
 
-def offset_targets(assignment, offsets: np.ndarray):
+#: A node whose projection lies farther than this many of its projected radii (plus 1 px) from the
+#: 2D route's skeleton of the pre-operative lumen (:func:`off_the_route`) gets no target.
+OFF_ROUTE_RADII = 1.0
+
+
+def off_the_route(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) -> np.ndarray:
+    """Which 3D nodes the 2D route cannot place, (n3,) bool: on the pre-operative lumen's own
+    projection (``rendered``, as in :func:`skeleton_offsets`) their vessel's 2D skeleton runs
+    more than :data:`OFF_ROUTE_RADII` of their projected radius (+ 1 px) from their projection.
+
+    There the frame's skeleton, the same lumen deformed, does not follow the vessel either: a
+    renal's hidden part inside the aorta's outline, where thinning draws its own bridge from the
+    aorta's centre line (on a patient-like case the right renal's ostium took targets 12 px
+    down the aorta), or the 2D skeleton of a sac crossing from lumbar to lumbar. None without radii.
+    """
+    if g3.radii is None or len(rendered.positions) == 0:
+        return np.zeros(len(g3.positions), dtype=bool)
+    at = project(P, g3.positions)
+    limit = OFF_ROUTE_RADII * g3.radii * pixels_per_mm(P, g3.positions) + 1.0
+    distance, _ = cKDTree(_sampled_curve(rendered)).query(at, distance_upper_bound=float(limit.max()))
+    return distance > limit
+
+
+def offset_targets(assignment, offsets: np.ndarray, untrusted: np.ndarray | None = None):
     """``assignment`` (a :class:`paper.SoftAssignment`) with ``offsets`` (n3, 2) px added to its targets
-    (:func:`skeleton_offsets`: from the 2D route's skeleton to the centre line)."""
-    return dataclasses.replace(assignment, targets=assignment.targets + offsets)
+    (:func:`skeleton_offsets`: from the 2D route's skeleton to the centre line); the nodes
+    ``untrusted`` (:func:`off_the_route`) left without target."""
+    targets = assignment.targets + offsets
+    if untrusted is None or not np.any(untrusted & assignment.assigned):
+        return dataclasses.replace(assignment, targets=targets)
+    assigned = assignment.assigned & ~untrusted
+    targets[~assigned] = np.nan
+    return dataclasses.replace(assignment, targets=targets, assigned=assigned)
