@@ -29,7 +29,7 @@ from ..projection import pixels_per_mm, project
 from .paper import targets_of
 
 __all__ = ["WALL_SEARCH_RADII", "COARSE_SAMPLES", "centre_in_outline", "targets_at", "render_lumen",
-           "skeleton_offsets", "offset_targets", "off_the_route"]
+           "route_offsets", "offset_targets"]
 
 #: How far along its normal a node looks for each wall: this many times its 2D radius (the
 #: distance to the nearest background pixel), plus 2 px.
@@ -144,11 +144,6 @@ def targets_at(assignment, positions: np.ndarray):
 #: deep), at least :data:`MIN_DISC_SPACING_PX`.
 DISC_SPACING_RADII = 0.25
 MIN_DISC_SPACING_PX = 1.0
-#: A node's offset (:func:`skeleton_offsets`) is taken only from a centred 2D skeleton point within
-#: this share of the node's projected radius (plus 1 px); farther, it is another vessel's.
-OFFSET_REACH_RADII = 0.5
-#: Samples per px along the centred 2D skeleton's edges for the nearest-point search.
-CURVE_SAMPLES_PER_PX = 4.0
 
 
 def _lumen_discs(g3: SkeletonGraph, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,79 +190,82 @@ def render_lumen(g3: SkeletonGraph, P: np.ndarray, shape: tuple) -> np.ndarray:
     return np.cumsum(steps.reshape(rows, width), axis=1)[:, :cols] > 0
 
 
-def _sampled_curve(curve: SkeletonGraph) -> np.ndarray:
-    """Points along every edge of a 2D graph, :data:`CURVE_SAMPLES_PER_PX` per px."""
-    edges = curve.edges()
-    a, b = curve.positions[edges[:, 0]], curve.positions[edges[:, 1]]
-    counts = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) * CURVE_SAMPLES_PER_PX).astype(np.int64), 1)
-    edge_of = np.repeat(np.arange(len(edges)), counts)
-    t = (np.arange(len(edge_of)) - np.repeat(np.cumsum(counts) - counts, counts)) / counts[edge_of]
-    return np.concatenate([a[edge_of] * (1.0 - t)[:, None] + b[edge_of] * t[:, None], curve.positions])
+#: A node whose 2D route on its own projected lumen (:func:`route_offsets`) misses its projection by
+#: more than this many of its projected radii (plus 1 px) gets no target: the route cannot place it.
+ROUTE_CAP_RADII = 2.0
+#: The vessels of the trunk's own course: their offsets are taken across them only (a slide along
+#: them is eq. (4)-(5)'s own business and changes with the deformation); a side branch (a renal)
+#: takes the whole offset (where thinning's bridge inside the aorta's outline meets it).
+MAIN_COURSE = ("aorta", "iliac_left", "iliac_right")
 
 
-def skeleton_offsets(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) -> np.ndarray:
-    """How far each 3D node's projection lies across from where the 2D route puts its vessel, (n3, 2) px.
-
-    ``rendered`` is the centred 2D skeleton graph (:func:`centre_in_outline`) of the
-    pre-operative lumen's own projection (:func:`render_lumen`), built as the frame's is.
-    Where a wide vessel bends within its own radius (a tortuous neck, a sac's drift), or a
-    side branch's mouth pulls the thinned skeleton beside a junction, the 2D skeleton is
-    not the projected centre line (on the patient-like sets the targets lay 2-6 px across
-    from the true aorta beside the renal ostia); the frame, showing the same lumen
-    deformed, does the same. The offset is from the nearest point of ``rendered`` to the
-    projected node, across the node's projected tangent only (a slide along the vessel is
-    eq. (4)-(5)'s business); zero where that point lies more than
-    :data:`OFFSET_REACH_RADII` of the node's projected radius + 1 px away, and without radii.
-    """
-    offsets = np.zeros((len(g3.positions), 2))
-    if g3.radii is None or len(rendered.positions) == 0:
-        return offsets
-    at = project(P, g3.positions)
-    own = g3.radii * pixels_per_mm(P, g3.positions)
-    nodes = np.flatnonzero(g3.degrees == 2)
-    curve = _sampled_curve(rendered)
-    distance, index = cKDTree(curve).query(at[nodes], distance_upper_bound=OFFSET_REACH_RADII * own[nodes].max() + 1.0)
-    close = np.isfinite(distance)
-    close[close] &= distance[close] <= OFFSET_REACH_RADII * own[nodes[close]] + 1.0
-    nodes, nearest = nodes[close], curve[index[close]]
+def _across(g3: SkeletonGraph, P: np.ndarray, nodes: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """``vectors`` (len(nodes), 2) less their part along the projected tangent of each of ``nodes``
+    (degree-2 nodes; the tangent over a few nodes of the smoothed chain, as in :func:`centre_in_outline`)."""
     along = project(P, smooth_positions(g3, TANGENT_SMOOTHING).positions)
     slot = g3.adjacency.indptr
     tangent = along[g3.adjacency.indices[slot[nodes] + 1]] - along[g3.adjacency.indices[slot[nodes]]]
-    length = np.linalg.norm(tangent, axis=1)
-    keep = length > 0
-    nodes, nearest, tangent = nodes[keep], nearest[keep], tangent[keep] / length[keep, None]
-    offset = at[nodes] - nearest
-    offsets[nodes] = offset - np.sum(offset * tangent, axis=1)[:, None] * tangent
-    return offsets
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
+    return vectors - np.sum(vectors * tangent, axis=1)[:, None] * tangent
 
 
-#: A node whose projection lies farther than this many of its projected radii (plus 1 px) from the
-#: 2D route's skeleton of the pre-operative lumen (:func:`off_the_route`) gets no target.
-OFF_ROUTE_RADII = 1.0
+def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels) -> tuple[np.ndarray, np.ndarray]:
+    """What the single-view 2D route gets wrong on the pre-operative lumen's own projection, per 3D node.
 
+    The frame's targets come from a route (thinning, Algorithm 1, the matching, eqs. (4)-(5),
+    the centring) that does not return the projected centre line exactly: where a wide aorta
+    bends within its own radius (a tortuous neck, a sac's drift) the walls follow the outer
+    spheres; beside a junction a branch's mouth pulls the thinned skeleton; inside the
+    aorta's outline thinning draws a renal's own bridge. On the patient-like scenario sets
+    the aorta's targets lay 2-6 px across from it beside the renal ostia. Run on the
+    pre-operative lumen projected through ``P`` (:func:`render_lumen`), whose centre line is
+    known, the same route shows the same errors node by node; the frame, the same lumen
+    deformed, repeats them, so they are added to its targets (:func:`offset_targets`).
 
-def off_the_route(g3: SkeletonGraph, P: np.ndarray, rendered: SkeletonGraph) -> np.ndarray:
-    """Which 3D nodes the 2D route cannot place, (n3,) bool: on the pre-operative lumen's own
-    projection (``rendered``, as in :func:`skeleton_offsets`) their vessel's 2D skeleton runs
-    more than :data:`OFF_ROUTE_RADII` of their projected radius (+ 1 px) from their projection.
+    Parameters
+    ----------
+    g3 : SkeletonGraph
+        The pre-operative 3D graph (LPS mm) with its lumen radii (mm).
+    P : numpy.ndarray, shape (3, 4)
+    assignments : list of SoftAssignment
+        The route's assignments of ``g3`` to the 2D graph of its own rendered lumen, one per
+        candidate correspondence, their targets taken as the frame's are (centred, held). The
+        one that places the projected nodes best (among those assigning at least 90 % as
+        many nodes as the most) is the route's.
+    labels : sequence of str
+        Each 3D node's anatomical label: the degree-2 nodes of :data:`MAIN_COURSE` keep only
+        the part of their offset across their vessel.
 
-    There the frame's skeleton, the same lumen deformed, does not follow the vessel either: a
-    renal's hidden part inside the aorta's outline, where thinning draws its own bridge from the
-    aorta's centre line (on a patient-like case the right renal's ostium took targets 12 px
-    down the aorta), or the 2D skeleton of a sac crossing from lumbar to lumbar. None without radii.
+    Returns
+    -------
+    offsets : numpy.ndarray, shape (n3, 2)
+        Projected node minus the route's target, px (zero where not assigned or not trusted).
+    untrusted : numpy.ndarray of bool, shape (n3,)
+        Nodes the route misses by more than :data:`ROUTE_CAP_RADII` of their projected radius
+        (+ 1 px): they get no target.
     """
-    if g3.radii is None or len(rendered.positions) == 0:
-        return np.zeros(len(g3.positions), dtype=bool)
+    n3 = len(g3.positions)
+    offsets, untrusted = np.zeros((n3, 2)), np.zeros(n3, dtype=bool)
+    usable = [a for a in assignments if a.assigned.any()]
+    if g3.radii is None or not usable:
+        return offsets, untrusted
     at = project(P, g3.positions)
-    limit = OFF_ROUTE_RADII * g3.radii * pixels_per_mm(P, g3.positions) + 1.0
-    distance, _ = cKDTree(_sampled_curve(rendered)).query(at, distance_upper_bound=float(limit.max()))
-    return distance > limit
+    most = max(int(a.assigned.sum()) for a in usable)
+    usable = [a for a in usable if a.assigned.sum() >= 0.9 * most]
+    best = min(usable, key=lambda a: float(np.mean(np.linalg.norm(at[a.assigned] - a.targets[a.assigned], axis=1))))
+    offsets[best.assigned] = at[best.assigned] - best.targets[best.assigned]
+    own = np.asarray(g3.radii, dtype=float) * pixels_per_mm(P, g3.positions)
+    untrusted = best.assigned & (np.linalg.norm(offsets, axis=1) > ROUTE_CAP_RADII * own + 1.0)
+    offsets[untrusted] = 0.0
+    main = np.flatnonzero((g3.degrees == 2) & np.isin(np.asarray(labels), MAIN_COURSE))
+    offsets[main] = _across(g3, P, main, offsets[main])
+    return offsets, untrusted
 
 
 def offset_targets(assignment, offsets: np.ndarray, untrusted: np.ndarray | None = None):
     """``assignment`` (a :class:`paper.SoftAssignment`) with ``offsets`` (n3, 2) px added to its targets
-    (:func:`skeleton_offsets`: from the 2D route's skeleton to the centre line); the nodes
-    ``untrusted`` (:func:`off_the_route`) left without target."""
+    (:func:`route_offsets`: from the 2D route's targets to the centre line); the nodes
+    ``untrusted`` left without target."""
     targets = assignment.targets + offsets
     if untrusted is None or not np.any(untrusted & assignment.assigned):
         return dataclasses.replace(assignment, targets=targets)

@@ -159,69 +159,44 @@ def _centred_targets(preop: Preoperative, g2: graph.SkeletonGraph, centred: grap
     return matching.offset_targets(held, *_silhouette_offsets(preop, P, visibility))
 
 
-OFF_ROUTE = False
-ROUTE_MODE = True
-ROUTE_CAP_RADII = 2.0
-
-
-def _route_errors(preop, g2, c2, centred, P, visibility):
-    at = project(P, preop.graph.positions)
-    n3 = len(at)
-    best, best_score = None, np.inf
-    try:
-        candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
-    except ValueError:
-        return np.zeros((n3, 2)), None
-    found = []
-    for correspondence in candidates:
-        try:
-            a = matching.soft_assign(preop.graph, preop.classification, g2, c2, P, correspondence, shows=visibility.shows)
-        except ValueError:
-            continue
-        a = _held_upper_aorta(preop, g2, c2, P, visibility, matching.targets_at(a, centred.positions))
-        found.append(a)
-    if not found:
-        return np.zeros((n3, 2)), None
-    most = max(a.assigned.sum() for a in found)
-    for a in found:
-        if a.assigned.sum() < 0.9 * most:
-            continue
-        score = float(np.mean(np.linalg.norm(at[a.assigned] - a.targets[a.assigned], axis=1)))
-        if score < best_score:
-            best, best_score = a, score
-    error = np.where(best.assigned[:, None], at - best.targets, 0.0)
-    own = preop.graph.radii * pixels_per_mm(P, preop.graph.positions)
-    untrusted = best.assigned & (np.linalg.norm(error, axis=1) > ROUTE_CAP_RADII * own + 1.0)
-    error[untrusted] = 0.0
-    return error, untrusted
-
-
-def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> np.ndarray:
-    """:func:`matching.skeleton_offsets` of every pre-operative node under ``P``: the pre-operative
-    lumen projected onto the frame (cut to what it exposes), thinned, classified and centred as
-    the frame is; once per ``P``."""
+def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> tuple:
+    """:func:`matching.route_offsets` under ``P``, once per ``P``: the pre-operative lumen projected onto
+    the frame (:func:`matching.render_lumen`, cut to what the frame exposes) and put through a
+    single view's route as the frame is (thinning, Algorithm 1, every candidate match, eqs.
+    (4)-(5), centring, the held upper aorta)."""
     key = (np.asarray(P, dtype=float).tobytes(), visibility.shape, visibility.exposed)
     cache = preop.__dict__.setdefault("_silhouette_offsets", {})
     if key not in cache:
         cache.clear()
-        cache[key] = (np.zeros((len(preop.graph.positions), 2)), None)
-        if preop.graph.radii is not None:
-            rendered = np.zeros(visibility.shape, dtype=bool)
-            r0, r1, c0, c1 = visibility.exposed
-            rendered[r0:r1 + 1, c0:c1 + 1] = matching.render_lumen(preop.graph, P, visibility.shape)[r0:r1 + 1, c0:c1 + 1]
-            g2 = _skeleton2d_graph(rendered, 1.0 / pixels_per_mm(P, preop.centre))
-            try:
-                c2 = _classify_2d(g2, P, preop.centre)
-            except ValueError:
-                return cache[key]
-            g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
-            centred = matching.centre_in_outline(g2, rendered)
-            if ROUTE_MODE:
-                cache[key] = _route_errors(preop, g2, c2, centred, P, visibility)
-            else:
-                cache[key] = (matching.skeleton_offsets(preop.graph, P, centred),
-                              matching.off_the_route(preop.graph, P, centred) if OFF_ROUTE else None)
+        cache[key] = matching.route_offsets(preop.graph, P, _rendered_assignments(preop, P, visibility),
+                                            preop.classification.node_labels)
     return cache[key]
+
+
+def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> list:
+    """The single-view route's assignments (one per candidate match) of the pre-operative tree to its
+    own lumen projected through ``P``; empty without radii or where Algorithm 1 fails on it."""
+    if preop.graph.radii is None:
+        return []
+    rendered = np.zeros(visibility.shape, dtype=bool)
+    r0, r1, c0, c1 = visibility.exposed
+    rendered[r0:r1 + 1, c0:c1 + 1] = matching.render_lumen(preop.graph, P, visibility.shape)[r0:r1 + 1, c0:c1 + 1]
+    try:
+        c2 = _classify_2d(_skeleton2d_graph(rendered, 1.0 / pixels_per_mm(P, preop.centre)), P, preop.centre)
+        g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
+        candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
+    except ValueError:
+        return []
+    centred = matching.centre_in_outline(g2, rendered)
+    found = []
+    for correspondence in candidates:
+        try:
+            assignment = matching.soft_assign(preop.graph, preop.classification, g2, c2, P, correspondence,
+                                              shows=visibility.shows)
+        except ValueError:
+            continue
+        found.append(_held_upper_aorta(preop, g2, c2, P, visibility, matching.targets_at(assignment, centred.positions)))
+    return found
 
 
 def _uncentred(preop: Preoperative, view: "_ViewState") -> None:
