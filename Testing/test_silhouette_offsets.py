@@ -101,8 +101,8 @@ def test_the_preoperative_route_errors_take_the_frame_targets_onto_the_deformed_
     before = np.linalg.norm(frame.targets[kink] - truth, axis=1)
     after = np.linalg.norm(offset_targets(frame, offsets).targets[kink] - truth, axis=1)
     assert before.mean() > 0.7 and before.max() > 2.5        # 0.89 px, up to 3.1 px in the kink
-    assert after.mean() < 0.45 * before.mean()               # 0.34 px
-    far = before > 1.0                                       # 57 nodes, 1.95 px -> 0.54 px
+    assert after.mean() < 0.45 * before.mean()               # 0.32 px
+    far = before > 1.0                                       # 57 nodes, 1.95 px -> 0.50 px
     assert far.sum() > 40 and np.mean(after[far] < before[far]) > 0.9 and after[far].mean() < 0.35 * before[far].mean()
 
 
