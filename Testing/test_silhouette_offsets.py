@@ -18,7 +18,8 @@ import scipy.sparse as sp
 from FevarPlannerLib import graph
 from FevarPlannerLib.evaluation.depth import closest_points_on_graph
 from FevarPlannerLib.graph import SkeletonGraph
-from FevarPlannerLib.matching import SoftAssignment, centre_in_outline, offset_targets, render_lumen, route_offsets
+from FevarPlannerLib.matching import (RouteOffsets, SoftAssignment, centre_in_outline, offset_targets, render_lumen,
+                                      route_offsets)
 from FevarPlannerLib.projection import pixels_per_mm, project
 
 #: An AP view at about 2.5 px per mm: u = 2.52 x + 167, v = -2.52 z + 60 at y = 0.
@@ -83,7 +84,8 @@ def test_the_lumen_is_rendered_at_its_projected_width():
 def test_a_straight_aorta_needs_no_offset():
     g3, aorta = tree(0.0)
     route = nearest_point_route(g3, aorta, centred_skeleton(render_lumen(g3, P, SHAPE)))
-    offsets, untrusted = route_offsets(g3, P, [route], labels_of(g3, aorta))
+    route = route_offsets(g3, P, [route], labels_of(g3, aorta))
+    offsets, untrusted = route.offsets, route.untrusted
     far = np.abs(g3.positions[aorta, 2] + 75.0) > 40.0        # away from the renal ostia and the ends
     far &= (g3.positions[aorta, 2] < -45.0) & (g3.positions[aorta, 2] > -135.0)
     assert np.abs(offsets[aorta[far]]).max() < 0.3
@@ -94,7 +96,7 @@ def test_the_preoperative_route_errors_take_the_frame_targets_onto_the_deformed_
     pre, aorta = tree(6.0)                     # the CT: a 6 mm kink, inside the aorta's radius
     intra, _ = tree(4.5, shift_mm=3.0)         # the frame: the wire straightened it a little, moved it
     route = nearest_point_route(pre, aorta, centred_skeleton(render_lumen(pre, P, SHAPE)))
-    offsets, _ = route_offsets(pre, P, [route], labels_of(pre, aorta))
+    offsets = route_offsets(pre, P, [route], labels_of(pre, aorta))
     kink = aorta[(intra.positions[aorta, 2] < -50.0) & (intra.positions[aorta, 2] > -120.0)]
     truth = project(P, intra.positions[kink])
     frame = nearest_point_route(intra, kink, centred_skeleton(render_lumen(intra, P, SHAPE)))
@@ -118,11 +120,28 @@ def test_side_branches_take_the_whole_error_the_trunk_only_its_part_across_and_m
     assigned = np.zeros(len(at), dtype=bool)
     assigned[nodes] = True
     route = SoftAssignment(sp.csr_matrix((1, len(at))), targets, assigned, None)
-    offsets, untrusted = route_offsets(g3, P, [route], labels_of(g3, aorta))
+    found = route_offsets(g3, P, [route], labels_of(g3, aorta))
+    offsets, untrusted = found.offsets, found.untrusted
     np.testing.assert_allclose(offsets[renal[:-1]], [[-3.0, -4.0]] * 9, atol=1e-9)
     np.testing.assert_allclose(offsets[trunk], [[-3.0, 0.0]] * 10, atol=0.05)   # across the aorta only
     assert np.flatnonzero(untrusted).tolist() == [renal[-1]] and not offsets[renal[-1]].any()
     frame = SoftAssignment(route.M, at.copy(), np.ones(len(at), dtype=bool), None)
-    moved = offset_targets(frame, offsets, untrusted)
+    moved = offset_targets(frame, found)
     assert not moved.assigned[renal[-1]] and np.isnan(moved.targets[renal[-1]]).all()
     assert moved.assigned.sum() == len(at) - 1
+
+
+def test_a_frame_that_draws_its_vessels_narrower_than_the_lumen_takes_no_offset():
+    """The paper's simulation protocol draws the frame's vessels as 3 px lines: its route errors are
+    not the rendered lumen's (its aorta's 2D radius is 1.5 px against the route's 25)."""
+    n = 4
+    M = sp.identity(n, format="csr")                          # target j on 2D node j
+    route_widths = np.array([25.0, 25.0, 7.5, 7.5])
+    route = RouteOffsets(np.full((n, 2), 2.0), np.array([False, False, False, True]), route_widths)
+    frame = SoftAssignment(M, np.zeros((n, 2)), np.ones(n, dtype=bool), None)
+    like = offset_targets(frame, route, frame_radii=np.array([24.0, 30.0, 7.0, 8.0]))
+    drawn = offset_targets(frame, route, frame_radii=np.array([1.5, 1.5, 1.5, 1.5]))
+    np.testing.assert_allclose(like.targets[:3], 2.0)
+    assert like.assigned.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(drawn.targets, 0.0)
+    assert drawn.assigned.all()

@@ -15,7 +15,7 @@ candidates  every correspondence worth deforming with (the paper's, the labels',
 """
 
 from . import candidates, centring, paper, projected
-from .centring import centre_in_outline, offset_targets, render_lumen, route_offsets, targets_at
+from .centring import RouteOffsets, centre_in_outline, offset_targets, render_lumen, route_offsets, targets_at
 from .candidates import UNASSIGNED_PX2, candidate_correspondences, candidate_score
 from .paper import (ETA_S, ETA_T, Correspondence, SoftAssignment, branch_tangents, match_branches, match_trunks,
                     soft_assign)

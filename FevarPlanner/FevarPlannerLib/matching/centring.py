@@ -29,7 +29,7 @@ from ..projection import pixels_per_mm, project
 from .paper import targets_of
 
 __all__ = ["WALL_SEARCH_RADII", "COARSE_SAMPLES", "centre_in_outline", "targets_at", "render_lumen",
-           "route_offsets", "offset_targets"]
+           "route_offsets", "offset_targets", "RouteOffsets"]
 
 #: How far along its normal a node looks for each wall: this many times its 2D radius (the
 #: distance to the nearest background pixel), plus 2 px.
@@ -209,7 +209,7 @@ def _across(g3: SkeletonGraph, P: np.ndarray, nodes: np.ndarray, vectors: np.nda
     return vectors - np.sum(vectors * tangent, axis=1)[:, None] * tangent
 
 
-def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels) -> tuple[np.ndarray, np.ndarray]:
+def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels, radii2=None) -> "RouteOffsets":
     """What the single-view 2D route gets wrong on the pre-operative lumen's own projection, per 3D node.
 
     The frame's targets come from a route (thinning, Algorithm 1, the matching, eqs. (4)-(5),
@@ -235,20 +235,19 @@ def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels) -> tupl
     labels : sequence of str
         Each 3D node's anatomical label: the degree-2 nodes of :data:`MAIN_COURSE` keep only
         the part of their offset across their vessel.
+    radii2 : numpy.ndarray, optional
+        The 2D radii (px) of the rendered route's graph nodes: the route's vessel width at
+        each target (:class:`RouteOffsets`), which the frame's must match.
 
     Returns
     -------
-    offsets : numpy.ndarray, shape (n3, 2)
-        Projected node minus the route's target, px (zero where not assigned or not trusted).
-    untrusted : numpy.ndarray of bool, shape (n3,)
-        Nodes the route misses by more than :data:`ROUTE_CAP_RADII` of their projected radius
-        (+ 1 px): they get no target.
+    RouteOffsets
     """
     n3 = len(g3.positions)
-    offsets, untrusted = np.zeros((n3, 2)), np.zeros(n3, dtype=bool)
+    offsets, untrusted, widths = np.zeros((n3, 2)), np.zeros(n3, dtype=bool), np.full(n3, np.nan)
     usable = [a for a in assignments if a.assigned.any()]
     if g3.radii is None or not usable:
-        return offsets, untrusted
+        return RouteOffsets(offsets, untrusted, widths)
     at = project(P, g3.positions)
     most = max(int(a.assigned.sum()) for a in usable)
     usable = [a for a in usable if a.assigned.sum() >= 0.9 * most]
@@ -259,16 +258,55 @@ def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels) -> tupl
     offsets[untrusted] = 0.0
     main = np.flatnonzero((g3.degrees == 2) & np.isin(np.asarray(labels), MAIN_COURSE))
     offsets[main] = _across(g3, P, main, offsets[main])
-    return offsets, untrusted
+    if radii2 is not None:
+        widths[best.assigned] = (best.M.T @ np.asarray(radii2, dtype=float))[best.assigned]
+    return RouteOffsets(offsets, untrusted, widths)
 
 
-def offset_targets(assignment, offsets: np.ndarray, untrusted: np.ndarray | None = None):
-    """``assignment`` (a :class:`paper.SoftAssignment`) with ``offsets`` (n3, 2) px added to its targets
-    (:func:`route_offsets`: from the 2D route's targets to the centre line); the nodes
-    ``untrusted`` left without target."""
-    targets = assignment.targets + offsets
-    if untrusted is None or not np.any(untrusted & assignment.assigned):
+#: The frame's 2D radius at a target must lie within this range of the route's on the rendered
+#: lumen for the route's offset to apply (:func:`offset_targets`): a frame that shows its vessels
+#: otherwise (the paper's simulation protocol draws them as 3 px lines) has other route errors.
+WIDTH_RATIO_RANGE = (0.6, 1.6)
+
+
+@dataclasses.dataclass(frozen=True)
+class RouteOffsets:
+    """:func:`route_offsets`' answer, per 3D node.
+
+    Attributes
+    ----------
+    offsets : numpy.ndarray, shape (n3, 2)
+        Projected node minus the route's target, px (zero where not assigned or not trusted).
+    untrusted : numpy.ndarray of bool, shape (n3,)
+        Nodes the route misses by more than :data:`ROUTE_CAP_RADII` of their projected radius
+        (+ 1 px): they get no target.
+    widths : numpy.ndarray, shape (n3,)
+        The route's 2D radius (px) at each node's target; NaN where unknown.
+    """
+
+    offsets: np.ndarray
+    untrusted: np.ndarray
+    widths: np.ndarray
+
+
+def offset_targets(assignment, route: RouteOffsets, frame_radii: np.ndarray | None = None):
+    """``assignment`` (a :class:`paper.SoftAssignment`) with the ``route``'s offsets (from the 2D route's
+    targets to the centre line) added to its targets and its untrusted nodes left without
+    target, where the frame shows the vessel as wide as the route did: its 2D radius at the
+    target (from ``frame_radii``, the 2D nodes' radii, through ``M``) within
+    :data:`WIDTH_RATIO_RANGE` of :attr:`RouteOffsets.widths`. Without ``frame_radii``, everywhere."""
+    applies = np.ones(len(route.offsets), dtype=bool)
+    if frame_radii is not None:
+        frame_widths = np.full(len(route.offsets), np.nan)
+        frame_widths[assignment.assigned] = (assignment.M.T @ np.asarray(frame_radii, dtype=float))[assignment.assigned]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = frame_widths / route.widths
+        low, high = WIDTH_RATIO_RANGE
+        applies = (ratio >= low) & (ratio <= high)
+    targets = assignment.targets + np.where(applies[:, None], route.offsets, 0.0)
+    dropped = route.untrusted & applies & assignment.assigned
+    if not np.any(dropped):
         return dataclasses.replace(assignment, targets=targets)
-    assigned = assignment.assigned & ~untrusted
+    assigned = assignment.assigned & ~dropped
     targets[~assigned] = np.nan
     return dataclasses.replace(assignment, targets=targets, assigned=assigned)

@@ -156,10 +156,10 @@ def _centred_targets(preop: Preoperative, g2: graph.SkeletonGraph, centred: grap
     if centred is None:
         return _held_upper_aorta(preop, g2, c2, P, visibility, assignment)
     held = _held_upper_aorta(preop, g2, c2, P, visibility, matching.targets_at(assignment, centred.positions))
-    return matching.offset_targets(held, *_silhouette_offsets(preop, P, visibility))
+    return matching.offset_targets(held, _silhouette_offsets(preop, P, visibility), g2.radii)
 
 
-def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> tuple:
+def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> matching.RouteOffsets:
     """:func:`matching.route_offsets` under ``P``, once per ``P``: the pre-operative lumen projected onto
     the frame (:func:`matching.render_lumen`, cut to what the frame exposes) and put through a
     single view's route as the frame is (thinning, Algorithm 1, every candidate match, eqs.
@@ -168,16 +168,17 @@ def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibili
     cache = preop.__dict__.setdefault("_silhouette_offsets", {})
     if key not in cache:
         cache.clear()
-        cache[key] = matching.route_offsets(preop.graph, P, _rendered_assignments(preop, P, visibility),
-                                            preop.classification.node_labels)
+        assignments, radii2 = _rendered_assignments(preop, P, visibility)
+        cache[key] = matching.route_offsets(preop.graph, P, assignments, preop.classification.node_labels, radii2)
     return cache[key]
 
 
 def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> list:
     """The single-view route's assignments (one per candidate match) of the pre-operative tree to its
-    own lumen projected through ``P``; empty without radii or where Algorithm 1 fails on it."""
+    own lumen projected through ``P``, and the 2D radii of that route's graph; empty without
+    radii or where Algorithm 1 fails on it."""
     if preop.graph.radii is None:
-        return []
+        return [], None
     rendered = np.zeros(visibility.shape, dtype=bool)
     r0, r1, c0, c1 = visibility.exposed
     rendered[r0:r1 + 1, c0:c1 + 1] = matching.render_lumen(preop.graph, P, visibility.shape)[r0:r1 + 1, c0:c1 + 1]
@@ -186,7 +187,7 @@ def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibi
         g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
         candidates = matching.candidate_correspondences(preop.graph, preop.classification, g2, c2, P)
     except ValueError:
-        return []
+        return [], None
     centred = matching.centre_in_outline(g2, rendered)
     found = []
     for correspondence in candidates:
@@ -196,7 +197,7 @@ def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibi
         except ValueError:
             continue
         found.append(_held_upper_aorta(preop, g2, c2, P, visibility, matching.targets_at(assignment, centred.positions)))
-    return found
+    return found, g2.radii
 
 
 def _uncentred(preop: Preoperative, view: "_ViewState") -> None:
