@@ -193,6 +193,11 @@ def render_lumen(g3: SkeletonGraph, P: np.ndarray, shape: tuple) -> np.ndarray:
 #: A node whose 2D route on its own projected lumen (:func:`route_offsets`) misses its projection by
 #: more than this many of its projected radii (plus 1 px) gets no target: the route cannot place it.
 ROUTE_CAP_RADII = 2.0
+#: On the trunk's course an offset across the vessel larger than this many of its projected radii
+#: is no bias of the route but a target on another vessel (an internal iliac beside the external
+#: one, a leg crossing): it is not applied (on a patient-like case the iliacs' took 16-25 px and
+#: stretched both legs past the length check).
+ACROSS_CAP_RADII = 0.5
 #: The vessels of the trunk's own course: their offsets are taken across them only (a slide along
 #: them is eq. (4)-(5)'s own business and changes with the deformation); a side branch (a renal)
 #: takes the whole offset (where thinning's bridge inside the aorta's outline meets it).
@@ -233,8 +238,9 @@ def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels, radii2=
         one that places the projected nodes best (among those assigning at least 90 % as
         many nodes as the most) is the route's.
     labels : sequence of str
-        Each 3D node's anatomical label: the degree-2 nodes of :data:`MAIN_COURSE` keep only
-        the part of their offset across their vessel.
+        Each 3D node's anatomical label: the nodes of :data:`MAIN_COURSE` keep only the part of
+        their offset across their vessel. Ends and junctions take none (the route's 2D ends
+        lie a radius or so short of the 3D ones: moving them along would stretch the vessel).
     radii2 : numpy.ndarray, optional
         The 2D radii (px) of the rendered route's graph nodes: the route's vessel width at
         each target (:class:`RouteOffsets`), which the frame's must match.
@@ -255,9 +261,11 @@ def route_offsets(g3: SkeletonGraph, P: np.ndarray, assignments, labels, radii2=
     offsets[best.assigned] = at[best.assigned] - best.targets[best.assigned]
     own = np.asarray(g3.radii, dtype=float) * pixels_per_mm(P, g3.positions)
     untrusted = best.assigned & (np.linalg.norm(offsets, axis=1) > ROUTE_CAP_RADII * own + 1.0)
-    offsets[untrusted] = 0.0
+    offsets[untrusted | (g3.degrees != 2)] = 0.0          # ends and junctions: a move along would stretch
     main = np.flatnonzero((g3.degrees == 2) & np.isin(np.asarray(labels), MAIN_COURSE))
     offsets[main] = _across(g3, P, main, offsets[main])
+    beside = main[np.linalg.norm(offsets[main], axis=1) > ACROSS_CAP_RADII * own[main]]
+    offsets[beside] = 0.0
     if radii2 is not None:
         widths[best.assigned] = (best.M.T @ np.asarray(radii2, dtype=float))[best.assigned]
     return RouteOffsets(offsets, untrusted, widths)
@@ -276,7 +284,8 @@ class RouteOffsets:
     Attributes
     ----------
     offsets : numpy.ndarray, shape (n3, 2)
-        Projected node minus the route's target, px (zero where not assigned or not trusted).
+        Projected node minus the route's target, px (zero where not assigned or not trusted,
+        and at ends and junctions).
     untrusted : numpy.ndarray of bool, shape (n3,)
         Nodes the route misses by more than :data:`ROUTE_CAP_RADII` of their projected radius
         (+ 1 px): they get no target.
