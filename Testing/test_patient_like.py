@@ -158,9 +158,12 @@ def test_algorithm1_on_a_2d_frame_preserves_the_main_renal_not_the_narrower_acce
 
 def test_registration_on_a_patient_like_case_fits_the_frame_and_keeps_the_renal_off_the_accessory(
         patient_like_cases, patient_like_preops):
-    """Seed 21, case 1 (accessory renals on both sides): the 2D fit stays under half a pixel,
-    the right renal is registered to itself (10 mm off when its accessory was taken for it)
-    and the 3D error stays within 0.75 mm of the depth floor and below SV's."""
+    """Seed 21, case 1 (accessory renals on both sides): the 2D fit stays under 0.75 px, the
+    right renal is registered to itself (10 mm off when its accessory was taken for it) and
+    the 3D error stays within 0.75 mm of the depth floor and below SV's. The fit is measured
+    against the centred skeleton, which the targets leave by the route's own offsets on the
+    rendered pre-operative lumen (matching.route_offsets): 0.41 -> 0.67 px, while the 3D error
+    went 1.91 -> 1.83 mm (floor 1.51)."""
     case, preop = patient_like_cases[1], patient_like_preops[1]
     view = case.views[0]
     result = register_views(preop, [(view.mask, view.P_given)])
@@ -172,7 +175,7 @@ def test_registration_on_a_patient_like_case_fits_the_frame_and_keeps_the_renal_
     fit = evaluation.evaluate(result.deformed, gt_intra, result.P, centred.positions,
                               result.skeleton2d.edges(), labels=depth["labels"])
     rigid = evaluation.depth_analysis(preop.centerline, preop.centerline, gt_pre, gt_intra, view.P_true)
-    assert fit["2d_px"]["mean"] < 0.5
+    assert fit["2d_px"]["mean"] < 0.75
     assert depth["per_vessel"]["renal_right"]["3d_mm"] < 2.0
     assert depth["3d_mm"]["mean"] <= depth["depth_floor_mm"]["mean"] + 0.75
     assert depth["3d_mm"]["mean"] < rigid["3d_mm"]["mean"]
