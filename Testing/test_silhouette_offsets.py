@@ -6,8 +6,9 @@ a wide aorta bends within its own radius (a tortuous neck) or where a side branc
 pulls it beside a junction: on the patient-like scenario sets the aorta's targets lay up to
 2-6 px across from it beside the renal ostia. Projecting the pre-operative lumen through ``P``
 and running the same route on it shows the same errors, node by node; they are added to the
-frame's targets (across the vessel on the trunk's course, whole on a side branch), and nodes
-the route misses by more than two radii get no target.
+frame's targets (across the vessel on the trunk's course, whole on a side branch); where the
+route missed a node by more than two radii, or across it by more than half a radius, its
+error is another vessel's and is not applied.
 """
 
 from __future__ import annotations
@@ -84,12 +85,10 @@ def test_the_lumen_is_rendered_at_its_projected_width():
 def test_a_straight_aorta_needs_no_offset():
     g3, aorta = tree(0.0)
     route = nearest_point_route(g3, aorta, centred_skeleton(render_lumen(g3, P, SHAPE)))
-    route = route_offsets(g3, P, [route], labels_of(g3, aorta))
-    offsets, untrusted = route.offsets, route.untrusted
+    offsets = route_offsets(g3, P, [route], labels_of(g3, aorta)).offsets
     far = np.abs(g3.positions[aorta, 2] + 75.0) > 40.0        # away from the renal ostia and the ends
     far &= (g3.positions[aorta, 2] < -45.0) & (g3.positions[aorta, 2] > -135.0)
     assert np.abs(offsets[aorta[far]]).max() < 0.3
-    assert not untrusted.any()
 
 
 def test_the_preoperative_route_errors_take_the_frame_targets_onto_the_deformed_centre_line():
@@ -108,27 +107,24 @@ def test_the_preoperative_route_errors_take_the_frame_targets_onto_the_deformed_
     assert far.sum() > 40 and np.mean(after[far] < before[far]) > 0.9 and after[far].mean() < 0.35 * before[far].mean()
 
 
-def test_side_branches_take_the_whole_error_the_trunk_only_its_part_across_and_misses_lose_their_target():
+def test_side_branches_take_the_whole_error_the_trunk_only_its_part_across_and_misses_none():
     g3, aorta = tree(0.0)
     renal = np.arange(len(aorta) + 10, len(aorta) + 20)      # the first renal's outer part (z about -77 mm)
     trunk = aorta[100:110]                                    # z = -70..-74.5 mm, a straight aorta (v down the rows)
-    nodes = np.concatenate([trunk, renal])
+    nodes = np.concatenate([trunk, renal, aorta[120:122]])
     at = project(P, g3.positions)
     targets = np.full((len(at), 2), np.nan)
     targets[nodes] = at[nodes] + [3.0, 4.0]                   # along the renal (u) and along the aorta (v)
     targets[renal[-1]] = at[renal[-1]] + [20.0, 0.0]          # 20 px off: over 2 renal radii (7.6 px) + 1
+    targets[aorta[120:122]] = at[aorta[120:122]] + [14.0, 0.0]   # across the aorta by over half its 25 px radius
     assigned = np.zeros(len(at), dtype=bool)
     assigned[nodes] = True
     route = SoftAssignment(sp.csr_matrix((1, len(at))), targets, assigned, None)
-    found = route_offsets(g3, P, [route], labels_of(g3, aorta))
-    offsets, untrusted = found.offsets, found.untrusted
+    offsets = route_offsets(g3, P, [route], labels_of(g3, aorta)).offsets
     np.testing.assert_allclose(offsets[renal[:-1]], [[-3.0, -4.0]] * 9, atol=1e-9)
     np.testing.assert_allclose(offsets[trunk], [[-3.0, 0.0]] * 10, atol=0.05)   # across the aorta only
-    assert np.flatnonzero(untrusted).tolist() == [renal[-1]] and not offsets[renal[-1]].any()
-    frame = SoftAssignment(route.M, at.copy(), np.ones(len(at), dtype=bool), None)
-    moved = offset_targets(frame, found)
-    assert not moved.assigned[renal[-1]] and np.isnan(moved.targets[renal[-1]]).all()
-    assert moved.assigned.sum() == len(at) - 1
+    assert not offsets[renal[-1]].any() and not offsets[aorta[120:122]].any()
+    assert not offsets[np.setdiff1d(np.arange(len(at)), nodes)].any()
 
 
 def test_a_frame_that_draws_its_vessels_narrower_than_the_lumen_takes_no_offset():
@@ -136,12 +132,10 @@ def test_a_frame_that_draws_its_vessels_narrower_than_the_lumen_takes_no_offset(
     not the rendered lumen's (its aorta's 2D radius is 1.5 px against the route's 25)."""
     n = 4
     M = sp.identity(n, format="csr")                          # target j on 2D node j
-    route_widths = np.array([25.0, 25.0, 7.5, 7.5])
-    route = RouteOffsets(np.full((n, 2), 2.0), np.array([False, False, False, True]), route_widths)
+    route = RouteOffsets(np.full((n, 2), 2.0), np.array([25.0, 25.0, 7.5, 7.5]))
     frame = SoftAssignment(M, np.zeros((n, 2)), np.ones(n, dtype=bool), None)
-    like = offset_targets(frame, route, frame_radii=np.array([24.0, 30.0, 7.0, 8.0]))
+    like = offset_targets(frame, route, frame_radii=np.array([24.0, 30.0, 7.0, 20.0]))
     drawn = offset_targets(frame, route, frame_radii=np.array([1.5, 1.5, 1.5, 1.5]))
-    np.testing.assert_allclose(like.targets[:3], 2.0)
-    assert like.assigned.tolist() == [True, True, True, False]
+    np.testing.assert_allclose(like.targets, [[2.0, 2.0]] * 3 + [[0.0, 0.0]])
     np.testing.assert_allclose(drawn.targets, 0.0)
-    assert drawn.assigned.all()
+    assert like.assigned.all() and drawn.assigned.all()
