@@ -152,28 +152,31 @@ def _centred_targets(preop: Preoperative, g2: graph.SkeletonGraph, centred: grap
     """``assignment``'s targets taken at the 2D nodes ``centred`` between the vessel's walls
     (:func:`matching.centre_in_outline`; the matching itself stays on the skeleton as thinned),
     then the upper aorta's held (:func:`_held_upper_aorta`, on the thinned aorta: held on the
-    centred one, the bench phantom's upper aorta slid by up to 13 px along itself)."""
+    centred one, the bench phantom's upper aorta slid by up to 13 px along itself), then moved
+    by the route's own errors on the pre-operative lumen (:func:`_route_offsets`)."""
     if centred is None:
         return _held_upper_aorta(preop, g2, c2, P, visibility, assignment)
     held = _held_upper_aorta(preop, g2, c2, P, visibility, matching.targets_at(assignment, centred.positions))
-    return matching.offset_targets(held, _silhouette_offsets(preop, P, visibility), g2.radii)
+    return matching.offset_targets(held, _route_offsets(preop, P, visibility), g2.radii)
 
 
-def _silhouette_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> matching.RouteOffsets:
+def _route_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> matching.RouteOffsets:
     """:func:`matching.route_offsets` under ``P``, once per ``P``: the pre-operative lumen projected onto
     the frame (:func:`matching.render_lumen`, cut to what the frame exposes) and put through a
     single view's route as the frame is (thinning, Algorithm 1, every candidate match, eqs.
-    (4)-(5), centring, the held upper aorta)."""
+    (4)-(5), centring, the held upper aorta). Kept on ``preop`` for the last ``P`` (a tracked run
+    keeps its geometry from frame to frame)."""
     key = (np.asarray(P, dtype=float).tobytes(), visibility.shape, visibility.exposed)
-    cache = preop.__dict__.setdefault("_silhouette_offsets", {})
-    if key not in cache:
-        cache.clear()
-        assignments, radii2 = _rendered_assignments(preop, P, visibility)
-        cache[key] = matching.route_offsets(preop.graph, P, assignments, preop.classification.node_labels, radii2)
-    return cache[key]
+    kept = preop.__dict__.get("_route_offsets")
+    if kept is not None and kept[0] == key:
+        return kept[1]
+    assignments, radii2 = _rendered_assignments(preop, P, visibility)
+    found = matching.route_offsets(preop.graph, P, assignments, preop.classification.node_labels, radii2)
+    preop.__dict__["_route_offsets"] = (key, found)
+    return found
 
 
-def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> list:
+def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> tuple:
     """The single-view route's assignments (one per candidate match) of the pre-operative tree to its
     own lumen projected through ``P``, and the 2D radii of that route's graph; empty without
     radii or where Algorithm 1 fails on it."""
