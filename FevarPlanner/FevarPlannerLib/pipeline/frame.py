@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -160,20 +161,27 @@ def _centred_targets(preop: Preoperative, g2: graph.SkeletonGraph, centred: grap
     return matching.offset_targets(held, _route_offsets(preop, P, visibility), g2.radii)
 
 
+#: Geometries whose route offsets (:func:`_route_offsets`) are kept on the pre-operative model.
+ROUTE_OFFSETS_KEPT = 8
+
+
 def _route_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> matching.RouteOffsets:
     """:func:`matching.route_offsets` under ``P``, once per ``P``: the pre-operative lumen projected onto
     the frame (:func:`matching.render_lumen`, cut to what the frame exposes) and put through a
     single view's route as the frame is (thinning, Algorithm 1, every candidate match, eqs.
-    (4)-(5), centring, the held upper aorta). Kept on ``preop`` for the last ``P`` (a tracked run
-    keeps its geometry from frame to frame)."""
+    (4)-(5), centring, the held upper aorta). Kept on ``preop`` for the last
+    :data:`ROUTE_OFFSETS_KEPT` geometries (a tracked run keeps its geometry from frame to frame;
+    a frame whose pose check corrects ``P`` uses two, and several views one each)."""
     key = (np.asarray(P, dtype=float).tobytes(), visibility.shape, visibility.exposed)
-    kept = preop.__dict__.get("_route_offsets")
-    if kept is not None and kept[0] == key:
-        return kept[1]
+    kept = preop.__dict__.setdefault("_route_offsets", OrderedDict())
+    if key in kept:
+        kept.move_to_end(key)
+        return kept[key]
     assignments, radii2 = _rendered_assignments(preop, P, visibility)
-    found = matching.route_offsets(preop.graph, P, assignments, preop.classification.node_labels, radii2)
-    preop.__dict__["_route_offsets"] = (key, found)
-    return found
+    kept[key] = matching.route_offsets(preop.graph, P, assignments, preop.classification.node_labels, radii2)
+    while len(kept) > ROUTE_OFFSETS_KEPT:
+        kept.popitem(last=False)
+    return kept[key]
 
 
 def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibility) -> tuple:
