@@ -404,3 +404,22 @@ def phantom_case_fixtures(name: str, seed: int = 11, **changes):
         return preop_model(case)
 
     return case, preop
+
+
+def phantom_run_folder(root, n_frames: int, noise_at=None):
+    """A mask-level phantom case (random seed 4, ``P`` not misaligned) whose ``fluoro.dcm`` is a
+    run of ``n_frames`` noisy angiograms with C-arm tags, and a frame of pure noise inserted at
+    ``noise_at`` when given; its ``fluoro_mask.png`` removed. Returns ``(folder, generated case)``."""
+    from FevarPlannerLib import io
+
+    generated = phantom.generate_case(phantom.random_params(np.random.default_rng(4), misalign_shift_px=(0.0, 0.0),
+                                                            misalign_rotation_deg=0.0), name="run")
+    folder = phantom.write_case(generated, root / "case", mask_only=True)
+    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
+                                    np.random.default_rng(seed))[0] for seed in range(n_frames)]
+    if noise_at is not None:
+        frames.insert(noise_at, np.random.default_rng(7).integers(0, 4096, size=frames[0].shape).astype(frames[0].dtype))
+    io.write_fluoro_dicom(folder / "fluoro.dcm", np.stack(frames), generated.carm)
+    (folder / "fluoro_mask.png").unlink()
+    return folder, generated
+

@@ -10,6 +10,7 @@ import pytest
 from FevarPlannerLib import cache, cli, io, phantom
 from FevarPlannerLib.projection import apply_in_plane_correction, projection_matrix_from_carm
 from FevarPlannerLib.tracking import CSV_COLUMNS, track_case, write_track_outputs
+from fixtures import phantom_run_folder
 
 N_FRAMES = 3
 
@@ -17,14 +18,7 @@ N_FRAMES = 3
 @pytest.fixture(scope="module")
 def run_case_dir(tmp_path_factory):
     """A mask-level phantom case whose fluoro.dcm is a run of N_FRAMES noisy frames with C-arm tags."""
-    generated = phantom.generate_case(phantom.random_params(np.random.default_rng(4), misalign_shift_px=(0.0, 0.0),
-                                                            misalign_rotation_deg=0.0), name="run")
-    folder = phantom.write_case(generated, tmp_path_factory.mktemp("run") / "case", mask_only=True)
-    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
-                                    np.random.default_rng(seed))[0] for seed in range(N_FRAMES)]
-    io.write_fluoro_dicom(folder / "fluoro.dcm", np.stack(frames), generated.carm)
-    (folder / "fluoro_mask.png").unlink()
-    return folder, generated
+    return phantom_run_folder(tmp_path_factory.mktemp("run"), N_FRAMES)
 
 
 @pytest.fixture(scope="module")

@@ -11,22 +11,16 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from FevarPlannerLib import io, phantom, quality, tracking
+from FevarPlannerLib import io, quality, tracking
 from FevarPlannerLib.cache import preop_model
 from FevarPlannerLib.pipeline import workers
+from fixtures import phantom_run_folder
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """(case, pre-operative model, prior) of a phantom run: two noisy angiograms and a frame of noise."""
-    generated = phantom.generate_case(phantom.random_params(np.random.default_rng(4), misalign_shift_px=(0.0, 0.0),
-                                                            misalign_rotation_deg=0.0), name="run")
-    folder = phantom.write_case(generated, tmp_path_factory.mktemp("run") / "case", mask_only=True)
-    frames = [phantom.render_fluoro(generated.intraop, generated.P_true, generated.carm, generated.params,
-                                    np.random.default_rng(seed))[0] for seed in range(2)]
-    frames.insert(1, np.random.default_rng(7).integers(0, 4096, size=frames[0].shape).astype(frames[0].dtype))
-    io.write_fluoro_dicom(folder / "fluoro.dcm", np.stack(frames), generated.carm)
-    (folder / "fluoro_mask.png").unlink()
+    folder, _ = phantom_run_folder(tmp_path_factory.mktemp("run"), 2, noise_at=1)
     case = io.load_case(folder, frame=0)
     preop = preop_model(case, use_cache=False).preop
     return case, preop, quality.FluoroPrior.from_centerline(preop.centerline, case.P)
