@@ -22,7 +22,7 @@ error of an image-only plan against the same case given as masks (issue 11: with
 Develop on seeds 211-216; report on 201-203 and 221-223.
 
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame_masks.py --out OUT \\
-        --seeds 221 222 223 [--reference main] [--end-to-end] [--pngs] [--cache DIR] [--time-1024 15]
+        --seeds 221 222 223 [--reference main] [--end-to-end [--keep DIR]] [--pngs] [--cache DIR] [--time-1024 15]
 
 Writes ``bench_frame_masks.json`` and ``bench_frame_masks.png`` into ``--out`` (with ``--pngs``
 also one overlay per frame: true positives white, false negatives red, false positives blue).
@@ -151,9 +151,9 @@ def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[di
     return rows
 
 
-def end_to_end(seed: int, work: Path) -> dict:
+def end_to_end(seed: int, work: Path, outputs: Path | None = None) -> dict:
     """The seed's case planned from its ``every`` bench frame (unsubtracted, dark) by every route of
-    ``bench_image_only.py``."""
+    ``bench_image_only.py`` (with ``outputs``, each route's outputs in ``outputs/<route>/bench_<seed>``)."""
     from bench_image_only import evaluate_case
 
     from FevarPlannerLib import io
@@ -165,7 +165,7 @@ def end_to_end(seed: int, work: Path) -> dict:
     io.write_fluoro_dicom(folder / "fluoro.dcm", frame.frame, case.carm, patient_name=f"Phantom^{case.name}",
                           patient_id=case.name)
     io.write_mask_png(folder / "fluoro_mask.png", frame.mask)
-    row = evaluate_case(folder, work / "routes")
+    row = evaluate_case(folder, work / "routes", outputs)
     print(row, flush=True)
     return row
 
@@ -252,6 +252,8 @@ def main() -> None:
     parser.add_argument("--pngs", action="store_true", help="an overlay PNG per frame")
     parser.add_argument("--end-to-end", action="store_true", help="plan each seed's 'every' frame by every route")
     parser.add_argument("--no-masks", action="store_true", help="skip the per-frame Dice (with --end-to-end)")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="with --end-to-end: keep the case folders and every route's outputs here")
     parser.add_argument("--time-1024", type=int, default=0, metavar="REPEATS",
                         help="also time the mask stage on bench_frame.py's 1024 x 1024 frames (its default seed, 3)")
     args = parser.parse_args()
@@ -276,7 +278,9 @@ def main() -> None:
         payload["mask_stage_1024"] = mask_stage_times(reference, args.time_1024, 3)
     if args.end_to_end:
         with tempfile.TemporaryDirectory() as tmp:
-            payload["end_to_end"] = [end_to_end(s, Path(tmp)) for s in args.seeds]
+            work = Path(tmp) if args.keep is None else args.keep
+            outputs = None if args.keep is None else args.keep / "outputs"
+            payload["end_to_end"] = [end_to_end(s, work, outputs) for s in args.seeds]
         payload["end_to_end_summary"] = end_to_end_summary(payload["end_to_end"])
         print(payload["end_to_end_summary"], flush=True)
     common.write_report(args.out, "bench_frame_masks", payload)
