@@ -43,12 +43,13 @@ is left as it is.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-__all__ = ["tidy_unsubtracted", "without_cross_branches", "beyond_projected_lumen", "skeleton_directions",
+__all__ = ["tidy_unsubtracted", "without_cross_branches", "without_second_lumens", "renal_frames", "beyond_projected_lumen", "skeleton_directions",
            "cut_renal_bridges", "ACROSS_DEG", "MIN_RUN_PX"]
 
 #: A skeleton pixel runs across the projected tree when its direction is more than this many
@@ -119,6 +120,8 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
     vessel = without_cross_branches(vessel, node_angle, beyond)
     if not vessel.any():
         return vessel, relative
+    frames = prior.derived(("renal_frames",) + tuple(grid_key), lambda: renal_frames(prior, where, grid_key[1]))
+    vessel = without_second_lumens(vessel, frames)
     renal = prior.derived(("renal",) + tuple(grid_key), lambda: _renal_pixels(prior, where))
     inner_band = prior.derived(("inner_band",) + tuple(grid_key),
                                lambda: ndi.binary_erosion(where.band, structure=_EIGHT))
@@ -126,6 +129,130 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
     if bridges.any():
         relative = np.where(bridges, np.float32(1.0), relative)
     return vessel, relative
+
+
+# ----------------------------------------------------------------------------------------
+# A second lumen beside a renal already found: a rail or a catheter along it
+# ----------------------------------------------------------------------------------------
+
+#: A renal's skeleton pixel lies on it when it is at most this many projected radii (+ 1 px)
+#: off the projected renal, and beside it (a second lumen) when more than
+#: :data:`SECOND_LUMEN_RADII` (+ 2 px) off while the mask's skeleton also lies on the renal at
+#: the same place along it (within :data:`SAME_PLACE_PX`).
+ON_RENAL_RADII = 2.0
+SECOND_LUMEN_RADII = 3.0
+SAME_PLACE_PX = 1.5
+#: Pixels this close (px) to the renal's origin are left alone (the aorta's own lumen).
+OSTIUM_PX_RADII = 1.5
+
+
+@dataclass(frozen=True)
+class RenalFrames:
+    """Per pixel of a reduced grid, its place along and off the projected renal nearest to it
+    (:func:`renal_frames`): ``vessel`` the renal's code (-1: not nearest a renal), ``along``
+    (px from the renal's origin, that of its nearest node), ``off`` (px off its projection),
+    ``radius`` (its projected radius, px) and ``ostium`` (how far along the aorta's lumen
+    reaches, px)."""
+
+    vessel: np.ndarray
+    along: np.ndarray
+    off: np.ndarray
+    radius: np.ndarray
+    ostium: float
+
+
+def _projected_arc(prior, nodes: np.ndarray, start: int) -> np.ndarray:
+    """Projected distance (px of the full frame) along the tree's edges from node ``start`` to
+    each of ``nodes`` (one vessel's; inf when not joined)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    local = np.full(len(prior.labels), -1)
+    local[nodes] = np.arange(len(nodes))
+    edges = prior.edges[(local[prior.edges] >= 0).all(axis=1)] if len(prior.edges) else np.zeros((0, 2), int)
+    lengths = np.linalg.norm(prior.uv[edges[:, 0]] - prior.uv[edges[:, 1]], axis=1) + 1e-6
+    graph = coo_matrix((lengths, (local[edges[:, 0]], local[edges[:, 1]])), shape=(len(nodes), len(nodes)))
+    return dijkstra(graph, directed=False, indices=int(local[start]))
+
+
+def renal_frames(prior, where, factor: int) -> RenalFrames:
+    """The :class:`RenalFrames` of the band ``where`` on the grid reduced by ``factor``. A renal's
+    origin is its node nearest to the aorta."""
+    labels = np.asarray(prior.labels)
+    code = np.full(len(labels), -1)
+    arc = np.full(len(labels), np.inf)
+    aorta = np.flatnonzero(labels == "aorta")
+    finite = np.isfinite(prior.uv).all(axis=1)
+    for k, name in enumerate(("renal_left", "renal_right")):
+        nodes = np.flatnonzero((labels == name) & finite)
+        if not len(nodes) or not len(aorta):
+            continue
+        first = nodes[int(np.argmin(cKDTree(prior.points[aorta]).query(prior.points[nodes])[0]))]
+        code[nodes] = k
+        arc[nodes] = _projected_arc(prior, nodes, first) / factor
+    nearest = where.nearest
+    widest = float(prior.radii_px[aorta].max()) / factor if len(aorta) else 0.0
+    return RenalFrames(vessel=code[nearest], along=arc[nearest].astype(np.float32),
+                       off=where.distance, radius=where.radius, ostium=OSTIUM_PX_RADII * widest)
+
+
+def without_second_lumens(vessel: np.ndarray, frames: RenalFrames) -> np.ndarray:
+    """``vessel`` without a second lumen beside a renal that the mask already follows.
+
+    A support rail or a catheter that runs along a renal a few millimetres beside it joins the
+    mask there; Algorithm 1 may then take it for the renal's outer part. A renal has one
+    lumen: where the mask's skeleton lies on the projected renal (within
+    :data:`ON_RENAL_RADII` radii + 1 px), skeleton pixels at the same place along it (within
+    :data:`SAME_PLACE_PX`) but more than :data:`SECOND_LUMEN_RADII` radii (+ 2 px) off it lie
+    in something else; runs of :data:`MIN_RUN_PX` of them are dropped with the mask pixels
+    only they explain. A renal deformed away from its projection keeps its pixels: at its
+    place along it the mask has no skeleton on the projection.
+
+    Parameters
+    ----------
+    vessel : numpy.ndarray of bool, shape (rows, cols)
+    frames : RenalFrames
+        From :func:`renal_frames` on the same grid.
+
+    Returns
+    -------
+    numpy.ndarray of bool, same shape: a subset of ``vessel``.
+    """
+    from skimage.morphology import skeletonize
+
+    from ..skeleton import local_radius
+
+    skeleton = skeletonize(vessel)
+    pixels = np.argwhere(skeleton)
+    rows, cols = pixels.T
+    code = frames.vessel[rows, cols]
+    along = frames.along[rows, cols]
+    usable = (code >= 0) & np.isfinite(along) & (along > frames.ostium)
+    if not usable.any():
+        return vessel
+    off, radius = frames.off[rows, cols], frames.radius[rows, cols]
+    on = usable & (off <= ON_RENAL_RADII * radius + 1.0)
+    beside = usable & (off > SECOND_LUMEN_RADII * radius + 2.0)
+    second = np.zeros(len(pixels), dtype=bool)
+    for k in np.unique(code[beside]):
+        mine_on = on & (code == k)
+        if not mine_on.any():
+            continue
+        mine = np.flatnonzero(beside & (code == k))
+        gap = cKDTree(along[mine_on][:, None]).query(along[mine][:, None])[0]
+        second[mine[gap <= SAME_PLACE_PX]] = True
+    if not second.any():
+        return vessel
+    marked = np.zeros_like(skeleton)
+    marked[rows[second], cols[second]] = True
+    runs, count = ndi.label(marked, structure=_EIGHT)
+    long_run = np.bincount(runs.ravel(), minlength=count + 1) >= MIN_RUN_PX
+    long_run[0] = False
+    dropped = long_run[runs[rows, cols]]
+    if not dropped.any():
+        return vessel
+    depth = local_radius(vessel, pixels) + 0.5
+    return _explained_by(vessel, pixels, depth, ~dropped)
 
 
 def _renal_pixels(prior, where) -> np.ndarray:
