@@ -19,7 +19,10 @@ error of an image-only plan against the same case given as masks (issue 11: with
 ``end_to_end_summary`` gives per seed image-only and frame-segmented minus masks (or
 "refused"), how many image-only plans are within 0.5 mm and how many were refused.
 
-Develop on seeds 211-216; report on 201-203 and 221-223.
+Develop on seeds 211-216; report on 201-203 and 221-223. End to end (issue 11, unsubtracted
+clean-up in ``segmentation/off_tree.py``): development seeds 231-250, held-out 274-279 (run
+once before and once after a change). ``--keep DIR`` keeps the case folders and every route's
+outputs (``overlay.png``, ``segmentation_qc.png`` of a refusal) under ``DIR/outputs/<route>``.
 
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame_masks.py --out OUT \\
         --seeds 221 222 223 [--reference main] [--end-to-end [--keep DIR]] [--pngs] [--cache DIR] [--time-1024 15]
