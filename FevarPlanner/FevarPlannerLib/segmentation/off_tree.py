@@ -230,12 +230,38 @@ def without_second_lumens(vessel: np.ndarray, frames: RenalFrames) -> np.ndarray
     -------
     numpy.ndarray of bool, same shape: a subset of ``vessel``.
     """
+    near_renal = vessel & (frames.vessel >= 0)
+    if not near_renal.any():
+        return vessel
+    box = _padded_box(near_renal, RENAL_BOX_PAD_PX)
+    out = vessel.copy()
+    out[box] = _without_second_lumens_in(vessel[box], RenalFrames(
+        frames.vessel[box], frames.along[box], frames.off[box], frames.radius[box], frames.ostium))
+    return out
+
+
+#: The renals' part of the grid (their pixels' bounding box) is widened by this many pixels
+#: before it is thinned: only there can a second lumen lie.
+RENAL_BOX_PAD_PX = 4
+
+
+def _padded_box(mask: np.ndarray, pad: int) -> tuple:
+    """The bounding box (slices) of a non-empty ``mask`` widened by ``pad``, clipped to it."""
+    rows, cols = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    return (slice(max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, mask.shape[0])),
+            slice(max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, mask.shape[1])))
+
+
+def _without_second_lumens_in(vessel: np.ndarray, frames: RenalFrames) -> np.ndarray:
+    """:func:`without_second_lumens` on a crop of the grid."""
     from skimage.morphology import skeletonize
 
     from ..skeleton import local_radius
 
     skeleton = skeletonize(vessel)
     pixels = np.argwhere(skeleton)
+    if not len(pixels):
+        return vessel
     rows, cols = pixels.T
     code = frames.vessel[rows, cols]
     along = frames.along[rows, cols]
@@ -264,7 +290,8 @@ def without_second_lumens(vessel: np.ndarray, frames: RenalFrames) -> np.ndarray
     if not dropped.any():
         return vessel
     depth = local_radius(vessel, pixels) + 0.5
-    return _explained_by(vessel, pixels, depth, ~dropped)
+    # only the renals' pixels go: the crop's edge cuts the aorta, whose skeleton forks there
+    return vessel & (_explained_by(vessel, pixels, depth, ~dropped) | (frames.vessel < 0))
 
 
 def _renal_pixels(prior, where) -> np.ndarray:
