@@ -840,3 +840,13 @@ def test_segments_of_several_polylines_give_the_nearest_of_each_polylines_distan
                        for c in curves], axis=0)
         assert _same_bits(segments.distances(points), each)
     assert segments._tree is not None
+
+
+@pytest.mark.parametrize("shape, block", [((1024, 1024), 4), ((1001, 777), 3), ((64, 50), 1)])
+def test_block_means_are_the_means_of_whole_blocks(shape, block):
+    from FevarPlannerLib import quality
+
+    image = np.random.default_rng(5).normal(1000.0, 30.0, shape).astype(np.float32)
+    rows, cols = shape[0] // block * block, shape[1] // block * block
+    expected = image[:rows, :cols].reshape(rows // block, block, cols // block, block).mean(axis=(1, 3))
+    np.testing.assert_allclose(quality.block_means(image, block), expected, rtol=1e-6)
