@@ -45,7 +45,12 @@ def _report(progress, fraction: float, message: str) -> None:
 
 @dataclass
 class Preoperative:
-    """The pre-operative 3D skeleton graph, classified and labelled (computed once per patient)."""
+    """The pre-operative 3D skeleton graph, classified and labelled (computed once per patient).
+
+    ``route_offsets`` keeps, per frame geometry, what the single-view route gets wrong on this
+    tree's own projected lumen (:func:`pipeline.frame._route_offsets`): computed on the first
+    frame of a geometry, reused by the frames after it.
+    """
 
     graph: graph.SkeletonGraph
     classification: graph.Classification
@@ -57,6 +62,7 @@ class Preoperative:
         # the kept nodes' own graph (node t is graph node kept[t]), for the per-frame TPS fill
         self.kept_adjacency = self.graph.subgraph(self.kept).adjacency
         self.centre = self.centerline.points.mean(axis=0)
+        self.route_offsets = {}      # per frame geometry, oldest first, filled as frames come
 
 
 def _induced_edges(graph_: graph.SkeletonGraph, nodes: np.ndarray) -> np.ndarray:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,14 +172,14 @@ def _route_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -
     :data:`ROUTE_OFFSETS_KEPT` geometries (a tracked run keeps its geometry from frame to frame;
     a frame whose pose check corrects ``P`` uses two, and several views one each)."""
     key = (np.asarray(P, dtype=float).tobytes(), visibility.shape, visibility.exposed)
-    kept = preop.__dict__.setdefault("_route_offsets", OrderedDict())
+    kept = preop.route_offsets
     if key in kept:
-        kept.move_to_end(key)
+        kept[key] = kept.pop(key)           # the most recently used last
         return kept[key]
     assignments, radii2 = _rendered_assignments(preop, P, visibility)
     kept[key] = matching.route_offsets(preop.graph, P, assignments, preop.classification.node_labels, radii2)
     while len(kept) > ROUTE_OFFSETS_KEPT:
-        kept.popitem(last=False)
+        del kept[next(iter(kept))]
     return kept[key]
 
 
