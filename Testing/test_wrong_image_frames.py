@@ -22,6 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent / "benchmarks"))
 bench = pytest.importorskip("bench_wrong_frames")
 
 ROWS, COLS = 24, 32
+PIXEL_DATA = 0x7FE00010
 
 
 def ramp_frames(n: int) -> np.ndarray:
@@ -36,6 +37,10 @@ def write_dicom(path: Path, frames: np.ndarray) -> Path:
     return path
 
 
+def tags_but_pixels(dataset) -> dict:
+    return {element.tag: element.value for element in dataset if element.tag != PIXEL_DATA}
+
+
 @pytest.mark.parametrize("n_frames", [1, 3])
 def test_flipped_dicom_keeps_its_tags_and_mirrors_its_pixels(tmp_path, n_frames):
     frames = ramp_frames(n_frames)
@@ -43,8 +48,7 @@ def test_flipped_dicom_keeps_its_tags_and_mirrors_its_pixels(tmp_path, n_frames)
     before = pydicom.dcmread(path)
     bench.flip_frame_file(path)
     after = pydicom.dcmread(path)
-    tags = lambda ds: {e.tag: e.value for e in ds if e.tag != 0x7FE00010}   # noqa: E731  (all but PixelData)
-    assert tags(after) == tags(before)
+    assert tags_but_pixels(after) == tags_but_pixels(before)
     assert after.file_meta.TransferSyntaxUID == before.file_meta.TransferSyntaxUID
     np.testing.assert_array_equal(after.pixel_array, before.pixel_array[..., ::-1])
     read = io.read_fluoro(path, frame=n_frames - 1)
