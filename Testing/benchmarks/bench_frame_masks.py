@@ -154,11 +154,9 @@ def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[di
     return rows
 
 
-def end_to_end(seed: int, work: Path, outputs: Path | None = None) -> dict:
-    """The seed's case planned from its ``every`` bench frame (unsubtracted, dark) by every route of
-    ``bench_image_only.py`` (with ``outputs``, each route's outputs in ``outputs/<route>/bench_<seed>``)."""
-    from bench_image_only import evaluate_case
-
+def write_end_to_end_case(seed: int, work: Path) -> Path:
+    """The seed's case folder ``work/cases/bench_<seed>`` whose frame (``fluoro.dcm``) is its ``every``
+    bench frame (unsubtracted, dark), with that frame's true mask (``fluoro_mask.png``) beside it."""
     from FevarPlannerLib import io
     from FevarPlannerLib.phantom import write_case
 
@@ -168,6 +166,15 @@ def end_to_end(seed: int, work: Path, outputs: Path | None = None) -> dict:
     io.write_fluoro_dicom(folder / "fluoro.dcm", frame.frame, case.carm, patient_name=f"Phantom^{case.name}",
                           patient_id=case.name)
     io.write_mask_png(folder / "fluoro_mask.png", frame.mask)
+    return folder
+
+
+def end_to_end(seed: int, work: Path, outputs: Path | None = None) -> dict:
+    """The seed's case (:func:`write_end_to_end_case`) planned by every route of ``bench_image_only.py``
+    (with ``outputs``, each route's outputs in ``outputs/<route>/bench_<seed>``)."""
+    from bench_image_only import evaluate_case
+
+    folder = write_end_to_end_case(seed, work)
     row = evaluate_case(folder, work / "routes", outputs)
     print(row, flush=True)
     return row

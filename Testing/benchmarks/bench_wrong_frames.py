@@ -5,21 +5,28 @@ Right case folders: the scenario family's quick sets (one case per kind, every k
 image_only, ``--scenario-seeds``; two_views and bench_pinhole included), random paper-phantom
 cases (``--phantom-seed``, ``--phantoms``) and paper-protocol cases (``--paper-seed``,
 ``--papers``: states of one phantom, right frames only), and right frames of random phantoms
-deformed ``--large-scale`` times the usual (``--large``). The paper benchmark
+deformed ``--large-scale`` times the usual (``--large``). Image-only right cases (the frame an
+image to be segmented, no mask) when asked for: the scenario kind ``image_only``
+(``--scenario-kinds image_only``: ``ct.nrrd`` + 16-bit ``fluoro.png``; its ``_masks`` twin is
+left out) and ``bench_frame_masks.py``'s unsubtracted end-to-end cases (``--bench-frames
+SEEDS``: DICOM CT + ``fluoro.dcm``). The paper benchmark
 (``fevar-planner benchmark``) calls the registration directly and never meets these gates;
 here its cases go through ``plan`` like any case folder. From each right case it writes wrong ones beside it:
 
-* ``swap``: the frame (every view's ``fluoro_mask.png``) of another case, filed in this
-  folder, with this case's geometry;
+* ``swap``: the frame (every view's frame files: ``fluoro_mask.png``, or the image
+  ``fluoro.png`` / ``fluoro.dcm`` of an image-only case) of another case with frame files of
+  the same names, filed in this folder, with this case's geometry;
 * ``swap_geometry``: another case's frame with that case's own geometry (a whole frame of
   another patient);
-* ``mirror``: this case's frame flipped left-right (the wrong side convention);
+* ``mirror``: this case's frame flipped left-right (the wrong side convention; a DICOM frame
+  rewritten with its pixel data flipped and every tag kept);
 * ``mirror_first_view`` / ``mirror_other_view`` (not built unless asked for; cases with
   several views only): the first view's frame / the last view's alone flipped left-right;
 * ``angle``: this case's frame with the geometry of a view 40 degrees away (LAO 40 labelled as
   the given view: the projection rotated about the patient's long axis through the tree);
 * ``late``: this case's frame taken after the bolus, the renal arteries gone (their pixels,
-  those nearest to the true projection of the renal nodes, erased).
+  those nearest to the true projection of the renal nodes, erased); mask cases only (an
+  image's renals would have to be painted over with background, not built).
 
 Each folder runs through ``pipeline.plan_case`` (the CLI's route, proposed method). A refusal
 is a :class:`files.InputError` (exit code 2 in the CLI). Reported per kind: the refusal rate,
@@ -35,6 +42,9 @@ numbers), ``wrong_frames.png`` (refusal rate per kind) and the case folders unde
     .venv/bin/python Testing/benchmarks/bench_wrong_frames.py --out OUT --scenario-seeds 125 126 \
         --scenario-kinds two_views --all-cases --phantoms 0 --papers 0 \
         --wrong-kinds mirror_first_view mirror_other_view
+    # image-only right cases (scenario kind image_only, bench frames 241-249):
+    .venv/bin/python Testing/benchmarks/bench_wrong_frames.py --out OUT --scenario-seeds 300 0 \
+        --scenario-kinds image_only --phantoms 0 --papers 0 --bench-frames 241 242 243
 """
 
 from __future__ import annotations
@@ -57,6 +67,8 @@ VIEW_KINDS = ("mirror_first_view", "mirror_other_view")
 #: The angle kind: the given geometry is that of a view this far (degrees) about the patient's long axis.
 ANGLE_DEG = 40.0
 RENALS = ("renal_left", "renal_right")
+#: The case inputs (``io.CASE_INPUTS``) that are frame files.
+FRAME_INPUTS = ("fluoro", "fluoro_mask")
 #: Kinds of right case that get no wrong frames built from them.
 RIGHT_ONLY = ("paper", "large")
 
@@ -75,7 +87,8 @@ def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_p
     for seed in scenario_seeds:
         for kind, folder in independent_case_folders(root / f"scenarios_seed{seed}", quick=not all_cases, seed=seed,
                                                      kinds=scenario_kinds):
-            cases.append((f"scenarios_seed{seed}", kind, Path(folder)))
+            if kind != "image_only_masks":      # the image_only kind's mask twin: its images are the point
+                cases.append((f"scenarios_seed{seed}", kind, Path(folder)))
     if phantom_seed is not None and n_phantoms > 0:
         where = root / f"phantom_seed{phantom_seed}"
         folders = sorted(where.glob("*/gt.json"))
@@ -89,6 +102,24 @@ def right_case_folders(root: Path, scenario_seeds, phantom_seed: int | None, n_p
             write_phantom_set(where, n=n_papers, seed=paper_seed, preset="paper", mask_only=True)
         for folder in sorted(p for p in where.iterdir() if (p / "gt.json").is_file())[:n_papers]:
             cases.append((f"paper_seed{paper_seed}", "paper", folder))
+    return cases
+
+
+def bench_frame_folders(root: Path, seeds) -> list:
+    """Image-only right cases of ``bench_frame_masks.py --end-to-end``: each seed's bench phantom
+    with its unsubtracted ``every`` frame as ``fluoro.dcm`` and its CT, no mask (the case written
+    by ``bench_frame_masks.write_end_to_end_case``, cut to ``bench_image_only``'s ``image_only``
+    route); ``[("bench_frames", "bench_unsubtracted", folder)]``."""
+    from bench_frame_masks import write_end_to_end_case
+    from bench_image_only import route_folder
+
+    cases = []
+    for seed in seeds:
+        folder = root / "bench_frames" / "image_only" / f"bench_{seed}"
+        if not (folder / "gt.json").is_file():
+            full = write_end_to_end_case(seed, root / "bench_frames")
+            folder = route_folder(full, "image_only", root / "bench_frames")
+        cases.append(("bench_frames", "bench_unsubtracted", folder))
     return cases
 
 
@@ -110,13 +141,33 @@ def large_deformation_folders(root: Path, first_seed: int, n: int, scale: float)
     return cases
 
 
+def _frame_files(where: Path) -> list:
+    """The frame files of one view's folder, as the case reader finds them: the image
+    (``fluoro.dcm``, ``fluoro.png`` ...) and / or the mask (``fluoro_mask.png``)."""
+    from FevarPlannerLib.io import CASE_INPUTS, find_case_file
+
+    found = (find_case_file(where, *CASE_INPUTS[name]) for name in FRAME_INPUTS)
+    return [path for path in found if path is not None]
+
+
 def _frame_folders(case: Path) -> dict:
     """View name -> the folder holding that view's frame files (``main``: the case folder)."""
     found = {"main": case}
     views = case / "views"
     if views.is_dir():
-        found.update({p.name: p for p in sorted(views.iterdir()) if (p / "fluoro_mask.png").is_file()})
+        found.update({p.name: p for p in sorted(views.iterdir()) if p.is_dir() and _frame_files(p)})
     return found
+
+
+def image_only(case: Path) -> bool:
+    """True when the case's frame is an image to be segmented (no ``fluoro_mask`` given)."""
+    names = [path.name for path in _frame_files(case)]
+    return bool(names) and not any(name.startswith("fluoro_mask") for name in names)
+
+
+def _frame_signature(case: Path) -> tuple:
+    """The names of the case's frame files: frames are swapped only between cases alike."""
+    return tuple(path.name for path in _frame_files(case))
 
 
 def _truth(case: Path) -> dict:
@@ -142,6 +193,34 @@ def _write_png(path: Path, array: np.ndarray) -> None:
     Image.fromarray(array).save(path)
 
 
+def flip_dicom(path: Path) -> None:
+    """Rewrite a DICOM frame file with every frame flipped left-right, every tag kept
+    (uncompressed transfer syntaxes only)."""
+    import pydicom
+
+    dataset = pydicom.dcmread(path)
+    if dataset.file_meta.TransferSyntaxUID.is_compressed:
+        raise ValueError(f"{path}: compressed pixel data ({dataset.file_meta.TransferSyntaxUID.name}), not flipped")
+    pixels = dataset.pixel_array
+    dataset.PixelData = np.ascontiguousarray(pixels[..., ::-1]).tobytes()
+    dataset.save_as(path)
+
+
+def flip_frame_file(path: Path) -> None:
+    """Flip a frame file left-right in place, in its own format: DICOM (tags kept) or a raster
+    image (mode and bit depth kept; a JPEG is re-encoded)."""
+    from PIL import Image
+
+    from FevarPlannerLib.io import DICOM_SUFFIXES
+
+    if path.suffix.lower() in DICOM_SUFFIXES:
+        flip_dicom(path)
+        return
+    with Image.open(path) as image:
+        flipped = image.transpose(Image.Transpose.FLIP_LEFT_RIGHT)
+    flipped.save(path)
+
+
 def _copy_case(source: Path, target: Path) -> Path:
     if target.exists():
         shutil.rmtree(target)
@@ -158,18 +237,23 @@ def _swapped(case: Path, other: Path, target: Path, with_geometry: bool) -> Path
         if name not in theirs:
             shutil.rmtree(where)
             continue
-        shutil.copy2(theirs[name] / "fluoro_mask.png", where / "fluoro_mask.png")
+        for mine in _frame_files(where):
+            mine.unlink()
+        for frame in _frame_files(theirs[name]):
+            shutil.copy2(frame, where / frame.name)
         if with_geometry:
             shutil.copy2(theirs[name] / "geometry.json", where / "geometry.json")
     return folder
 
 
 def _mirrored(case: Path, target: Path, views=None) -> Path:
-    """``case`` with the frames of ``views`` (names; default every view) flipped left-right."""
+    """``case`` with the frames of ``views`` (names; default every view) flipped left-right: every
+    frame file of the view (mask and / or image, DICOM with its tags kept)."""
     folder = _copy_case(case, target)
     for name, where in _frame_folders(folder).items():
         if views is None or name in views:
-            _write_png(where / "fluoro_mask.png", _read_png(where / "fluoro_mask.png")[:, ::-1].copy())
+            for frame in _frame_files(where):
+                flip_frame_file(frame)
     return folder
 
 
@@ -217,13 +301,17 @@ def _late(case: Path, target: Path) -> Path:
 def wrong_case_folders(rights: list, root: Path, kinds=WRONG_KINDS) -> list:
     """Every wrong kind of every right case; ``[(family, wrong kind, folder, right folder)]``.
 
-    The frame swapped in comes from the next right case of the list (another anatomy: each
-    scenario kind and each random phantom draws its own tree); paper-protocol cases (states of
-    one phantom) and large-deformation phantoms take no part."""
+    The frame swapped in comes from the next right case of the list whose frame files have the
+    same names (another anatomy: each scenario kind and each random phantom draws its own tree;
+    a mask for a mask, a DICOM for a DICOM); paper-protocol cases (states of one phantom) and
+    large-deformation phantoms take no part. Image-only cases get no ``late`` kind (the renals
+    are erased from a mask; an image would need them painted over)."""
     made = []
     sources = [right for right in rights if right[1] not in RIGHT_ONLY]
     for n, (family, kind, case) in enumerate(sources):
-        other = sources[(n + 1) % len(sources)][2]
+        alike = [right for right in sources[n + 1:] + sources[:n + 1]
+                 if _frame_signature(right[2]) == _frame_signature(case)]
+        other = alike[0][2]        # the case itself when none is alike: no swap kinds then
         base = root / family / case.name
         views = list(_frame_folders(case))
         builders = {"swap": lambda t: _swapped(case, other, t, False),
@@ -233,7 +321,8 @@ def wrong_case_folders(rights: list, root: Path, kinds=WRONG_KINDS) -> list:
                     "mirror_first_view": lambda t: _mirrored(case, t, views[:1]),
                     "mirror_other_view": lambda t: _mirrored(case, t, views[-1:])}
         for wrong in kinds:
-            if wrong in VIEW_KINDS and len(views) < 2:
+            if ((wrong in VIEW_KINDS and len(views) < 2) or (wrong == "late" and image_only(case))
+                    or (wrong.startswith("swap") and other == case)):
                 continue
             made.append((family, wrong, builders[wrong](base / wrong), case))
     return made
@@ -292,12 +381,21 @@ def _rate(rows: list) -> dict:
 
 
 def summarise(runs: list) -> dict:
-    """Refusal rate per wrong kind and per family of right frames (false refusals)."""
-    summary = {"wrong": {}, "right": {}}
+    """Refusal rate per wrong kind (all, per family, and of the cases whose right frame was
+    answered) and per family of right frames (false refusals)."""
+    summary = {"wrong": {}, "wrong_by_family": {}, "wrong_right_answered": {}, "right": {}}
     for kind in WRONG_KINDS + VIEW_KINDS:
         if any(r["kind"] == kind for r in runs):
             summary["wrong"][kind] = _rate([r for r in runs if r["kind"] == kind])
+            summary["wrong_by_family"][kind] = {
+                family: _rate([r for r in runs if r["kind"] == kind and r["family"] == family])
+                for family in sorted({r["family"] for r in runs if r["kind"] == kind})}
     right = [r for r in runs if r["kind"] == "right"]
+    # a wrong frame of a case whose right frame is refused too (its CT, say) says nothing of the gates
+    refused_rights = {(r["family"], r["case"]) for r in right if r["refused"]}
+    for kind in summary["wrong"]:
+        summary["wrong_right_answered"][kind] = _rate([r for r in runs if r["kind"] == kind
+                                                       and (r["family"], r["case"]) not in refused_rights])
     for family in sorted({r["family"] for r in right}):
         summary["right"][family] = _rate([r for r in right if r["family"] == family])
     summary["right"]["all"] = _rate(right)
@@ -341,12 +439,16 @@ def main(argv=None) -> int:
                         help="right frames of this many random phantoms with a larger deformation")
     parser.add_argument("--large-seed", type=int, default=600)
     parser.add_argument("--large-scale", type=float, default=2.0, help="their deformation_scale")
+    parser.add_argument("--bench-frames", type=int, nargs="*", default=[], metavar="SEED",
+                        help="image-only right cases: bench_frame_masks.py's unsubtracted end-to-end cases of these seeds")
     parser.add_argument("--cases", type=Path, default=None, help="where the case folders go (default OUT/cases)")
     args = parser.parse_args(argv)
     cases = args.cases or args.out / "cases"
     started = time.perf_counter()
     rights = right_case_folders(cases / "right", args.scenario_seeds, args.phantom_seed, args.phantoms,
                                 args.paper_seed, args.papers, args.scenario_kinds, args.all_cases)
+    if args.bench_frames:
+        rights += bench_frame_folders(cases / "right", args.bench_frames)
     if args.large:
         rights += large_deformation_folders(cases / "right", args.large_seed, args.large, args.large_scale)
     wrongs = wrong_case_folders(rights, cases / "wrong", args.wrong_kinds)
@@ -361,6 +463,7 @@ def main(argv=None) -> int:
     summary = summarise(runs)
     args.out.mkdir(parents=True, exist_ok=True)
     report = {"version": 1, "scenario_seeds": args.scenario_seeds, "phantom_seed": args.phantom_seed,
+              "bench_frames": args.bench_frames,
               "wall_s": time.perf_counter() - started, "summary": summary, "runs": runs}
     (args.out / "wrong_frames.json").write_text(json.dumps(report, indent=1))
     figure(args.out / "wrong_frames.png", summary)
