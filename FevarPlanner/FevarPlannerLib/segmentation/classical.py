@@ -643,13 +643,18 @@ def _refuse_a_faded_lumen(ct: Volume, traces: list, labels: np.ndarray) -> None:
                                QCData(ct=ct, lumen=ct.with_array(labels > 0)))
 
 
+def _untraced_below_mm(ct: Volume, down: _Trace) -> tuple[int, float]:
+    """The downward trace's last slice and how far (mm) the scan runs on below it."""
+    k_end = min(down.centres, key=lambda k: -k * down.step)
+    k_scan_end = ct.shape[0] - 1 if down.step > 0 else 0
+    return k_end, abs(k_scan_end - k_end) * float(ct.spacing[2])
+
+
 def _refuse_an_aorta_lost_above_the_scan_end(ct: Volume, down: _Trace, labels: np.ndarray) -> None:
     """Raise a one-line QualityError if the downward aorta trace ended, without the iliac
     bifurcation, more than :data:`MAX_UNTRACED_BELOW_MM` above the scan's lower end: the aorta
     was lost in the abdomen (FEVAR's region), not cut by the field of view."""
-    k_end = min(down.centres, key=lambda k: -k * down.step)
-    k_scan_end = ct.shape[0] - 1 if down.step > 0 else 0
-    untraced = abs(k_scan_end - k_end) * float(ct.spacing[2])
+    k_end, untraced = _untraced_below_mm(ct, down)
     if untraced > MAX_UNTRACED_BELOW_MM:
         z = float(ct.index_to_lps(np.array([k_end, 0.0, 0.0]))[2])
         raise QualityError(f"aorta lost in the abdomen: the trace stops at z = {z:.0f} mm, {untraced:.0f} mm above the "
@@ -697,6 +702,16 @@ def _trace_iliacs(ct: Volume, traces_of_aorta: list, labels: np.ndarray, counter
     down = traces_of_aorta[1]
     lumen_hu = down.lumen_hu
     seeds = _bifurcation(ct, down, lumen_hu, distal_radius=_distal_radius(traces_of_aorta))
+    if not seeds and _untraced_below_mm(ct, down)[1] > MAX_UNTRACED_BELOW_MM:
+        # the trace ran on down one iliac (the other left it gradually, never as a second lumen of
+        # its cross-section) and lost it: its typical radius is the iliac's, so look again from
+        # where the upper half of the downward trace, or of the whole traced aorta (a seed just
+        # above the bifurcation), last had the aorta's own width
+        for traces in ([down], traces_of_aorta):
+            seeds = _bifurcation(ct, down, lumen_hu, distal_radius=_distal_radius(traces_of_aorta),
+                                 typical=_upper_half_radius(traces, down.step))
+            if seeds:
+                break
     if seeds:
         _cut_trace_below(down, seeds[0][0], labels)
         _fill_crotch(ct, down, seeds[0][0], lumen_hu, labels)
@@ -768,8 +783,18 @@ def _distal_radius(traces_of_aorta: list, n_slices: int = 10) -> float:
     return float(np.median([radii[k] for k in lowest]))
 
 
+def _upper_half_radius(traces: list, down: int) -> float:
+    """Median radius over the upper half of the slices ``traces`` ran through (``down``: the
+    slice step towards the feet)."""
+    radii = {}
+    for trace in traces:
+        radii.update(trace.radii)
+    ks = sorted(radii, key=lambda k: k * down)
+    return float(np.median([radii[k] for k in ks[:max(1, len(ks) // 2)]]))
+
+
 def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, tolerance_mm: float = 10.0,
-                 distal_radius: float = 0.0) -> list:
+                 distal_radius: float = 0.0, typical: float | None = None) -> list:
     """Where the downward aorta trace splits into the common iliacs, or [].
 
     The split lies near or below the last slice where the trace still had the aorta's width
@@ -777,15 +802,17 @@ def _bifurcation(ct: Volume, aorta: _Trace, lumen_hu, search_mm: float = 30.0, t
     down to the trace's end, the first traced slice whose next slice holds :func:`_two_lumens`;
     else the first such slice within ``search_mm`` below that last full-width slice or below
     the trace's end. An aorta that keeps its width to the end of the scan has no split. The
-    aortic radius each test uses is at least ``distal_radius`` (:func:`_distal_radius`).
+    aortic radius each test uses is at least ``distal_radius`` (:func:`_distal_radius`); the
+    aorta's full width is 0.85 of ``typical`` (default: the median over the whole trace).
 
     Returns
     -------
     list of (k, centre_ji, radius_mm), two entries or none
     """
     ks = sorted(aorta.centres, key=lambda k: k * aorta.step)
-    typical = float(np.median([aorta.radii[k] for k in ks]))
-    k_wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical][-1]     # the last slice of full aortic width
+    typical = float(np.median([aorta.radii[k] for k in ks])) if typical is None else typical
+    wide = [k for k in ks if aorta.radii[k] >= 0.85 * typical] or ks[:1]
+    k_wide = wide[-1]     # the last slice of full aortic width
     first = k_wide - aorta.step * int(round(tolerance_mm / ct.spacing[2]))
     for k in ks:
         below = k + aorta.step
