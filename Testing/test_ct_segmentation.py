@@ -166,3 +166,21 @@ def test_a_vessel_phantom_without_a_skeleton_is_segmented_without_a_spine(monkey
     assert not is_boneless(patient_like)        # the phantom CT with its body and spine still needs the spine
     with pytest.raises(QualityError, match=r"no round blob .* \(a scan without bone, a vessel phantom"):
         seg.segment_ct_classical(ct.with_array(np.full(ct.shape, -1000, dtype=np.int16)))
+
+
+def test_iliacs_that_part_gradually_are_found_where_the_trace_ran_on_down_one(tmp_path):
+    """Scenario seed 0, image-only case 00: the iliacs part gradually, so the downward trace never
+    saw a second lumen in its cross-section and ran on down one iliac (radius 16.5 -> 5.7 mm)
+    until it lost it; the CT was refused ("aorta lost in the abdomen"). The bifurcation is now
+    looked for again from where the traced aorta last had its own width."""
+    from FevarPlannerLib import io
+    from FevarPlannerLib.scenarios import plan_scenarios, write_scenario
+
+    plan = plan_scenarios("image_only", 4, 0)[0]
+    ct = io.load_case(write_scenario(plan, tmp_path / "images")).ct
+    given = io.load_case(write_scenario(plan, tmp_path / "masks", images=False)).aorta_mask
+    from FevarPlannerLib.segmentation.classical import trace_aorta
+
+    _, traces, _ = trace_aorta(ct)
+    assert [trace.name for trace in traces].count("iliac") == 2
+    assert seg.dice(seg.segment_ct(ct, "classical").array > 0, given.array > 0) > 0.99
