@@ -83,6 +83,12 @@ def _wall_offsets(mask: np.ndarray, centres: np.ndarray, normals: np.ndarray, re
     return np.where(found, wall, np.nan)
 
 
+def _chain_tangents(g: SkeletonGraph, along: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """For degree-2 ``nodes`` of ``g``: ``along`` at the second neighbour minus at the first (not normalised)."""
+    slot = g.adjacency.indptr[nodes]
+    return along[g.adjacency.indices[slot + 1]] - along[g.adjacency.indices[slot]]
+
+
 def centre_in_outline(g2: SkeletonGraph, mask: np.ndarray) -> SkeletonGraph:
     """``g2`` with each connection node moved across its vessel to the midpoint of the walls.
 
@@ -110,11 +116,9 @@ def centre_in_outline(g2: SkeletonGraph, mask: np.ndarray) -> SkeletonGraph:
         movable = movable[near > JUNCTION_RADII * radii[movable]]
     if len(movable) == 0:
         return g2
-    slot = g2.adjacency.indptr[movable]
     # the tangent over a few px of the chain: from neighbour to neighbour it turns by whole
     # pixel steps, and a tilted normal meets a sac's walls far from where the midline is
-    along = smooth_positions(g2, TANGENT_SMOOTHING).positions
-    tangent = along[g2.adjacency.indices[slot + 1]] - along[g2.adjacency.indices[slot]]
+    tangent = _chain_tangents(g2, smooth_positions(g2, TANGENT_SMOOTHING).positions, movable)
     length = np.linalg.norm(tangent, axis=1)
     keep = length > 0
     movable, tangent = movable[keep], tangent[keep] / length[keep, None]
@@ -136,7 +140,6 @@ def targets_at(assignment, positions: np.ndarray):
     ``positions`` (the 2D nodes' positions, e.g. :func:`centre_in_outline`'s) instead of those it
     was computed on; ``M`` and which nodes are assigned unchanged."""
     return dataclasses.replace(assignment, targets=targets_of(assignment.M, positions, assignment.assigned))
-
 
 
 #: Spacing of the spheres :func:`render_lumen` sweeps along each 3D edge: this share of the smaller
@@ -209,9 +212,7 @@ MAIN_COURSE = ("aorta", "iliac_left", "iliac_right")
 def _across(g3: SkeletonGraph, P: np.ndarray, nodes: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """``vectors`` (len(nodes), 2) less their part along the projected tangent of each of ``nodes``
     (degree-2 nodes; the tangent over a few nodes of the smoothed chain, as in :func:`centre_in_outline`)."""
-    along = project(P, smooth_positions(g3, TANGENT_SMOOTHING).positions)
-    slot = g3.adjacency.indptr
-    tangent = along[g3.adjacency.indices[slot[nodes] + 1]] - along[g3.adjacency.indices[slot[nodes]]]
+    tangent = _chain_tangents(g3, project(P, smooth_positions(g3, TANGENT_SMOOTHING).positions), nodes)
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
     return vectors - np.sum(vectors * tangent, axis=1)[:, None] * tangent
 
