@@ -12,7 +12,7 @@ from scipy import ndimage as ndi
 
 from ..files import InputError
 from ..quality import DEFORMATION_MARGIN_MM, FluoroPrior
-from .off_tree import tidy_unsubtracted
+from .off_tree import tidy_unsubtracted, without_small_pieces
 from .threshold import _remove_small_objects
 
 
@@ -624,11 +624,12 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     expected_length = prior.derived(("wide_length", small_shape, factor), lambda: _wide_tree_length(prior, factor, small_shape))
     if _wide_vessels_are_blocks(vessel, widest, oriented, expected_length):
         return np.zeros(frame.shape, dtype=bool)        # bones, no contrast: nothing to segment
-    if flat:
-        vessel = _remove_small_objects(vessel, min_area_fraction * total)
+    grid_key = (small_shape, factor, reach)
+    if flat:    # subtracted: only a renal cut off at the aorta's edge is bridged (off_tree.py)
+        vessel, relative = without_small_pieces(vessel, prior, where, grid_key, min_area_fraction * total, relative)
     else:       # unsubtracted: bones and rulers across the vessels, cut-off branches (off_tree.py)
-        vessel, relative = tidy_unsubtracted(vessel, prior, where, widest, (small_shape, factor, reach),
-                                             min_area_fraction * total, relative)
+        vessel, relative = tidy_unsubtracted(vessel, prior, where, widest, grid_key, min_area_fraction * total,
+                                             relative)
     soft = _soft_extent(vessel, relative, contrast_fraction)
     full = np.zeros(frame.shape, dtype=bool)
     full[rows.start * factor:rows.stop * factor, cols.start * factor:cols.stop * factor] = \

@@ -110,9 +110,8 @@ def _axis_difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
 def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid_key: tuple,
                       min_area: float, relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The last clean-up of an unsubtracted frame's reduced-grid ``vessel`` mask: branches across
-    the projected tree dropped (:func:`without_cross_branches`), a renal cut off at its ostium
-    bridged back (:func:`cut_renal_bridges`), then pieces smaller than ``min_area`` pixels (as
-    on every frame).
+    the projected tree dropped (:func:`without_cross_branches`), a second lumen beside a renal
+    dropped (:func:`without_second_lumens`), then :func:`without_small_pieces`.
 
     ``prior`` is the :class:`quality.FluoroPrior`, ``where`` its band on this grid
     (:meth:`FluoroPrior.band`), ``widest`` the widest projected radius nearby (px);
@@ -121,26 +120,46 @@ def tidy_unsubtracted(vessel: np.ndarray, prior, where, widest: np.ndarray, grid
 
     Returns
     -------
-    (vessel, relative): the mask, and ``relative`` with the bridges at full contrast (a copy
-    when there are bridges) so that the soft extent keeps them.
+    (vessel, relative): as :func:`without_small_pieces`.
     """
-    from .fluoro import _node_directions
-
-    node_angle = prior.derived(("node_angle",) + tuple(grid_key),
-                               lambda: _node_directions(prior).astype(np.float32)[where.nearest])
     beyond = prior.derived(("beyond_lumen",) + tuple(grid_key), lambda: beyond_projected_lumen(where, widest))
-    vessel = without_cross_branches(vessel, node_angle, beyond)
+    vessel = without_cross_branches(vessel, _node_angle(prior, where, grid_key), beyond)
     if not vessel.any():
         return vessel, relative
     frames = prior.derived(("renal_frames",) + tuple(grid_key), lambda: renal_frames(prior, where, grid_key[1]))
     vessel = without_second_lumens(vessel, frames)
+    return without_small_pieces(vessel, prior, where, grid_key, min_area, relative)
+
+
+def without_small_pieces(vessel: np.ndarray, prior, where, grid_key: tuple, min_area: float,
+                         relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame's last step on the reduced grid: pieces smaller than ``min_area`` pixels
+    dropped, but a renal cut off at its ostium (by a bone's edge, or in a subtracted frame by
+    the aorta's own edge) bridged back first (:func:`cut_renal_bridges`).
+
+    Arguments as :func:`tidy_unsubtracted`.
+
+    Returns
+    -------
+    (vessel, relative): the mask, and ``relative`` with the bridges at full contrast (a copy
+    when there are bridges) so that the soft extent keeps them.
+    """
     renal = prior.derived(("renal",) + tuple(grid_key), lambda: _renal_pixels(prior, where))
     inner_band = prior.derived(("inner_band",) + tuple(grid_key),
                                lambda: ndi.binary_erosion(where.band, structure=_EIGHT))
-    vessel, bridges = without_small_pieces_but_cut_renals(vessel, where, node_angle, renal, min_area, inner_band)
+    vessel, bridges = without_small_pieces_but_cut_renals(vessel, where, _node_angle(prior, where, grid_key), renal,
+                                                          min_area, inner_band)
     if bridges.any():
         relative = np.where(bridges, np.float32(1.0), relative)
     return vessel, relative
+
+
+def _node_angle(prior, where, grid_key: tuple) -> np.ndarray:
+    """Per pixel of the grid, the axis angle of the nearest projected vessel (cached on the prior)."""
+    from .fluoro import _node_directions
+
+    return prior.derived(("node_angle",) + tuple(grid_key),
+                         lambda: _node_directions(prior).astype(np.float32)[where.nearest])
 
 
 # ----------------------------------------------------------------------------------------
