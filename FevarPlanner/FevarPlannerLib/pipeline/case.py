@@ -156,7 +156,7 @@ def run_case(case: Case, *, method: str = "proposed", progress=None, start: str 
         if outcome.check_error is not None:
             _raise_check_error(outcome.check_error, view, view is views[0], qc)
     if failure is not None:
-        raise failure
+        _raise_registration_failure(failure, outcomes, views[0], qc)
     timings.update(frame.timings)
     timings["registration"] = frame.timings["intraop"]
     flipped = None
@@ -216,6 +216,19 @@ def _raise_check_error(error: Exception, view: View, first: bool, qc) -> None:
         if first:
             raise
         raise quality.QualityError(f"view {view.name}: {exc}", qc) from None
+
+
+def _raise_registration_failure(failure: Exception, outcomes, first: View, qc) -> None:
+    """Raise what the registration raised; when Algorithm 1 found the five main branches in no
+    view's vessel mask, as a refusal of the frame with its QC picture (the mask over the frame
+    and the projected tree show which vessel is missing or merged)."""
+    states = [outcome.view for outcome in outcomes]
+    if isinstance(failure, ValueError) and states and all(s is not None and s.unclassified for s in states):
+        with _blamed_on(_view_frame_path(first)):
+            raise quality.QualityError(f"frame check: the frame's vessels do not make the five main branches "
+                                       f"({states[0].unclassified}): a vessel is missing from the vessel mask or "
+                                       f"merged with another (see segmentation_qc.png)", qc) from None
+    raise failure
 
 
 def _view_frame_path(view: View):
