@@ -650,18 +650,15 @@ def _(r):
     _set_P(r.case, P.tolist())
 
 
-@bad("geometry", "anatomy_behind_source", G, "behind the X-ray source")
+@bad("geometry", "source_inside_the_anatomy", G, "behind the X-ray source")
 def _(r):
-    # the point reflection of the world through the source: same picture, anatomy behind it
+    # the world moved so that the source sits at the scan's centre: anatomy on both sides of it,
+    # wrong whatever P's sign (a P and its negative, the same projection, are both accepted)
     P = _P(r.case)
-    reflect = np.eye(4)
-    reflect[:3, :3] = -np.eye(3)
-    reflect[:3, 3] = 2 * source_position(P)
-    _set_P(r.case, (P @ reflect).tolist())
-
-
-@bad("geometry", "sign_flipped", G, "behind the X-ray source")
-def _(r): _set_P(r.case, (-_P(r.case)).tolist())
+    centre = io.read_volume(r.case / "aorta_mask.nrrd").center_lps()
+    move = np.eye(4)
+    move[:3, 3] = source_position(P) - centre
+    _set_P(r.case, (P @ move).tolist())
 
 
 @bad("geometry", "projects_20000px_outside", G, "outside the")

@@ -340,6 +340,17 @@ def test_load_case_most_processed_input_wins(case_dir):
     np.testing.assert_array_equal(case.load_input("aorta_mask").array, io.read_mask(case_dir / "aorta_mask.nrrd").array)
 
 
+def test_a_negated_projection_matrix_is_the_same_projection(case_dir):
+    # P is homogeneous (eq. 1): a calibration may hand over -P (w < 0 in front of the source)
+    P = projection_matrix_from_carm(CARM, mask_volume().center_lps())
+    write_geometry_json(case_dir / "geometry.json", -3.0 * P)
+    case = io.load_case(case_dir)
+    np.testing.assert_allclose(case.P, 3.0 * P, rtol=1e-12)
+    assert case.geometry.sign_flipped and case.geometry.to_dict()["sign_flipped"] is True
+    write_geometry_json(case_dir / "geometry.json", 3.0 * P)
+    assert not io.load_case(case_dir).geometry.sign_flipped
+
+
 def test_load_case_geometry_from_carm_tags_at_volume_centre(case_dir):
     (case_dir / "skeleton3d.nrrd").unlink()
     case = io.load_case(case_dir)

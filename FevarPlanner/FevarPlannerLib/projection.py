@@ -64,6 +64,7 @@ __all__ = [
     "view_label",
     "GeometryAssumptionWarning",
     "read_geometry_file",
+    "facing_the_scan",
     "apply_in_plane_correction",
     "update_in_plane_correction",
 ]
@@ -381,6 +382,9 @@ class GeometrySource:
         Plain statements of what the files did not say and was assumed.
     in_plane_correction : dict or None
         ``{"translation_px": [du, dv], "rotation_deg": r, "file": ...}`` applied on top.
+    sign_flipped : bool
+        The file's matrix put the scan behind the source (``w < 0``), so its negative is used
+        (:func:`facing_the_scan`): the same projection, the sign the pipeline reads depth by.
     """
 
     kind: str
@@ -389,6 +393,7 @@ class GeometrySource:
     isocenter_lps: list | None = None
     assumptions: list = field(default_factory=list)
     in_plane_correction: dict | None = None
+    sign_flipped: bool = False
 
     @classmethod
     def from_carm(cls, carm: CArmGeometry, file, isocenter) -> "GeometrySource":
@@ -417,11 +422,34 @@ class GeometrySource:
         if self.in_plane_correction:
             c = self.in_plane_correction
             text += (f"; in-plane correction {c['translation_px']} px, {c['rotation_deg']} deg applied")
+        if self.sign_flipped:
+            text += "; its matrix negated (w > 0 in front of the source: the same projection)"
         return text
 
     def to_dict(self) -> dict:
         return {"source": self.kind, "file": self.file, "tags": dict(self.tags), "isocenter_lps": self.isocenter_lps,
-                "assumptions": list(self.assumptions), "in_plane_correction": self.in_plane_correction}
+                "assumptions": list(self.assumptions), "in_plane_correction": self.in_plane_correction,
+                "sign_flipped": self.sign_flipped}
+
+
+def facing_the_scan(P: np.ndarray, centre_lps) -> tuple[np.ndarray, bool]:
+    """``P`` with the overall sign that puts the scan's centre in front of the X-ray source.
+
+    A projection matrix is homogeneous (eq. 1): ``P`` and ``-P`` draw the same picture and
+    differ only in the sign of ``w``, which the pipeline reads as the side of the source a
+    point lies on. Calibrations give either sign (a DLT solved by SVD; a camera looking down
+    its -z axis), so the sign is taken from the anatomy rather than from the file. Anatomy on
+    both sides of the source stays wrong whatever the sign
+    (:func:`plausibility.check_anatomy_in_view` refuses it).
+
+    Returns
+    -------
+    (P, flipped) : the matrix with ``w > 0`` at ``centre_lps``, and whether it was negated.
+    """
+    P = np.asarray(P, dtype=float)
+    if depth(P, np.asarray(centre_lps, dtype=float).reshape(1, 3))[0] < 0:
+        return -P, True
+    return P, False
 
 
 def _json_number(value) -> float:

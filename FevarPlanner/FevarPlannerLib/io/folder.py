@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..files import InputError, InputWarning, check_input_file, check_inside, display_path
-from ..projection import (GeometryAssumptionWarning, GeometrySource, apply_in_plane_correction,
+from ..projection import (GeometryAssumptionWarning, GeometrySource, apply_in_plane_correction, facing_the_scan,
                           projection_matrix_from_carm, read_geometry_file)
 from .fluoro import CARM_TAGS, Fluoro
 from .volume import DICOM_SUFFIXES, RASTER_SUFFIXES, VOLUME_SUFFIXES, Volume
@@ -81,6 +81,7 @@ def _projection_for_case(case_dir: Path | None, available: dict[str, Path], fluo
     if P is not None:
         source = GeometrySource("geometry.json", str(available["geometry"]))
         path = available["geometry"]
+        P, source.sign_flipped = facing_the_scan(P, reference.center_lps())
     elif fluoro.carm is None:
         where = case_dir if case_dir is not None else fluoro.path
         raise InputError(f"{where}: geometry.json is missing (or holds no projection_matrix) and {fluoro.path} "
