@@ -62,7 +62,7 @@ from .anatomy import DEPTH_PENALTY, ROLE_LATERAL_WEIGHT, anatomical_roles, label
 from .builders import skeleton_graph_2d, skeleton_graph_3d
 from .skeleton_graph import (DEFAULT_IOTA_MM, DEFAULT_MAX_GAP_MM, DEFAULT_MAX_LOOP_MM, SPUR_RADIUS_FACTOR, Branch,
                              Classification, SkeletonGraph, Trunk)
-from .smoothing import centre_in_lumen, smooth_positions
+from .smoothing import centre_in_lumen, smooth_positions, smoothed_positions
 
 __all__ = [
     "SkeletonGraph",
@@ -73,6 +73,7 @@ __all__ = [
     "label_anatomy",
     "anatomical_roles",
     "smooth_positions",
+    "smoothed_positions",
     "centre_in_lumen",
     "spur_length",
     "skeleton_graph_3d",

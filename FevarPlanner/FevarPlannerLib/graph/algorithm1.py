@@ -19,7 +19,7 @@ def _junction_clusters(graph: SkeletonGraph):
     cluster_of = np.full(n, -1, dtype=np.int64)
     if len(quasi) == 0:
         return cluster_of, np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
-    count, labels = csgraph.connected_components(graph.adjacency[quasi][:, quasi], directed=True)
+    count, labels = csgraph.connected_components(graph.induced_adjacency(quasi), directed=True)
     cluster_of[quasi] = labels
     order = np.lexsort((quasi, -graph.degrees[quasi], labels))
     first = np.r_[True, labels[order][1:] != labels[order][:-1]]

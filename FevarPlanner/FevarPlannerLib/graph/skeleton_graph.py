@@ -215,6 +215,24 @@ class SkeletonGraph:
         radii = None if self.radii is None else self.radii[nodes]
         return SkeletonGraph(self.positions[nodes], adjacency, self.grid_indices[nodes], self.unit_mm, radii)
 
+    def induced_adjacency(self, nodes) -> sp.csr_matrix:
+        """``adjacency[nodes][:, nodes]`` for ascending ``nodes``: the same matrix (entries, order),
+        read off the stored rows in one gather instead of two sparse fancy indexings (a quarter
+        to a half of their time on a frame's 2D graph)."""
+        nodes = np.asarray(nodes, dtype=np.int64)
+        indptr, indices = self.adjacency.indptr, self.adjacency.indices
+        local = np.full(len(self), -1, dtype=np.int64)
+        local[nodes] = np.arange(len(nodes))
+        starts = indptr[nodes]
+        counts = indptr[nodes + 1] - starts
+        slots = np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+        columns = local[indices[slots]]
+        inside = columns >= 0
+        row_ptr = np.zeros(len(nodes) + 1, dtype=indptr.dtype)
+        np.cumsum(np.bincount(np.repeat(np.arange(len(nodes)), counts)[inside], minlength=len(nodes)), out=row_ptr[1:])
+        return sp.csr_matrix((self.adjacency.data[slots[inside]], columns[inside].astype(indices.dtype), row_ptr),
+                             shape=(len(nodes), len(nodes)))
+
     def components(self) -> tuple[int, np.ndarray]:
         """Number of connected components and the component label of each node."""
         return csgraph.connected_components(self.adjacency, directed=True)

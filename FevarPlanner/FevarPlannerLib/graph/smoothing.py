@@ -22,19 +22,28 @@ def smooth_positions(graph: SkeletonGraph, iterations: int = 10, weight: float =
     SkeletonGraph
         Same nodes, edges and grid indices; new positions and edge lengths.
     """
+    return graph.with_positions(smoothed_positions(graph, iterations, weight))
+
+
+def smoothed_positions(graph: SkeletonGraph, iterations: int = 10, weight: float = 0.5,
+                       positions: np.ndarray | None = None) -> np.ndarray:
+    """The positions :func:`smooth_positions` gives, without the graph around them (its edge
+    lengths not computed); ``positions``: start from these instead of the graph's (the
+    graph's edges, same shape)."""
+    positions = graph.positions if positions is None else positions
     movable = np.flatnonzero(graph.degrees == 2)
     first_slot = graph.adjacency.indptr[movable]
     first, second = graph.adjacency.indices[first_slot], graph.adjacency.indices[first_slot + 1]
-    n, dim = graph.positions.shape
+    n, dim = positions.shape
     # component-major and flat: every step is a 1D gather or scatter (4x faster than on rows)
-    flat = np.array(graph.positions, dtype=float).T.ravel()
+    flat = np.array(positions, dtype=float).T.ravel()
     component = np.arange(dim)[:, None] * n
     first, second, movable = ((component + nodes).ravel() for nodes in (first, second, movable))
     for _ in range(iterations):
         mean_of_neighbours = 0.5 * flat[first] + 0.5 * flat[second]
         here = flat[movable]
         flat[movable] = here + weight * (mean_of_neighbours - here)
-    return graph.with_positions(np.ascontiguousarray(flat.reshape(dim, n).T))
+    return np.ascontiguousarray(flat.reshape(dim, n).T)
 
 
 def _lumen_distance_map(lumen: Volume) -> tuple[np.ndarray, np.ndarray]:

@@ -18,7 +18,7 @@ from . import candidates, centring, paper, projected
 from .centring import RouteOffsets, centre_in_outline, offset_targets, render_lumen, route_offsets, targets_at
 from .candidates import UNASSIGNED_PX2, candidate_correspondences, candidate_score
 from .paper import (ETA_S, ETA_T, Correspondence, SoftAssignment, branch_tangents, match_branches, match_trunks,
-                    soft_assign)
+                    soft_assign, soft_assign_with_and_without_exits)
 from .paper import _assign_by_arc_length  # the tests check eq. 4's arc-length assignment alone
 from .projected import (AMBIGUOUS_PX, COVERAGE_PX, MAX_ALTERNATIVES, NO_PARTNER_PX, TIP_RADII, TURN_PX_PER_RAD,
                         match_by_projection)

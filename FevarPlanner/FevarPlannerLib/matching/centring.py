@@ -24,7 +24,7 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..graph import SkeletonGraph, smooth_positions
+from ..graph import SkeletonGraph, smoothed_positions
 from ..projection import pixels_per_mm, project
 from .paper import targets_of
 
@@ -118,21 +118,24 @@ def centre_in_outline(g2: SkeletonGraph, mask: np.ndarray) -> SkeletonGraph:
         return g2
     # the tangent over a few px of the chain: from neighbour to neighbour it turns by whole
     # pixel steps, and a tilted normal meets a sac's walls far from where the midline is
-    tangent = _chain_tangents(g2, smooth_positions(g2, TANGENT_SMOOTHING).positions, movable)
+    tangent = _chain_tangents(g2, smoothed_positions(g2, TANGENT_SMOOTHING), movable)
     length = np.linalg.norm(tangent, axis=1)
     keep = length > 0
     movable, tangent = movable[keep], tangent[keep] / length[keep, None]
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
     centres = g2.positions[movable]
     reach = WALL_SEARCH_RADII * radii[movable] + 2.0
-    binary = np.ascontiguousarray(np.asarray(mask) > 0)
-    plus = _wall_offsets(binary, centres, normal, reach)
-    minus = _wall_offsets(binary, centres, -normal, reach)
+    mask = np.asarray(mask)
+    binary = mask if mask.dtype == bool and mask.flags.c_contiguous else np.ascontiguousarray(mask > 0)
+    # both walls in one search: the rows are independent
+    both = _wall_offsets(binary, np.concatenate([centres, centres]), np.concatenate([normal, -normal]),
+                         np.concatenate([reach, reach]))
+    plus, minus = both[:len(centres)], both[len(centres):]
     shift = 0.5 * (plus - minus)
     moved = np.isfinite(shift)
     positions = np.array(g2.positions, dtype=float)
     positions[movable[moved]] += shift[moved, None] * normal[moved]
-    return smooth_positions(g2.with_positions(positions), SHIFT_SMOOTHING)
+    return g2.with_positions(smoothed_positions(g2, SHIFT_SMOOTHING, positions=positions))
 
 
 def targets_at(assignment, positions: np.ndarray):
@@ -212,7 +215,7 @@ MAIN_COURSE = ("aorta", "iliac_left", "iliac_right")
 def _across(g3: SkeletonGraph, P: np.ndarray, nodes: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """``vectors`` (len(nodes), 2) less their part along the projected tangent of each of ``nodes``
     (degree-2 nodes; the tangent over a few nodes of the smoothed chain, as in :func:`centre_in_outline`)."""
-    tangent = _chain_tangents(g3, project(P, smooth_positions(g3, TANGENT_SMOOTHING).positions), nodes)
+    tangent = _chain_tangents(g3, project(P, smoothed_positions(g3, TANGENT_SMOOTHING)), nodes)
     tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-9)
     return vectors - np.sum(vectors * tangent, axis=1)[:, None] * tangent
 

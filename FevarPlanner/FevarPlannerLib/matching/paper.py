@@ -38,6 +38,7 @@ __all__ = [
     "match_trunks",
     "match_branches",
     "soft_assign",
+    "soft_assign_with_and_without_exits",
     "ETA_S",
     "ETA_T",
 ]
@@ -469,7 +470,7 @@ def _is_fork(g2: SkeletonGraph, chain: np.ndarray, radius: float) -> bool:
     ring = np.flatnonzero(ahead)
     if len(ring) < 2:
         return False
-    pieces, _ = csgraph.connected_components(g2.adjacency[ring][:, ring], directed=False)
+    pieces, _ = csgraph.connected_components(g2.induced_adjacency(ring), directed=False)
     return pieces >= 2
 
 
@@ -777,53 +778,89 @@ def soft_assign(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Cl
     get no target (they follow their neighbours); without it, from its 2D junction as in
     the paper (the pose check fits every node of the renal ostia).
     """
-    n2, n3 = len(g2.positions), len(g3.positions)
-    rows, cols, vals = [], [], []
-    assigned = np.zeros(n3, dtype=bool)
+    return _AssignmentChains(g3, c3, g2, c2, P, correspondence, shows, side_branch_exits).assembled(side_branch_exits)
 
-    def add(nodes3, s3, nodes2):
-        inside, lo, hi, w_lo, w_hi = _assign_by_arc_length(s3, nodes2, g2.positions[nodes2])
-        fresh = inside & ~assigned[nodes3]
-        j = nodes3[fresh]
-        rows.extend([lo[fresh], hi[fresh]])
-        cols.extend([j, j])
-        vals.extend([w_lo[fresh], w_hi[fresh]])
-        assigned[j] = True
 
-    for segments in _trunk_chains(correspondence.trunk_pairs):
-        nodes3, s2 = _sliding_trunk_lengths(g3, g2, segments, P)
-        add(nodes3, s2, _joined([n2 for _, n2 in segments]))
-    junction_targets = _targets_so_far(rows, vals, cols, g2, n3)
-    chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
-    starts = {i3: _branch_start(g2, np.asarray(nodes2), junction_targets.get(int(c3.branches[i3].nodes[0])))
-              for i3, nodes2 in chains.items()}
-    forks = Counter(int(chains[i3][0]) for i3, (start, _) in starts.items() if start > 0)
-    trunk2 = [np.asarray(n2) for _, n2 in correspondence.trunk_pairs]
-    trunk3 = [project(P, g3.positions[np.asarray(n3)]) for n3, _ in correspondence.trunk_pairs]
-    segments = _trunk_segments(g2, trunk2, trunk3)          # shared by every side branch
-    from_exits = []
-    for i3, nodes2 in chains.items():
-        nodes3, nodes2 = np.asarray(c3.branches[i3].nodes), np.asarray(nodes2)
-        start, lead = starts[i3] if forks[int(nodes2[0])] >= 2 else (0, 0.0)
-        # eq. (4): projected 3D path length equals 2D path length, from where eq. (5) put the junction
-        s3 = _cumulative_length(project(P, g3.positions[nodes3]))
-        if start > 0:
-            s3 = s3 * _leg_scale(g2, nodes2[start:], lead, s3[-1], shows,
-                                 _largest_leg_scale(g3.positions[nodes3], P, s3[-1]))
-            s3 = _through_crotch(s3, lead, _cumulative_length(g2.positions[nodes2])[start])
-            s3 = _off_the_bridges(g2, nodes2[start:], s3, _cumulative_length(g2.positions[nodes2])[start])
-        elif side_branch_exits and c3.branches[i3].label not in _MAIN_COURSE:    # a side branch (a renal)
-            exits = _outline_exit(g2, nodes2, project(P, g3.positions[nodes3]), trunk2, trunk3,
-                                  segments=segments)
-            s3 = _counted_from_exit(s3, exits)
-            from_exits += [] if exits is None else [int(i3)]
-        add(nodes3, s3, nodes2)
+def soft_assign_with_and_without_exits(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2: Classification,
+                                       P: np.ndarray, correspondence: Correspondence,
+                                       shows=None) -> tuple[SoftAssignment, SoftAssignment]:
+    """:func:`soft_assign` with ``side_branch_exits`` and without: the same two results (the second
+    the first itself when no side branch was counted from its exit), the chains they share (the
+    trunks, the legs, every branch not counted from its exit) computed once."""
+    chains = _AssignmentChains(g3, c3, g2, c2, P, correspondence, shows, True)
+    with_exits = chains.assembled(True)
+    return with_exits, (chains.assembled(False) if with_exits.counted_from_exits else with_exits)
 
-    if not vals:
-        raise ValueError("the correspondence assigns no 3D node")
-    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n2, n3))
-    M.sum_duplicates()
-    return SoftAssignment(M, targets_of(M, g2.positions, assigned), assigned, correspondence, tuple(from_exits))
+
+class _AssignmentChains:
+    """The chains of :func:`soft_assign` in the order they are added, each with eq. (4)-(5)'s arc
+    weights (:func:`_assign_by_arc_length`) and, for a side branch counted from its exit
+    (``side_branch_exits``), the weights counted from there as well."""
+
+    def __init__(self, g3, c3, g2, c2, P, correspondence, shows, side_branch_exits: bool):
+        self.g2, self.n3, self.correspondence = g2, len(g3.positions), correspondence
+        self.chains = []        # (nodes3, weights of the paper's rule, weights from the exit or None, branch)
+        for segments in _trunk_chains(correspondence.trunk_pairs):
+            nodes3, s2 = _sliding_trunk_lengths(g3, g2, segments, P)
+            self._add(nodes3, s2, _joined([n2 for _, n2 in segments]))
+        rows, cols, vals, _, _ = self.weights(False)
+        junction_targets = _targets_so_far(rows, vals, cols, g2, self.n3)
+        chains = correspondence.branch_chains or {i3: c2.branches[i2].nodes for i3, i2 in correspondence.branch_pairs}
+        starts = {i3: _branch_start(g2, np.asarray(nodes2), junction_targets.get(int(c3.branches[i3].nodes[0])))
+                  for i3, nodes2 in chains.items()}
+        forks = Counter(int(chains[i3][0]) for i3, (start, _) in starts.items() if start > 0)
+        trunk2 = [np.asarray(n2) for _, n2 in correspondence.trunk_pairs]
+        trunk3 = [project(P, g3.positions[np.asarray(n3)]) for n3, _ in correspondence.trunk_pairs]
+        segments = _trunk_segments(g2, trunk2, trunk3)          # shared by every side branch
+        for i3, nodes2 in chains.items():
+            nodes3, nodes2 = np.asarray(c3.branches[i3].nodes), np.asarray(nodes2)
+            start, lead = starts[i3] if forks[int(nodes2[0])] >= 2 else (0, 0.0)
+            # eq. (4): projected 3D path length equals 2D path length, from where eq. (5) put the junction
+            s3 = _cumulative_length(project(P, g3.positions[nodes3]))
+            exits = None
+            if start > 0:
+                s3 = s3 * _leg_scale(g2, nodes2[start:], lead, s3[-1], shows,
+                                     _largest_leg_scale(g3.positions[nodes3], P, s3[-1]))
+                s3 = _through_crotch(s3, lead, _cumulative_length(g2.positions[nodes2])[start])
+                s3 = _off_the_bridges(g2, nodes2[start:], s3, _cumulative_length(g2.positions[nodes2])[start])
+            elif side_branch_exits and c3.branches[i3].label not in _MAIN_COURSE:    # a side branch (a renal)
+                exits = _outline_exit(g2, nodes2, project(P, g3.positions[nodes3]), trunk2, trunk3,
+                                      segments=segments)
+            self._add(nodes3, s3, nodes2, exits, int(i3))
+
+    def _add(self, nodes3, s3, nodes2, exits=None, branch: int = -1) -> None:
+        x2 = self.g2.positions[nodes2]
+        from_exit = None if exits is None else _assign_by_arc_length(_counted_from_exit(s3, exits), nodes2, x2)
+        self.chains.append((nodes3, _assign_by_arc_length(s3, nodes2, x2), from_exit, branch))
+
+    def weights(self, from_exits: bool):
+        """``(rows, cols, vals, assigned, branches counted from their exits)`` of the chains added so
+        far, each 3D node weighted by the first chain that assigns it; ``from_exits``: the side
+        branches' weights counted from their exits where they have them."""
+        rows, cols, vals, counted = [], [], [], []
+        assigned = np.zeros(self.n3, dtype=bool)
+        for nodes3, paper, from_exit, branch in self.chains:
+            use_exit = from_exits and from_exit is not None
+            inside, lo, hi, w_lo, w_hi = from_exit if use_exit else paper
+            fresh = inside & ~assigned[nodes3]
+            j = nodes3[fresh]
+            rows.extend([lo[fresh], hi[fresh]])
+            cols.extend([j, j])
+            vals.extend([w_lo[fresh], w_hi[fresh]])
+            assigned[j] = True
+            counted += [branch] if use_exit else []
+        return rows, cols, vals, assigned, counted
+
+    def assembled(self, from_exits: bool) -> SoftAssignment:
+        """The soft assignment of the chains (:meth:`weights`)."""
+        rows, cols, vals, assigned, counted = self.weights(from_exits)
+        if not vals:
+            raise ValueError("the correspondence assigns no 3D node")
+        M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(len(self.g2.positions), self.n3))
+        M.sum_duplicates()
+        return SoftAssignment(M, targets_of(M, self.g2.positions, assigned), assigned, self.correspondence,
+                              tuple(counted))
 
 
 def targets_of(M, positions: np.ndarray, assigned: np.ndarray) -> np.ndarray:

@@ -99,9 +99,8 @@ def _pose_check(preop: Preoperative, g2: graph.SkeletonGraph, c2: graph.Classifi
     g3, c3 = preop.graph, preop.classification
     candidates = matching.candidate_correspondences(g3, c3, g2, c2, P)
     candidate = candidates[0]
-    registration = matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows)
-    assignment = (matching.soft_assign(g3, c3, g2, c2, P, candidate, shows=visibility.shows, side_branch_exits=False)
-                  if registration.counted_from_exits else registration)
+    registration, assignment = matching.soft_assign_with_and_without_exits(g3, c3, g2, c2, P, candidate,
+                                                                           shows=visibility.shows)
     projected = project(P, g3.positions)
     regions, targets = {}, {}
     for name, nodes in _stable_regions(preop).items():
