@@ -850,3 +850,157 @@ def test_block_means_are_the_means_of_whole_blocks(shape, block):
     rows, cols = shape[0] // block * block, shape[1] // block * block
     expected = image[:rows, :cols].reshape(rows // block, block, cols // block, block).mean(axis=(1, 3))
     np.testing.assert_allclose(quality.block_means(image, block), expected, rtol=1e-6)
+
+
+def _skeleton_graph_of_a_tree(seed: int) -> SkeletonGraph:
+    """The 2D skeleton graph (with radii) of a drawn Y-shaped vessel mask, its positions jittered."""
+    mask = y_mask_2d((160, 160), width=6.0)
+    g2 = skeleton_graph_2d(mask, radii=True)
+    return g2.with_positions(g2.positions + np.random.default_rng(seed).normal(0.0, 0.2, g2.positions.shape)), mask
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_an_induced_adjacency_equals_two_sparse_fancy_indexings(seed):
+    rng = np.random.default_rng(seed)
+    g2, _ = _skeleton_graph_of_a_tree(seed)
+    for share in (0.02, 0.3, 0.9, 1.0):
+        nodes = np.flatnonzero(rng.random(len(g2)) < share)
+        plain = g2.adjacency[nodes][:, nodes]
+        fast = g2.induced_adjacency(nodes)
+        for part in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(fast, part), getattr(plain, part))
+        assert fast.shape == plain.shape
+        assert csgraph.connected_components(fast, directed=True)[0] == csgraph.connected_components(plain, directed=True)[0]
+
+
+def test_row_norms_equal_numpys_vector_norms_to_the_bit():
+    from FevarPlannerLib.graph import row_norms
+
+    rng = np.random.default_rng(3)
+    for shape in ((0, 2), (1, 2), (17, 2), (500, 3), (40, 7)):
+        for scale in (1e-8, 1.0, 1e6):
+            vectors = rng.normal(0.0, scale, shape)
+            assert _same_bits(row_norms(vectors), np.linalg.norm(vectors, axis=1))
+            assert _same_bits(row_norms(vectors.astype(np.float32)), np.linalg.norm(vectors.astype(np.float32), axis=1))
+
+
+def test_smoothed_positions_are_those_of_the_smoothed_graph():
+    from FevarPlannerLib.graph import smoothed_positions
+
+    g2, _ = _skeleton_graph_of_a_tree(1)
+    moved = g2.positions + 0.5
+    np.testing.assert_array_equal(smoothed_positions(g2, 40), smooth_positions(g2, 40).positions)
+    np.testing.assert_array_equal(smoothed_positions(g2, 10, positions=moved),
+                                  smooth_positions(g2.with_positions(moved), 10).positions)
+
+
+def _centred_the_plain_way(g2, mask):
+    """centre_in_outline written out: tangents from the smoothed graph, each wall searched on its own, the
+    moved positions smoothed as a graph."""
+    from scipy.spatial import cKDTree
+
+    from FevarPlannerLib.matching import centring
+
+    radii = g2.radii.astype(float)
+    movable = np.flatnonzero(g2.degrees == 2)
+    junctions = np.flatnonzero(g2.degrees >= 3)
+    near, _ = cKDTree(g2.positions[junctions]).query(g2.positions[movable])
+    movable = movable[near > centring.JUNCTION_RADII * radii[movable]]
+    tangent = centring._chain_tangents(g2, smooth_positions(g2, centring.TANGENT_SMOOTHING).positions, movable)
+    length = np.linalg.norm(tangent, axis=1)
+    movable, tangent = movable[length > 0], tangent[length > 0] / length[length > 0, None]
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    reach = centring.WALL_SEARCH_RADII * radii[movable] + 2.0
+    binary = np.ascontiguousarray(np.asarray(mask) > 0)
+    shift = 0.5 * (centring._wall_offsets(binary, g2.positions[movable], normal, reach)
+                   - centring._wall_offsets(binary, g2.positions[movable], -normal, reach))
+    moved = np.isfinite(shift)
+    positions = np.array(g2.positions, dtype=float)
+    positions[movable[moved]] += shift[moved, None] * normal[moved]
+    return smooth_positions(g2.with_positions(positions), centring.SHIFT_SMOOTHING), np.count_nonzero(moved)
+
+
+@pytest.mark.parametrize("mask_type", [bool, np.uint8])
+def test_centring_both_walls_in_one_search_gives_the_plain_centring_to_the_bit(mask_type):
+    from FevarPlannerLib.matching import centre_in_outline
+
+    g2, mask = _skeleton_graph_of_a_tree(2)
+    plain, moved = _centred_the_plain_way(g2, mask)
+    fast = centre_in_outline(g2, mask.astype(mask_type))
+    assert moved > 50
+    np.testing.assert_array_equal(fast.positions, plain.positions)
+    for part in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(fast.adjacency, part), getattr(plain.adjacency, part))
+
+
+def _same_assignment(a, b):
+    for part in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(a.M, part), getattr(b.M, part))
+    np.testing.assert_array_equal(a.targets, b.targets)
+    np.testing.assert_array_equal(a.assigned, b.assigned)
+    assert a.counted_from_exits == b.counted_from_exits and a.correspondence is b.correspondence
+
+
+def test_the_soft_assignment_pair_equals_soft_assignment_with_and_without_exits():
+    """The pose check's two soft assignments from one pass: a renal counted from the aorta's outline
+    (test_renal_exit's oblique renal), and a phantom frame where no branch is (the same object twice)."""
+    import test_renal_exit as renal
+
+    from FevarPlannerLib import graph, matching
+    from FevarPlannerLib.graph import Branch, Classification
+    from FevarPlannerLib.matching import Correspondence
+    from FevarPlannerLib.preop import SMOOTHING_ITERATIONS
+
+    g3, upper3, lower3, renal3 = renal.tree_3d()
+    P = renal.projection()
+    mask = renal.lumen_mask(P, [(g3.positions[np.concatenate([upper3, lower3[1:]])], renal.AORTA_RADIUS_MM),
+                                (g3.positions[renal3], renal.RENAL_RADIUS_MM)])
+    g2 = graph.smooth_positions(graph.skeleton_graph_2d(mask, radii=True), SMOOTHING_ITERATIONS)
+    upper2, lower2, renal2 = renal.frame_chains(g2, P, g3.positions[renal3[0]])
+    c3 = Classification([Branch(renal3, int(renal3[0]), int(renal3[-1]), 0.0, "renal_left")], [], [],
+                        np.empty(0), np.empty(0), np.empty(0), [])
+    correspondence = Correspondence([(0, None)], [(upper3, upper2), (lower3, lower2)],
+                                    {int(renal3[0]): int(renal2[0])}, "test", {0: renal2})
+    with_exits, without = matching.soft_assign_with_and_without_exits(g3, c3, g2, None, P, correspondence)
+    assert with_exits.counted_from_exits == (0,)
+    _same_assignment(with_exits, matching.soft_assign(g3, c3, g2, None, P, correspondence))
+    _same_assignment(without, matching.soft_assign(g3, c3, g2, None, P, correspondence, side_branch_exits=False))
+
+    case = phantom_case("fallback", seed=11)
+    preop = preop_model(case)
+    view = pipeline._prepare_view(preop, drawn_mask(preop.centerline, case.P_true, (case.carm.rows, case.carm.cols)),
+                                  case.P_true, "main", None, "proposed", False, {})
+    g3, c3 = preop.graph, preop.classification
+    shows = view.visibility.shows
+    for candidate in view.candidates:
+        first, second = matching.soft_assign_with_and_without_exits(g3, c3, view.g2, view.c2, view.P, candidate, shows)
+        _same_assignment(first, matching.soft_assign(g3, c3, view.g2, view.c2, view.P, candidate, shows=shows))
+        plain = matching.soft_assign(g3, c3, view.g2, view.c2, view.P, candidate, shows=shows, side_branch_exits=False)
+        _same_assignment(second, plain)
+        assert (second is first) == (not first.counted_from_exits)
+
+
+def test_track_checks_the_runs_side_on_the_first_frames_own_mask(tmp_path, monkeypatch):
+    """The mirror test of a run gets the vessel mask its first frame was registered with, not a second
+    segmentation of that frame: one segmentation per frame, the same mask to the bit."""
+    from FevarPlannerLib import quality, segmentation, tracking
+    from FevarPlannerLib.pipeline import workers
+    from fixtures import phantom_run_folder
+
+    monkeypatch.setenv("FEVAR_PLANNER_CACHE", str(tmp_path / "cache"))
+    workers.set_enabled(False)
+    folder, _ = phantom_run_folder(tmp_path, 2)
+    segmented, checked = [], []
+    real_segment, real_check = segmentation.segment_fluoro, tracking._check_run_side
+    monkeypatch.setattr(segmentation, "segment_fluoro", lambda *a, **k: segmented.append(1) or real_segment(*a, **k))
+    monkeypatch.setattr(tracking, "_check_run_side", lambda *a: checked.append(a) or real_check(*a))
+    try:
+        result = tracking.track_case(folder)
+    finally:
+        workers.set_enabled(None)
+    assert len(result.records) == 2 and all(r.fit_2d_px is not None for r in result.records)
+    assert len(segmented) == 2 and len(checked) == 1
+    preop, case, index, fluoro, mask, _ = checked[0]
+    prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
+    np.testing.assert_array_equal(mask, real_segment(fluoro.image, prior))
+    assert index == 0

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .graph.skeleton_graph import row_norms
 from .projection import in_plane_transform, project
 
 __all__ = ["PoseRefinement", "PoseCheck", "fit_in_plane_rigid", "robust_fit_in_plane_rigid",
@@ -119,7 +120,7 @@ def robust_fit_in_plane_rigid(source_uv: np.ndarray, target_uv: np.ndarray, P: n
     weights = np.ones(len(source_uv))
     moved = _weighted_kabsch(source_uv, target_uv, weights)[3]
     for _ in range(ROBUST_ITERATIONS):
-        residual = np.linalg.norm(moved - target_uv, axis=1)
+        residual = row_norms(moved - target_uv)
         scale = max(1.4826 * _median(residual), 0.1)      # below 0.1 px the fit is exact
         new = np.minimum(1.0, HUBER_K * scale / np.maximum(residual, 1e-12))
         if np.all(np.abs(new - weights) <= 1e-4 + 1e-5 * weights):      # np.allclose(atol=1e-4); all finite
@@ -324,7 +325,7 @@ def check_misalignment(regions: dict, curve_uv: np.ndarray, P: np.ndarray, *, ta
             starts.append(coarse)
     fit, halves = _stable_regions_fit(source, regions, curve_uv, P, starts, tree, reference)
     before, after = _distances(tree, source), _distances(tree, fit.moved)
-    offset = float(np.linalg.norm(fit.moved - source, axis=1).mean())
+    offset = float(row_norms(fit.moved - source).mean())
     bounds = np.cumsum([0] + [len(uv) for uv in regions.values()])
     per_region = {name: (float(before[i:j].mean()), float(after[i:j].mean()))
                   for name, i, j in zip(regions, bounds[:-1], bounds[1:])}
@@ -467,7 +468,7 @@ def _closest_point_fit(source_uv, curve_uv, P, start, tree, normals, free=None) 
         delta = new - moved
         if free is not None:
             delta = delta - np.outer(delta @ free, free)
-        change = np.linalg.norm(delta, axis=1).max()
+        change = row_norms(delta).max()
         moved = new
         if change < ICP_SETTLED_PX:
             break
@@ -512,4 +513,4 @@ def pose_residual(P_used: np.ndarray, P_true: np.ndarray, vessel_points: np.ndar
     offset = (true - used).mean(axis=0)
     theta = _weighted_kabsch(used, true, np.ones(len(points)))[0]
     return {"along_px": float(offset @ course), "across_px": float(offset @ np.array([-course[1], course[0]])),
-            "rotation_deg": float(np.rad2deg(theta)), "mean_px": float(np.linalg.norm(true - used, axis=1).mean())}
+            "rotation_deg": float(np.rad2deg(theta)), "mean_px": float(row_norms(true - used).mean())}

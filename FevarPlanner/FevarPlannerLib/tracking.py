@@ -126,6 +126,15 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
     once per run and passed in; it caches its band on the frame grid. So may ``run``
     (:class:`io.FluoroRun` of ``case.fluoro.path``): the file is then parsed once per run.
     """
+    result, times, _, _ = _registered_run_frame(preop, case, index, method=method, start=start, target=target,
+                                                prior=prior, run=run)
+    return result, times
+
+
+def _registered_run_frame(preop, case, index: int, *, method: str, start: str, target: str, prior,
+                          run: FluoroRun | None):
+    """:func:`register_run_frame`, also returning the frame read and its vessel mask: ``(PlanResult,
+    times, frame, mask)`` (the run's side check uses them again, :func:`_check_run_side`)."""
     from .pipeline import PlanResult, register_frame
     from .segmentation import segment_fluoro
 
@@ -184,7 +193,7 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
                         {"fluoro": str(case.fluoro.path), "frame": index},
                         geometry=case.geometry.to_dict() if case.geometry is not None else None, energy=frame.energy)
     result.warnings.extend(frame.warnings + notes)
-    return result, times
+    return result, times, fluoro, mask
 
 
 def _run_frame(case, index: int, run: FluoroRun | None):
@@ -287,8 +296,8 @@ def _track_frames(preop, case, frames, prior, run: FluoroRun, method: str, start
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                last, times = register_run_frame(preop, case, index, method=method, start=start, target=target,
-                                                 prior=prior, run=run)
+                last, times, fluoro, mask = _registered_run_frame(preop, case, index, method=method, start=start,
+                                                                  target=target, prior=prior, run=run)
             except (ValueError, RuntimeError) as exc:
                 records.append(FrameRecord(index, None, None, {"total": time.perf_counter() - t},
                                            [str(exc).splitlines()[0]]))
@@ -296,21 +305,18 @@ def _track_frames(preop, case, frames, prior, run: FluoroRun, method: str, start
         records.append(FrameRecord(index, last.errors["2d_px"]["mean"], last.path.length_mm, times,
                                    sorted({str(w.message).splitlines()[0] for w in caught} | set(last.warnings))))
         if not side_checked:        # once per run, on its first registered frame
-            _check_run_side(preop, case, index, prior, last, run)
+            _check_run_side(preop, case, index, fluoro, mask, last)
             side_checked = True
     return records, last
 
 
-def _check_run_side(preop, case, index: int, prior, given, run: FluoroRun) -> None:
+def _check_run_side(preop, case, index: int, fluoro, mask: np.ndarray, given) -> None:
     """Refuse the whole run when frame ``index``, its first registered frame (``given``, its
-    :class:`pipeline.PlanResult`), looks mirrored left-right: the side convention is the run's,
-    so the mirror test (:func:`plausibility.check_not_mirrored`) runs once, on that frame
-    registered flipped too."""
+    :class:`pipeline.PlanResult`; ``fluoro`` the frame as read and ``mask`` its vessel mask, as
+    registered), looks mirrored left-right: the side convention is the run's, so the mirror test
+    (:func:`plausibility.check_not_mirrored`) runs once, on that frame registered flipped too."""
     from .pipeline import register_flipped
-    from .segmentation import segment_fluoro
 
-    fluoro = _run_frame(case, index, run)
-    mask = segment_fluoro(fluoro.image, prior)
     signals = plausibility.registration_signals(preop.centerline, given.deformed, given.P, given.skeleton2d_points,
                                                 given.skeleton2d_edges, mask.shape)
     flipped = register_flipped(preop, mask, case.P, image=fluoro.image)

@@ -61,7 +61,7 @@ from .algorithm1 import classify, spur_length
 from .anatomy import DEPTH_PENALTY, ROLE_LATERAL_WEIGHT, anatomical_roles, label_anatomy
 from .builders import skeleton_graph_2d, skeleton_graph_3d
 from .skeleton_graph import (DEFAULT_IOTA_MM, DEFAULT_MAX_GAP_MM, DEFAULT_MAX_LOOP_MM, SPUR_RADIUS_FACTOR, Branch,
-                             Classification, SkeletonGraph, Trunk)
+                             Classification, SkeletonGraph, Trunk, row_norms)
 from .smoothing import centre_in_lumen, smooth_positions, smoothed_positions
 
 __all__ = [
@@ -74,6 +74,7 @@ __all__ = [
     "anatomical_roles",
     "smooth_positions",
     "smoothed_positions",
+    "row_norms",
     "centre_in_lumen",
     "spur_length",
     "skeleton_graph_3d",

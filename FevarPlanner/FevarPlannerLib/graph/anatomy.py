@@ -11,9 +11,11 @@ from .skeleton_graph import Classification, SkeletonGraph, _path_length, _walk_b
 
 def _unit(vector, dim: int, name: str) -> np.ndarray:
     vector = np.asarray(vector, dtype=float).reshape(-1)
-    if vector.shape != (dim,) or not np.all(np.isfinite(vector)) or np.linalg.norm(vector) == 0:
+    flat = vector.ravel(order="K")
+    length = np.sqrt(flat.dot(flat)) if vector.shape == (dim,) else 0.0      # np.linalg.norm's own steps
+    if vector.shape != (dim,) or not np.all(np.isfinite(vector)) or length == 0:
         raise ValueError(f"{name} must be a finite non-zero {dim}-vector, got {vector}")
-    return vector / np.linalg.norm(vector)
+    return vector / length
 
 
 #: Weights of the role scores in :func:`anatomical_roles` (dimensionless: lengths in the

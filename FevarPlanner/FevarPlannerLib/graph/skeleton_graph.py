@@ -85,7 +85,7 @@ class SkeletonGraph:
         n = len(positions)
         if len(edges) == 0:
             return sp.csr_matrix((n, n))
-        weights = np.linalg.norm(positions[edges[:, 0]] - positions[edges[:, 1]], axis=1)
+        weights = row_norms(positions[edges[:, 0]] - positions[edges[:, 1]])
         weights = np.maximum(weights, _MIN_WEIGHT)
         rows = np.concatenate([edges[:, 0], edges[:, 1]])
         cols = np.concatenate([edges[:, 1], edges[:, 0]])
@@ -188,7 +188,7 @@ class SkeletonGraph:
         if not np.all(np.isfinite(positions)):
             raise ValueError("skeleton positions contain NaN or infinite values")
         rows = np.repeat(np.arange(len(positions)), np.diff(self.adjacency.indptr))
-        weights = np.maximum(np.linalg.norm(positions[rows] - positions[self.adjacency.indices], axis=1), _MIN_WEIGHT)
+        weights = np.maximum(row_norms(positions[rows] - positions[self.adjacency.indices]), _MIN_WEIGHT)
         adjacency = sp.csr_matrix((weights, self.adjacency.indices.copy(), self.adjacency.indptr.copy()),
                                   shape=self.adjacency.shape)
         return SkeletonGraph._canonical(positions, adjacency, self.grid_indices, self.unit_mm, self.radii,
@@ -255,6 +255,13 @@ class SkeletonGraph:
         return _walk_back(pred, int(b))[::-1]
 
 
+def row_norms(vectors: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(vectors, axis=-1)`` of a real float array, to the bit (its square, sum along
+    the last axis and root), without its argument handling (a few microseconds a call, and the
+    per-frame path calls it hundreds of times)."""
+    return np.sqrt(np.add.reduce(vectors * vectors, axis=-1))
+
+
 def _walk_back(predecessors: np.ndarray, node: int) -> np.ndarray:
     """Nodes from ``node`` back to the source of a Dijkstra predecessor array."""
     path = [node]
@@ -267,7 +274,7 @@ def _walk_back(predecessors: np.ndarray, node: int) -> np.ndarray:
 
 
 def _path_length(positions: np.ndarray, path: np.ndarray) -> float:
-    return float(np.linalg.norm(np.diff(positions[path], axis=0), axis=1).sum())
+    return float(row_norms(np.diff(positions[path], axis=0)).sum())
 
 
 @dataclass

@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csgraph
 
-from ..graph import Classification, SkeletonGraph
+from ..graph import Classification, SkeletonGraph, row_norms
 from ..graph.anatomy import aortic_bifurcation
 from ..projection import image_directions, pixels_per_mm, project
 
@@ -268,7 +268,7 @@ def match_branches(g3: SkeletonGraph, c3: Classification, g2: SkeletonGraph, c2:
 
 
 def _cumulative_length(points: np.ndarray) -> np.ndarray:
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    return np.concatenate([[0.0], np.cumsum(row_norms(np.diff(points, axis=0)))])
 
 
 def _assign_by_arc_length(s3: np.ndarray, nodes2: np.ndarray, x2: np.ndarray):
@@ -392,7 +392,7 @@ class _Segments:
 
     def distances(self, points: np.ndarray) -> np.ndarray:
         """Distance of each point to the nearest of the polylines (a one-point polyline: its point)."""
-        single = [np.linalg.norm(points - vertex, axis=1) for vertex in self.vertices]
+        single = [row_norms(points - vertex) for vertex in self.vertices]
         lines = [np.sqrt(self.nearest(points)[3])] if len(self.start) else []
         return np.min(lines + single, axis=0)
 
@@ -464,7 +464,7 @@ def _is_fork(g2: SkeletonGraph, chain: np.ndarray, radius: float) -> bool:
     behind = x[::-1][min(int(np.searchsorted(back, radius)), len(x) - 1)]
     direction = x[-1] - behind
     offset = g2.positions - x[-1]
-    distance = np.linalg.norm(offset, axis=1)
+    distance = row_norms(offset)
     ahead = (distance >= 1.5 * radius) & (distance <= 2.5 * radius) & \
         (offset @ direction >= np.cos(np.radians(FORK_DEG)) * distance * np.linalg.norm(direction))
     ring = np.flatnonzero(ahead)
@@ -601,7 +601,7 @@ def _largest_leg_scale(positions3: np.ndarray, P: np.ndarray, length3: float) ->
     if length3 <= 0:
         return 1.0
     middles = 0.5 * (positions3[1:] + positions3[:-1])
-    parallel = float(np.sum(np.linalg.norm(np.diff(positions3, axis=0), axis=1) * pixels_per_mm(P, middles)))
+    parallel = float(np.sum(row_norms(np.diff(positions3, axis=0)) * pixels_per_mm(P, middles)))
     return (1.0 + LEG_DEPTH_ALLOWANCE) * parallel / length3
 
 
@@ -749,7 +749,7 @@ def _trunk_radius(g2: SkeletonGraph, trunk2: list, junction: np.ndarray, junctio
     """The trunk's 2D radius about a junction: the median over its 2D nodes within two junction
     radii (the junction's own disk takes in the branch's mouth and is wider)."""
     nodes = np.concatenate(trunk2)
-    near = np.linalg.norm(g2.positions[nodes] - junction, axis=1) <= 2.0 * junction_radius
+    near = row_norms(g2.positions[nodes] - junction) <= 2.0 * junction_radius
     return float(np.median(g2.radii[nodes[near]])) if np.any(near) else junction_radius
 
 

@@ -15,6 +15,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
 from .. import deformation, matching
+from ..graph import row_norms
 from ..preop import Preoperative
 from ..projection import pixels_per_mm, project
 
@@ -154,7 +155,7 @@ def _carry_unseen(preop: Preoperative, moved: np.ndarray, assigned: np.ndarray, 
     links = np.where(free[links[:, :1]], links, links[:, ::-1])          # (free node, assigned node)
     links = links[assigned[links[:, 1]]]
     pair = edges[assigned[edges[:, 0]] & assigned[edges[:, 1]]]
-    length = np.linalg.norm(g3.positions[pair[:, 0]] - g3.positions[pair[:, 1]], axis=1)
+    length = row_norms(g3.positions[pair[:, 0]] - g3.positions[pair[:, 1]])
     assigned_graph = scipy.sparse.coo_matrix((length, (pair[:, 0], pair[:, 1])), shape=(n, n)).tocsr()
     carried = []
     for label in np.unique(component[unseen]):
@@ -240,7 +241,7 @@ def _node_directions(positions: np.ndarray, edges: np.ndarray, n: int):
     if not len(edges):
         return np.zeros((n, 2)), np.zeros(n, dtype=np.int64)
     vec = positions[edges[:, 1]] - positions[edges[:, 0]]
-    vec = vec / np.maximum(np.linalg.norm(vec, axis=1), 1e-12)[:, None]
+    vec = vec / np.maximum(row_norms(vec), 1e-12)[:, None]
     both = np.r_[edges[:, 0], edges[:, 1]]
     tensor = [np.bincount(both, np.r_[a, a], n) for a in (vec[:, 0] ** 2, vec[:, 0] * vec[:, 1], vec[:, 1] ** 2)]
     angle = 0.5 * np.arctan2(2.0 * tensor[1], tensor[0] - tensor[2])
@@ -260,8 +261,8 @@ def _crosses_vessels(view, nodes: np.ndarray, preop: Preoperative, positions: np
     edges3 = _facts(g3).edges
     edges3 = local[edges3[(local[edges3[:, 0]] >= 0) & (local[edges3[:, 1]] >= 0)]]
     direction3, degree3 = _node_directions(uv, edges3, len(nodes))
-    projected = np.linalg.norm(uv[edges3[:, 0]] - uv[edges3[:, 1]], axis=1)
-    spatial = np.linalg.norm(positions[nodes][edges3[:, 0]] - positions[nodes][edges3[:, 1]], axis=1)
+    projected = row_norms(uv[edges3[:, 0]] - uv[edges3[:, 1]])
+    spatial = row_norms(positions[nodes][edges3[:, 0]] - positions[nodes][edges3[:, 1]])
     ratio = projected / np.maximum(spatial, 1e-12)
     ratio = ratio / max(float(np.median(ratio)), 1e-12) if len(ratio) else ratio
     both = np.r_[edges3[:, 0], edges3[:, 1]]
@@ -327,11 +328,11 @@ def _claimed_by_two_vessels(view, nodes: np.ndarray, preop: Preoperative, positi
     neighbours = cKDTree(points2).query_ball_point(points2, SAME_POINT_RADII * radii2[index])
     a = np.repeat(np.arange(len(nodes)), [len(n) for n in neighbours])
     b = np.fromiter(itertools.chain.from_iterable(neighbours), dtype=np.int64, count=len(a))
-    apart = np.linalg.norm(uv[a] - uv[b], axis=1) > APART_SHARE * (radius_px[a] + radius_px[b])
+    apart = row_norms(uv[a] - uv[b]) > APART_SHARE * (radius_px[a] + radius_px[b])
     pairs = (vessel[a] != vessel[b]) & apart
     a, b = a[pairs], b[pairs]
     if len(a):
-        bound = PARTED_DETOUR * np.linalg.norm(positions[nodes[a]] - positions[nodes[b]], axis=1)
+        bound = PARTED_DETOUR * row_norms(positions[nodes[a]] - positions[nodes[b]])
         sources, row = np.unique(nodes[a], return_inverse=True)
         along = csgraph.dijkstra(preop.graph.adjacency, directed=False, indices=sources, limit=float(bound.max()))
         parted = ~(along[row, nodes[b]] <= bound)
@@ -558,7 +559,7 @@ def _inside_parents(g2, chains: list, counts: list, foot: np.ndarray) -> np.ndar
     if radii is None:
         return np.zeros(len(foot), dtype=bool)
     junction = np.repeat([int(chain[0]) for chain in chains], counts)
-    return np.linalg.norm(foot - g2.positions[junction], axis=1) < PARENT_BRIDGE * radii[junction].astype(float)
+    return row_norms(foot - g2.positions[junction]) < PARENT_BRIDGE * radii[junction].astype(float)
 
 
 def _matched_chains(view, correspondence, nodes: np.ndarray, preop: Preoperative, has_target: np.ndarray) -> list:
@@ -614,7 +615,7 @@ def _chain_closest_data(view, correspondence, nodes: np.ndarray, preop: Preopera
     branch = np.repeat([is_branch for _, _, is_branch in matched], counts)
     free_end = np.concatenate([np.repeat(p[-1:], k, axis=0) for p, k in zip(polylines, counts)])
     junction = np.concatenate([np.repeat(p[:1], k, axis=0) for p, k in zip(polylines, counts)])
-    past &= branch & (np.linalg.norm(foot - free_end, axis=1) < np.linalg.norm(foot - junction, axis=1))
+    past &= branch & (row_norms(foot - free_end) < row_norms(foot - junction))
     has_target[rows[past]] = False
     has_target[rows[branch & _inside_parents(view.g2, [chain for _, chain, _ in matched], counts, foot)]] = False
     targets[rows[~past]] = foot[~past]
@@ -632,7 +633,7 @@ VIEW_DISAGREEMENT_RATIO = 2.0
 def _disagreeing_views(views, data, nodes: np.ndarray, points: np.ndarray, preop: Preoperative) -> list:
     """Per view a bool (n_a,) mask: the nodes of branches on which this view disagrees with the others."""
     drop = [np.zeros(len(nodes), dtype=bool) for _ in views]
-    residual = [np.linalg.norm(project(v.P, points) - t, axis=1) / pixels_per_mm(v.P, preop.centre)
+    residual = [row_norms(project(v.P, points) - t) / pixels_per_mm(v.P, preop.centre)
                 for v, (t, _) in zip(views, data)]
     for rows in _branch_rows(preop, nodes):
         mean = np.array([r[rows][w[rows] > 0].mean() if np.any(w[rows] > 0) else np.nan
@@ -736,7 +737,7 @@ def follow_anchor(preop: Preoperative, views: list, correspondences, deformed: n
     for _ in range(CLOSEST_POINT_PASSES):
         previous = deformed
         deformed, energy, _ = _deform_with(preop, views, correspondences, alpha, beta, estimate=deformed)
-        if np.linalg.norm(deformed - previous, axis=1).mean() < CLOSEST_POINT_SETTLED_MM:
+        if row_norms(deformed - previous).mean() < CLOSEST_POINT_SETTLED_MM:
             break
     return deformed, energy
 
