@@ -1004,3 +1004,32 @@ def test_track_checks_the_runs_side_on_the_first_frames_own_mask(tmp_path, monke
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
     np.testing.assert_array_equal(mask, real_segment(fluoro.image, prior))
     assert index == 0
+
+
+def test_a_candidates_floor_takes_its_nodes_without_moving_its_targets(monkeypatch):
+    """score_floor needs only which 3D nodes a candidate assigns: the soft assignment, not its targets'
+    corrections (centring, the held upper aorta, the route offsets), which keep the nodes; a later
+    full assignment of that candidate reuses the soft assignment and equals one computed afresh."""
+    import copy
+
+    from test_candidate_floor import _lao_view
+
+    from FevarPlannerLib.pipeline import frame, multiview
+
+    preop, (outcome,) = _lao_view(3)
+    view = outcome.view
+    fresh = copy.deepcopy(view)
+    second = view.candidates[1]
+    corrected = []
+    real = frame._centred_targets
+    monkeypatch.setattr(frame, "_centred_targets", lambda *a: corrected.append(1) or real(*a))
+    floor_nodes = multiview._nodes_with_targets(preop, [view], (second,))
+    assert corrected == [] and id(second) not in view.assignments
+    _, nodes = multiview._target_nodes(preop, [fresh], (fresh.candidates[1],))
+    np.testing.assert_array_equal(floor_nodes, nodes)
+    assert corrected == [1]
+    later, afresh = view.assignment(preop, second), fresh.assignment(preop, fresh.candidates[1])
+    for part in ("indptr", "indices", "data"):
+        np.testing.assert_array_equal(getattr(later.M, part), getattr(afresh.M, part))
+    np.testing.assert_array_equal(later.targets, afresh.targets)
+    np.testing.assert_array_equal(later.assigned, afresh.assigned)

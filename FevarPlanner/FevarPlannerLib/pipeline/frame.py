@@ -243,6 +243,7 @@ class _ViewState:
     unclassified: str | None = None      # why Algorithm 1 failed on this view (then c2 is None)
     pose: PoseCheck | None = None        # the in-plane pose check (None: not run)
     assignments: dict = field(default_factory=dict)     # id(correspondence) -> (correspondence, assignment)
+    soft_assignments: dict = field(default_factory=dict)    # the same before the targets' corrections
     centred: graph.SkeletonGraph | None = None          # g2 centred between the walls: where targets lie
 
     def assignment(self, preop: Preoperative, correspondence) -> matching.SoftAssignment:
@@ -253,11 +254,25 @@ class _ViewState:
         """
         key = id(correspondence)
         if key not in self.assignments:     # the correspondence is kept with it: its id stays unique
-            found = matching.soft_assign(preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence,
-                                         shows=self.visibility.shows)
+            found = self._soft_assignment(preop, correspondence)
             held = _centred_targets(preop, self.g2, self.centred, self.c2, self.P, self.visibility, found)
             self.assignments[key] = (correspondence, held)
         return self.assignments[key][1]
+
+    def assigned(self, preop: Preoperative, correspondence) -> np.ndarray:
+        """Which 3D nodes :meth:`assignment` assigns (its ``assigned``), without moving its targets when
+        it is not there yet: the targets' corrections (:func:`_centred_targets`) keep the nodes."""
+        found = self.assignments.get(id(correspondence))
+        return found[1].assigned if found is not None else self._soft_assignment(preop, correspondence).assigned
+
+    def _soft_assignment(self, preop: Preoperative, correspondence) -> matching.SoftAssignment:
+        """eqs. 3-5 of ``correspondence`` as :func:`matching.soft_assign` gives them, once per correspondence."""
+        key = id(correspondence)
+        if key not in self.soft_assignments:
+            self.soft_assignments[key] = (correspondence, matching.soft_assign(
+                preop.graph, preop.classification, self.g2, self.c2, self.P, correspondence,
+                shows=self.visibility.shows))
+        return self.soft_assignments[key][1]
 
     @functools.cached_property
     def skeleton_index(self) -> evaluation.SegmentIndex:
@@ -535,6 +550,7 @@ def _rekeyed(outcome: ViewOutcome) -> ViewOutcome:
     correspondences (the cache key of :meth:`_ViewState.assignment`)."""
     if outcome.view is not None:
         outcome.view.assignments = {id(c): (c, a) for c, a in outcome.view.assignments.values()}
+        outcome.view.soft_assignments = {id(c): (c, a) for c, a in outcome.view.soft_assignments.values()}
     outcome.in_worker = True
     return outcome
 

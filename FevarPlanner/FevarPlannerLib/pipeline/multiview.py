@@ -750,6 +750,12 @@ def _target_nodes(preop: Preoperative, views: list, correspondences) -> tuple[di
     return assignments, np.flatnonzero(np.logical_or.reduce(has_target))
 
 
+def _nodes_with_targets(preop: Preoperative, views: list, correspondences) -> np.ndarray:
+    """The nodes of :func:`_target_nodes`, without the assignments' targets (``view.assigned``)."""
+    has_target = [v.assigned(preop, c) & v.visible for v, c in zip(views, correspondences) if c is not None]
+    return np.flatnonzero(np.logical_or.reduce(has_target))
+
+
 def _assigned_fraction(preop: Preoperative, nodes: np.ndarray) -> float:
     """The share of the kept 3D nodes among ``nodes`` (those the deformation moves by data)."""
     in_deformation = np.zeros(len(preop.graph.positions), dtype=bool)
@@ -765,7 +771,7 @@ def score_floor(preop: Preoperative, views: list, correspondences, alpha) -> flo
     negative), and adding a number that is not negative never rounds below the other: a
     candidate whose floor is not below the best score so far cannot win (issue 10: the
     LAO 30 view's second candidate, which leaves a renal without partner)."""
-    _, nodes = _target_nodes(preop, views, correspondences)
+    nodes = _nodes_with_targets(preop, views, correspondences)
     points = preop.centerline.points
     return matching.candidate_score(0.0, _assigned_fraction(preop, nodes), points, points, preop.centerline.edges,
                                     alpha)
