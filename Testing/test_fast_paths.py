@@ -1033,3 +1033,70 @@ def test_a_candidates_floor_takes_its_nodes_without_moving_its_targets(monkeypat
         np.testing.assert_array_equal(getattr(later.M, part), getattr(afresh.M, part))
     np.testing.assert_array_equal(later.targets, afresh.targets)
     np.testing.assert_array_equal(later.assigned, afresh.assigned)
+
+
+def _random_symmetric(rng, n: int, shuffled: bool) -> sp.csr_matrix:
+    """A random symmetric adjacency; ``shuffled``: its entries stored out of column order in each row."""
+    upper = sp.triu(sp.random(n, n, density=0.15, random_state=int(rng.integers(1 << 30)), format="csr"), k=1)
+    adjacency = (upper + upper.T).tocsr()
+    if shuffled:
+        for row in range(n):
+            span = slice(adjacency.indptr[row], adjacency.indptr[row + 1])
+            order = rng.permutation(span.stop - span.start)
+            adjacency.indices[span], adjacency.data[span] = adjacency.indices[span][order], adjacency.data[span][order]
+        adjacency.has_sorted_indices = False
+    return adjacency
+
+
+def test_upper_entries_are_the_triangle_scipy_gives_in_its_order():
+    from FevarPlannerLib.graph.skeleton_graph import upper_entries
+
+    rng = np.random.default_rng(6)
+    for k in range(60):
+        adjacency = _random_symmetric(rng, int(rng.integers(2, 80)), shuffled=bool(k % 2))
+        plain = sp.triu(adjacency, k=1).tocoo()
+        rows, cols, values = upper_entries(adjacency)
+        for fast, slow in ((rows, plain.row), (cols, plain.col), (values, plain.data)):
+            np.testing.assert_array_equal(fast, slow)
+            assert fast.dtype == slow.dtype
+
+
+def _chords_by_set_membership(adjacency):
+    """The forest's chords as written first: every upper edge whose key is not among the forest's edge keys."""
+    n = adjacency.shape[0]
+    _, labels = csgraph.connected_components(adjacency, directed=True)
+    roots = np.unique(labels, return_index=True)[1]
+    pred = csgraph.dijkstra(adjacency, directed=True, indices=roots, min_only=True, return_predecessors=True)[1]
+    child = np.flatnonzero(pred >= 0)
+    tree_keys = np.minimum(child, pred[child]) * n + np.maximum(child, pred[child])
+    upper = sp.triu(adjacency, k=1).tocoo()
+    chord = ~np.isin(upper.row.astype(np.int64) * n + upper.col, tree_keys)
+    return np.stack([upper.row[chord], upper.col[chord]], axis=1).astype(np.int64)
+
+
+def test_chords_found_from_the_predecessors_equal_the_edge_key_lookup():
+    from FevarPlannerLib.graph.repair import _chords
+
+    rng = np.random.default_rng(7)
+    graph, _ = _skeleton_graph_of_a_tree(3)
+    cases = [graph.adjacency] + [_random_symmetric(rng, int(rng.integers(3, 90)), bool(k % 2)) for k in range(40)]
+    found = 0
+    for adjacency in cases:
+        chords = _chords(adjacency)
+        np.testing.assert_array_equal(chords, _chords_by_set_membership(adjacency))
+        found += len(chords)
+    assert found > 100
+
+
+def test_the_classified_graph_between_living_nodes_equals_the_diagonal_product():
+    from FevarPlannerLib.graph.algorithm1 import _between
+
+    rng = np.random.default_rng(8)
+    graph, _ = _skeleton_graph_of_a_tree(4)
+    for share in (0.0, 0.5, 0.95, 1.0):
+        alive = rng.random(len(graph)) < share
+        keep = sp.diags(alive.astype(float))
+        plain = SkeletonGraph(graph.positions, (keep @ graph.adjacency @ keep).tocsr()).adjacency
+        fast = SkeletonGraph(graph.positions, _between(graph.adjacency, alive)).adjacency
+        for part in ("indptr", "indices", "data"):
+            np.testing.assert_array_equal(getattr(fast, part), getattr(plain, part))

@@ -10,7 +10,7 @@ from ..conventions import BRANCH_LABELS
 from .anatomy import anatomical_roles
 from .repair import _Repair, _break_short_loops, _bridge_gaps
 from .skeleton_graph import (DEFAULT_IOTA_MM, DEFAULT_MAX_GAP_MM, DEFAULT_MAX_LOOP_MM, SPUR_RADIUS_FACTOR, Branch,
-                             Classification, SkeletonGraph, Trunk, _path_length, _walk_back)
+                             Classification, SkeletonGraph, Trunk, _path_length, _walk_back, upper_entries)
 
 def _junction_clusters(graph: SkeletonGraph):
     """Rows 1-4: quasi-junction clusters, one junction (largest degree) and arm count each."""
@@ -28,6 +28,16 @@ def _junction_clusters(graph: SkeletonGraph):
     boundary = (cluster_of[coo.row] >= 0) & (cluster_of[coo.row] != cluster_of[coo.col])
     arms = np.bincount(cluster_of[coo.row[boundary]], minlength=count)
     return cluster_of, junctions, arms
+
+
+def _between(adjacency: sp.csr_matrix, alive: np.ndarray) -> sp.csr_matrix:
+    """The entries of ``adjacency`` (canonical: sorted, no zeros) between ``alive`` nodes: ``diag(alive)
+    A diag(alive)`` without its zeros, read off the stored entries (each kept one times 1.0 twice)."""
+    rows = np.repeat(np.arange(adjacency.shape[0]), np.diff(adjacency.indptr))
+    kept = alive[rows] & alive[adjacency.indices]
+    indptr = np.zeros(adjacency.shape[0] + 1, dtype=adjacency.indptr.dtype)
+    np.cumsum(np.bincount(rows[kept], minlength=adjacency.shape[0]), out=indptr[1:])
+    return sp.csr_matrix((adjacency.data[kept], adjacency.indices[kept], indptr), shape=adjacency.shape)
 
 
 class _BranchSearch:
@@ -106,8 +116,7 @@ def _trunks(graph: SkeletonGraph, junctions: np.ndarray) -> list[Trunk]:
     adjacency = graph.adjacency
     dist, pred, source = csgraph.dijkstra(adjacency, directed=True, indices=junctions, min_only=True,
                                           return_predecessors=True)
-    upper = sp.triu(adjacency, k=1).tocoo()
-    a, b, w = upper.row, upper.col, upper.data
+    a, b, w = upper_entries(adjacency)
     meet = (source[a] >= 0) & (source[b] >= 0) & (source[a] != source[b])
     best: dict[tuple[int, int], tuple[float, int, int]] = {}
     for u, v, cost in zip(a[meet], b[meet], dist[a[meet]] + w[meet] + dist[b[meet]]):
@@ -267,9 +276,8 @@ def classify(graph: SkeletonGraph, *, tau: int = 5, iota: float | None = None,
 
     alive = repair.alive.copy()
     alive[search.deleted] = False
-    keep = sp.diags(alive.astype(float))
-    final = SkeletonGraph(graph.positions, (keep @ repaired.adjacency @ keep).tocsr(), graph.grid_indices,
-                          graph.unit_mm, graph.radii)
+    final = SkeletonGraph(graph.positions, _between(repaired.adjacency, alive), graph.grid_indices, graph.unit_mm,
+                          graph.radii)
     junctions = search.junctions()
     trunks = _trunks(final, junctions)
     if not trunks:

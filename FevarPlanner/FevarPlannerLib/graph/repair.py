@@ -9,7 +9,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree
 
-from .skeleton_graph import SkeletonGraph, _MIN_WEIGHT, _walk_back
+from .skeleton_graph import SkeletonGraph, _MIN_WEIGHT, _walk_back, upper_entries
 
 #: A cycle's arc whose median lumen radius is at most this share of the widest arc's is a
 #: narrower vessel touching the wider one (an internal iliac's tip on the external iliac in
@@ -92,17 +92,13 @@ def _bridge_gaps(repair: _Repair, max_gap: float) -> None:
 
 def _chords(adjacency: sp.csr_matrix) -> np.ndarray:
     """Edges outside a shortest-path spanning forest: each closes one independent cycle."""
-    n = adjacency.shape[0]
     _, labels = csgraph.connected_components(adjacency, directed=True)
     roots = np.unique(labels, return_index=True)[1]
     _, pred = csgraph.dijkstra(adjacency, directed=True, indices=roots, min_only=True,
                                return_predecessors=True)[:2]
-    child = np.flatnonzero(pred >= 0)
-    tree_keys = np.minimum(child, pred[child]) * n + np.maximum(child, pred[child])
-    upper = sp.triu(adjacency, k=1).tocoo()
-    keys = upper.row.astype(np.int64) * n + upper.col
-    chord = ~np.isin(keys, tree_keys)
-    return np.stack([upper.row[chord], upper.col[chord]], axis=1).astype(np.int64)
+    rows, cols, _ = upper_entries(adjacency)
+    chord = (pred[cols] != rows) & (pred[rows] != cols)       # a forest edge joins a node to its predecessor
+    return np.stack([rows[chord], cols[chord]], axis=1).astype(np.int64)
 
 
 def _without_edge(adjacency: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:

@@ -255,6 +255,14 @@ class SkeletonGraph:
         return _walk_back(pred, int(b))[::-1]
 
 
+def upper_entries(adjacency: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, cols, values)`` of the stored entries above the diagonal, in storage order: those of
+    ``sp.triu(adjacency, k=1).tocoo()``, without building the matrix."""
+    rows = np.repeat(np.arange(adjacency.shape[0], dtype=adjacency.indices.dtype), np.diff(adjacency.indptr))
+    upper = rows < adjacency.indices
+    return rows[upper], adjacency.indices[upper], adjacency.data[upper]
+
+
 def row_norms(vectors: np.ndarray) -> np.ndarray:
     """``np.linalg.norm(vectors, axis=-1)`` of a real float array, to the bit (its square, sum along
     the last axis and root), without its argument handling (a few microseconds a call, and the
