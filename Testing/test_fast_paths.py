@@ -1100,3 +1100,27 @@ def test_the_classified_graph_between_living_nodes_equals_the_diagonal_product()
         fast = SkeletonGraph(graph.positions, _between(graph.adjacency, alive)).adjacency
         for part in ("indptr", "indices", "data"):
             np.testing.assert_array_equal(getattr(fast, part), getattr(plain, part))
+
+
+def test_the_silhouette_distance_looks_further_only_outside_the_nearest_disk():
+    """``_outside_silhouette_px`` against the plain formula: the least distance beyond the disks of the
+    SILHOUETTE_DISKS nearest nodes, clipped at 0, for points inside, on the rim of and outside the vessels."""
+    from types import SimpleNamespace
+
+    from scipy.spatial import cKDTree
+
+    from FevarPlannerLib.pipeline import multiview
+
+    graph, _ = _skeleton_graph_of_a_tree(5)
+    view = SimpleNamespace(g2=graph)
+    rng = np.random.default_rng(9)
+    nodes = rng.integers(0, len(graph), 400)
+    angle = rng.uniform(0.0, 2.0 * np.pi, 400)
+    reach = graph.radii[nodes] * rng.choice([0.0, 0.5, 0.99, 1.0, 1.3, 3.0, 8.0], 400)
+    uv = graph.positions[nodes] + reach[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    uv[:3] = graph.positions[:3]
+    distance, index = cKDTree(graph.positions).query(uv, k=multiview.SILHOUETTE_DISKS)
+    plain = np.maximum((distance - graph.radii[index]).min(axis=1), 0.0)
+    fast = multiview._outside_silhouette_px(view, uv)
+    assert _same_bits(fast, plain)
+    assert 50 < np.count_nonzero(plain > 0) < 350

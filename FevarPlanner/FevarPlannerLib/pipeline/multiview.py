@@ -673,11 +673,21 @@ def outside_silhouette_mm(view, points: np.ndarray, at: np.ndarray) -> np.ndarra
 
 
 def _outside_silhouette_px(view, uv: np.ndarray) -> np.ndarray:
-    """How far (px) each image point ``uv`` lies outside the view's vessel silhouette (2D radii known)."""
-    k = min(SILHOUETTE_DISKS, len(view.g2.positions))
-    distance, index = _facts(view.g2).tree.query(uv, k=k)
-    distance, index = distance.reshape(len(uv), k), index.reshape(len(uv), k)
-    return np.maximum((distance - view.g2.radii[index]).min(axis=1), 0.0)
+    """How far (px) each image point ``uv`` lies outside the view's vessel silhouette (2D radii known):
+    the least distance beyond the disks of its :data:`SILHOUETTE_DISKS` nearest nodes, 0 inside one.
+
+    A point inside its nearest node's disk is inside (0) whatever the other disks say; only the
+    others (a result's points mostly lie in the vessels) look for the other disks."""
+    tree, radii = _facts(view.g2).tree, view.g2.radii
+    nearest_distance, nearest = tree.query(uv)
+    outside = np.zeros(len(uv))
+    beyond = np.flatnonzero(nearest_distance > radii[nearest])
+    if len(beyond):
+        k = min(SILHOUETTE_DISKS, len(view.g2.positions))
+        distance, index = tree.query(uv[beyond], k=k)
+        distance, index = distance.reshape(len(beyond), k), index.reshape(len(beyond), k)
+        outside[beyond] = np.maximum((distance - radii[index]).min(axis=1), 0.0)
+    return outside
 
 
 def outside_silhouette_warnings(preop: Preoperative, views, deformed: np.ndarray) -> list:
