@@ -1124,3 +1124,33 @@ def test_the_silhouette_distance_looks_further_only_outside_the_nearest_disk():
     fast = multiview._outside_silhouette_px(view, uv)
     assert _same_bits(fast, plain)
     assert 50 < np.count_nonzero(plain > 0) < 350
+
+
+def test_nearest_nodes_on_the_legs_reuse_the_legs_cost_queries_to_the_bit():
+    """_matches_on_legs takes a branch's nearest leg nodes from the queries that priced the legs
+    (_legs_of_vessels), not from a second query of the same tree: the same distances and nodes."""
+    from dataclasses import replace
+
+    from FevarPlannerLib.pipeline import frame, multiview, workers
+    from FevarPlannerLib.projection import project
+
+    preop, sources = _two_raw_views()
+    workers.set_enabled(False)
+    try:
+        outcomes = frame.prepare_views(preop, [replace(source, check=False) for source in sources])
+    finally:
+        workers.set_enabled(None)
+    view = outcomes[1].view
+    nodes = preop.kept
+    uv = project(view.P, preop.graph.positions[nodes] + np.random.default_rng(3).normal(0.0, 2.0, (len(nodes), 3)))
+    usable = view.visible[nodes]
+    distance, index, legs, past = multiview._matches_on_legs(view, nodes, preop, uv, usable)
+    facts = multiview._facts(view.g2)
+    plain_distance, plain_index = facts.tree.query(uv)
+    for rows, own in multiview._legs_of_vessels(view, nodes, preop, uv, usable, facts.legs).values():
+        on_leg, tree = facts.leg_trees[own]
+        plain_distance[rows], found = tree.query(uv[rows])
+        plain_index[rows] = on_leg[found]
+    assert len(legs) >= 2
+    assert _same_bits(distance, plain_distance)
+    np.testing.assert_array_equal(index, plain_index)

@@ -361,7 +361,7 @@ def _skeleton_legs(g2, edges: np.ndarray | None = None) -> np.ndarray:
 
 
 def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarray, usable: np.ndarray,
-                     leg: np.ndarray) -> dict:
+                     leg: np.ndarray, queried: dict | None = None) -> dict:
     """One-to-one assignment of the 3D branches (upper aorta, renals, iliacs) to the 2D legs
     ``leg`` (:func:`_skeleton_legs`) of a view without a classification.
 
@@ -370,7 +370,9 @@ def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     at :data:`LEG_COST_CAP_MM`. The Hungarian method (scipy ``linear_sum_assignment``) picks
     the assignment of least total cost, so that of two iliacs whose nearest points all lie on
     one 2D leg the one further from it takes the other leg. Returns {branch index: (rows, leg)}
-    with ``rows`` the branch's usable rows in ``nodes``.
+    with ``rows`` the branch's usable rows in ``nodes``; ``queried`` (a dict) receives each leg's
+    nearest-node query of the rows of ``uv`` it measured, {leg: (distance, nearest node of the
+    leg)}, arrays over all rows (a row not measured holds 0).
     """
     count = int(leg.max()) + 1 if len(leg) else 0
     vessels = []
@@ -386,9 +388,11 @@ def _legs_of_vessels(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     wanted = np.unique(np.concatenate([rows for _, rows in vessels]))
     cost = np.empty((len(vessels), count))
     for j, (_, tree) in enumerate(trees):
-        distance = np.zeros(len(uv))
-        distance[wanted] = tree.query(uv[wanted])[0]
+        distance, nearest = np.zeros(len(uv)), np.zeros(len(uv), dtype=np.int64)
+        distance[wanted], nearest[wanted] = tree.query(uv[wanted])
         cost[:, j] = [distance[rows].mean() / scale for _, rows in vessels]
+        if queried is not None:
+            queried[j] = (distance, nearest)
     cost = np.c_[cost, np.full((len(vessels), len(vessels)), LEG_COST_CAP_MM)]       # the "no leg" columns
     chosen, legs = linear_sum_assignment(cost)
     return {vessels[i][0]: (vessels[i][1], int(j)) for i, j in zip(chosen, legs) if j < count}
@@ -414,11 +418,13 @@ def _matches_on_legs(view, nodes: np.ndarray, preop: Preoperative, uv: np.ndarra
     facts = _facts(view.g2)
     distance, index = facts.tree.query(uv)
     leg = facts.legs
-    legs = _legs_of_vessels(view, nodes, preop, uv, usable, leg)
+    queried = {}        # each leg's query of the branches' rows, made for their costs
+    legs = _legs_of_vessels(view, nodes, preop, uv, usable, leg, queried)
     past = np.zeros(len(nodes), dtype=bool)
     for rows, own in legs.values():
         on_leg, tree = facts.leg_trees[own]
-        distance[rows], found = tree.query(uv[rows])
+        leg_distance, leg_nearest = queried[own] if own in queried else tree.query(uv)
+        distance[rows], found = leg_distance[rows], leg_nearest[rows]
         index[rows] = on_leg[found]
         past[rows] = _past_leg_ends(view.g2, leg, index[rows], uv[rows])
     return distance, index, legs, past
