@@ -129,6 +129,16 @@ def overlay(mask: np.ndarray, truth: np.ndarray, frame: np.ndarray, path: Path) 
     Image.fromarray((255 * rgb).astype(np.uint8)).save(path)
 
 
+def frame_check(mask: np.ndarray, prior, frame: np.ndarray) -> str:
+    """``quality.check_frame_mask``'s verdict on this tree's mask (with the frame, as the pipeline
+    runs it): "accepted", or the refusal's message."""
+    try:
+        quality.check_frame_mask(mask, prior, frame=frame)
+    except quality.QualityError as error:
+        return f"refused: {error}"
+    return "accepted"
+
+
 def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[dict]:
     """One row per bench frame of ``seed``: Dice, false-negative and false-positive shares, CPU ms."""
     case, prior, frames = bench_frames(seed, kinds, cache)
@@ -142,7 +152,8 @@ def score_seed(seed: int, kinds, cache, reference, pngs: Path | None) -> list[di
         truth = frame.mask
         row = {"seed": seed, "kind": kind, "polarity": polarity, "dice": seg.dice(mask, truth),
                "missed": float((truth & ~mask).sum() / max(truth.sum(), 1)),
-               "extra": float((mask & ~truth).sum() / max(truth.sum(), 1)), "cpu_ms": ms}
+               "extra": float((mask & ~truth).sum() / max(truth.sum(), 1)), "cpu_ms": ms,
+               "check": frame_check(mask, prior, frame.frame)}
         if reference is not None:
             reference(frame.frame, reference_prior)
             old, old_ms = _cpu_ms(reference, frame.frame, reference_prior)
@@ -281,6 +292,8 @@ def main() -> None:
         unsubtracted = [r for r in rows if r["kind"] != "every_dsa"]
         payload["mean_dice_unsubtracted"] = float(np.mean([r["dice"] for r in unsubtracted]))
         payload["mean_cpu_ms"] = float(np.mean([r["cpu_ms"] for r in rows]))
+        payload["refused"] = {kind: sum(r["check"] != "accepted" for r in rows if r["kind"] == kind)
+                              for kind in dict.fromkeys(r["kind"] for r in rows)}
         if reference is not None:
             payload["mean_reference_dice_unsubtracted"] = float(np.mean([r["reference_dice"] for r in unsubtracted]))
             payload["mean_reference_cpu_ms"] = float(np.mean([r["reference_cpu_ms"] for r in rows]))
