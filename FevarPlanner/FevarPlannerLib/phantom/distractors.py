@@ -77,13 +77,19 @@ def _tube_chord(shape, points: np.ndarray, radius: float) -> np.ndarray:
     return (2.0 * np.sqrt(np.clip(radius ** 2 - distance ** 2, 0.0, None))).astype(np.float32)
 
 
-def _spine(shape, aorta_uv: np.ndarray, px_mm: float, level: float, rng) -> tuple[np.ndarray, np.ndarray]:
-    """Vertebral bodies beside and under the aorta: rounded blocks with a cortical rim, discs between."""
+def _spine(shape, aorta_uv: np.ndarray, px_mm: float, level: float, rng,
+           offset_mm: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Vertebral bodies beside and under the aorta: rounded blocks with a cortical rim, discs between.
+
+    The column's centre lies 8-20 mm to a random side of the aorta, or ``offset_mm`` (signed,
+    along +u) when given (the random draws are made either way)."""
     rows, cols = shape
     v, u = np.mgrid[0:rows, 0:cols].astype(np.float32)
     order = np.argsort(aorta_uv[:, 1])
     side = rng.choice([-1.0, 1.0])
-    centre_u = np.interp(v, aorta_uv[order, 1], aorta_uv[order, 0]) + side * rng.uniform(8, 20) * px_mm
+    offset = side * rng.uniform(8, 20)
+    offset = offset if offset_mm is None else float(offset_mm)
+    centre_u = np.interp(v, aorta_uv[order, 1], aorta_uv[order, 0]) + offset * px_mm
     half_width = rng.uniform(20, 26) * px_mm
     height, disc = rng.uniform(26, 32) * px_mm, rng.uniform(5, 8) * px_mm
     phase = (v + rng.uniform(0, height + disc)) % (height + disc)
@@ -222,7 +228,8 @@ def _text(shape, rng) -> np.ndarray:
 
 
 def render_bench_frame(case, rng: np.random.Generator, *, subtracted: bool = False, polarity: str = "dark",
-                       distractors=DISTRACTORS, contrast: bool = True) -> BenchFrame:
+                       distractors=DISTRACTORS, contrast: bool = True, spine_offset_mm: float | None = None,
+                       spine_gain: float | None = None) -> BenchFrame:
     """A fluoroscopy frame of ``case``'s intra-operative vessels seen through ``P_true``, with distractors.
 
     Parameters
@@ -238,6 +245,17 @@ def render_bench_frame(case, rng: np.random.Generator, *, subtracted: bool = Fal
         Which of :data:`DISTRACTORS` to draw.
     contrast : bool
         False: the same frame without iodine (a frame before the bolus, or no angiogram).
+    spine_offset_mm : float, optional
+        The vertebral column's centre this far (signed, mm along +u) from the aorta's projection
+        instead of 8-20 mm to a random side: near 0, the aorta lies over the vertebral bodies
+        (an oblique view of a patient, RAO 30 on the real CT of ``bench_real_drr.py``).
+    spine_gain : float, optional
+        The vertebral bodies' attenuation as this multiple of the aorta's centre-line iodine
+        instead of 0.5-1.0 (in a patient's radiograph about 3-6: the aorta's iodine is 6-7 mm
+        of water-equivalent, a vertebral body some 20-40 mm).
+
+    Neither option changes a random draw: the frame is the default one with only the spine moved
+    or made denser.
 
     Returns
     -------
@@ -261,7 +279,8 @@ def render_bench_frame(case, rng: np.random.Generator, *, subtracted: bool = Fal
     exposure = np.ones(shape, dtype=np.float32)
     parts = {}
     builders = {
-        "spine": lambda: _spine(shape, aorta_uv, px_mm, rng.uniform(0.5, 1.0) * aorta_level, rng),
+        "spine": lambda: _spine(shape, aorta_uv, px_mm, _given_or(spine_gain, rng.uniform(0.5, 1.0)) * aorta_level,
+                                rng, spine_offset_mm),
         "pelvis": lambda: _pelvis(shape, iliac_ends, px_mm, rng.uniform(0.3, 0.6) * aorta_level, rng),
         "box": lambda: _box(shape, vessels_uv, px_mm, rng.uniform(0.6, 1.2) * aorta_level, rng),
         "rail": lambda: _rail(shape, vessels_uv, px_mm, rng.uniform(0.15, 0.35) * aorta_level, rng),
@@ -296,6 +315,12 @@ def render_bench_frame(case, rng: np.random.Generator, *, subtracted: bool = Fal
         parts["text"] = ndimage.binary_dilation(parts["text"], iterations=2)
     mask = lumen if contrast else np.zeros(shape, dtype=bool)
     return BenchFrame(np.rint(frame).astype(np.uint16), mask, parts)
+
+
+def _given_or(given: float | None, drawn: float) -> float:
+    """``given`` when not None, else the random ``drawn`` (drawn either way, so that the random
+    stream is the same)."""
+    return drawn if given is None else float(given)
 
 
 def bench_case(seed: int, **case_kwargs):

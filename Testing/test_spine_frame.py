@@ -1,0 +1,87 @@
+"""The aorta over the vertebral column in an unsubtracted frame (issue 11: a confident wrong answer).
+
+On radiographs of a real CT (``bench_real_drr.py``, RAO 30) the aorta lies over the spine and the
+frame mask followed the vertebral column's edge 10-20 mm beside it; the frame check accepted it,
+inside the aorta's 20 mm tolerance. Reproduced on a bench frame whose vertebral column is centred
+under the aorta and three times as dense as its iodine (``render_bench_frame(spine_offset_mm=0,
+spine_gain=3)``): a mask whose aorta runs along the column's edge is accepted by the check of the
+previous code; the check now measures, across the mask's aorta, whether it runs along a band
+denser than both sides (a contrast-filled lumen) or along a step (a bone's edge), and refuses it.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from FevarPlannerLib import quality
+from FevarPlannerLib import segmentation as seg
+from FevarPlannerLib.phantom import distractors
+from FevarPlannerLib.phantom.fluoro import _project_tubes
+
+SEED = 302
+
+
+@pytest.fixture(scope="module")
+def spine_frame():
+    """(prior, frame, true mask, the aorta's true mask, the column's mask) of the bench case of SEED,
+    its vertebral column centred under the aorta, 3 times as dense as the aorta's iodine."""
+    case = distractors.bench_case(SEED)
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    frame = distractors.render_bench_frame(case, np.random.default_rng(SEED), distractors=("spine",),
+                                           spine_offset_mm=0.0, spine_gain=3.0)
+    aorta_only = dataclasses.replace(case.intraop, vessels={"aorta": case.intraop.vessels["aorta"]})
+    aorta, _ = _project_tubes(aorta_only, case.P_true, frame.mask.shape)
+    return prior, frame.frame, frame.mask, aorta, frame.parts["spine"]
+
+
+def along_column_edge(truth: np.ndarray, aorta: np.ndarray, column: np.ndarray) -> np.ndarray:
+    """``truth`` with its aorta moved onto the column: on each row, as wide as the aorta there,
+    from the column's left edge inwards (where a mask following the edge lies)."""
+    wrong = truth & ~aorta
+    for row in np.flatnonzero(aorta.any(axis=1) & column.any(axis=1)):
+        edge = np.flatnonzero(column[row])[0]
+        wrong[row, edge:edge + np.count_nonzero(aorta[row])] = True
+    return wrong
+
+
+def test_mask_along_the_column_edge_is_refused_naming_the_aorta(spine_frame):
+    prior, frame, truth, aorta, column = spine_frame
+    wrong = along_column_edge(truth, aorta, column)
+    aorta_u = np.nonzero(aorta)[1].mean()
+    wrong_u = np.nonzero(wrong & ~truth)[1].mean()
+    assert 8.0 <= abs(wrong_u - aorta_u) / np.median(prior.px_per_mm) <= 20.0     # 8-20 mm beside the aorta
+    with pytest.raises(quality.QualityError, match=r"aorta not found as a contrast-filled vessel near pixel") as error:
+        quality.check_frame_mask(wrong, prior, frame=frame)
+    share = float(str(error.value).split("pixel (u=")[1].split("): ")[1].split("%")[0])
+    assert share <= 30.0
+    u = float(str(error.value).split("(u=")[1].split(",")[0])
+    assert abs(u - wrong_u) < abs(u - aorta_u)          # it points at the strip beside the aorta
+
+
+def test_right_masks_of_the_same_frame_are_accepted(spine_frame):
+    prior, frame, truth, _, _ = spine_frame
+    report = quality.check_frame_mask(truth, prior, frame=frame)
+    assert report["band_share"]["aorta"] >= 0.8
+    mask = seg.segment_fluoro(frame, prior)
+    assert seg.dice(mask, truth) >= 0.85
+    assert quality.check_frame_mask(mask, prior, frame=frame)["band_share"]["aorta"] >= 0.6
+
+
+def test_without_the_frame_the_check_is_the_projected_tree_alone(spine_frame):
+    prior, _, truth, aorta, column = spine_frame
+    report = quality.check_frame_mask(along_column_edge(truth, aorta, column), prior)
+    assert "band_share" not in report and report["coverage"]["aorta"] >= 0.5
+
+
+def test_spine_options_change_only_the_spine():
+    case = distractors.bench_case(SEED)
+    plain = distractors.render_bench_frame(case, np.random.default_rng(SEED), distractors=("pelvis", "wire"))
+    given = distractors.render_bench_frame(case, np.random.default_rng(SEED), distractors=("pelvis", "wire"),
+                                           spine_offset_mm=0.0, spine_gain=3.0)
+    assert np.array_equal(plain.frame, given.frame)
+    beside = distractors.render_bench_frame(case, np.random.default_rng(SEED), distractors=("spine",))
+    under = distractors.render_bench_frame(case, np.random.default_rng(SEED), distractors=("spine",),
+                                           spine_offset_mm=0.0)
+    assert np.array_equal(beside.mask, under.mask)
+    assert not np.array_equal(beside.parts["spine"], under.parts["spine"])
