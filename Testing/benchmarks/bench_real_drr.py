@@ -302,7 +302,7 @@ def renal_band(prior: quality.FluoroPrior, shape) -> np.ndarray:
 def frame_check(mask: np.ndarray, prior: quality.FluoroPrior, frame: np.ndarray) -> dict:
     try:
         report = quality.check_frame_mask(mask, prior, frame=frame)
-        return {"accepted": True, "coverage": report["coverage"]}
+        return {"accepted": True, "coverage": report["coverage"], "band_share": report.get("band_share", {})}
     except quality.QualityError as error:
         return {"accepted": False, "refusal": str(error)}
 
@@ -416,6 +416,7 @@ def run_view(ct, labels, arteries, view, priors, args, pngs) -> tuple[list, list
 def refusal_kind(refusal: str) -> str:
     """The class of a frame check's refusal: its measure, and for a vessel not found which one."""
     for marker, kind in (("stand out of the noise", "contrast_to_noise"), ("fall apart", "pieces"),
+                         ("not found as a contrast-filled vessel", "not_a_band"),
                          ("covers", "mask_too_large"), ("no vessel found", "empty")):
         if marker in refusal:
             return kind
