@@ -785,7 +785,8 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
                                f"segmented vessels (see segmentation_qc.png)", qc)
     report = {"coverage": coverage, "shift_px": (shift * factor).tolist()}
     if frame is not None:
-        report["band_share"] = _check_bands(blocks, noise, contrast, small, skeleton, prior, factor, shift, qc)
+        report["band_share"] = _check_bands(blocks, noise, float(np.sign(contrast)), small, skeleton, prior, factor,
+                                            shift, qc)
     return report
 
 
