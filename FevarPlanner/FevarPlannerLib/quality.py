@@ -647,25 +647,24 @@ def _band_contrast(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, ang
     return mean_over(core) - np.maximum(mean_over(-flank), mean_over(flank))
 
 
-def _band_shares(oriented: np.ndarray, skeleton: np.ndarray, half_width: np.ndarray, prior, factor: int,
-                 shift: np.ndarray, noise: float) -> dict:
+def _band_shares(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, half_width: np.ndarray, grid_shape,
+                 prior, factor: int, shift: np.ndarray, noise: float) -> dict:
     """Per vessel of :data:`BAND_VESSELS` with at least :data:`BAND_MIN_SAMPLES` centre-line pixels
-    (the mask's skeleton on the working grid nearest to it, within its radius and deformation
-    margin after the in-plane ``shift`` (du, dv) of the grid; ``half_width``: the mask's distance
-    to its outside at each skeleton pixel, :data:`BAND_SPUR`): the share of them that are a band
-    centred on the centre line (:func:`_band_contrast`, rule at :data:`BAND_OF_BEST`), and the frame
-    pixel (u, v) around which the others lie (None when all are)."""
+    (of the mask's skeleton pixels ``rows, cols`` on the working grid of ``grid_shape``, those
+    nearest to it, within its radius and deformation margin after the in-plane ``shift`` (du, dv)
+    of the grid; ``half_width``: the mask's distance to its outside there, :data:`BAND_SPUR`): the
+    share of them that are a band centred on the centre line (:func:`_band_contrast`, rule at
+    :data:`BAND_OF_BEST`), and the frame pixel (u, v) around which the others lie (None when all are)."""
     from .segmentation.fluoro import _node_directions
 
-    distance, nearest = prior.rasterise(skeleton.shape, factor)
-    rows, cols = np.nonzero(skeleton)
-    half_width = half_width[rows, cols]
-    at_r = np.clip(np.round(rows - shift[1]).astype(int), 0, skeleton.shape[0] - 1)
-    at_c = np.clip(np.round(cols - shift[0]).astype(int), 0, skeleton.shape[1] - 1)
+    distance, nearest = prior.rasterise(grid_shape, factor)
+    at_r = np.clip(np.round(rows - shift[1]).astype(int), 0, grid_shape[0] - 1)
+    at_c = np.clip(np.round(cols - shift[0]).astype(int), 0, grid_shape[1] - 1)
     node = np.maximum(nearest[at_r, at_c], 0)
     radius = np.maximum(prior.radii_px[node] / factor, 1.0)
     near = distance[at_r, at_c] <= radius + prior.margin_px[node] / factor
-    labels, angles = np.asarray(prior.labels), prior.derived(("node_directions",), lambda: _node_directions(prior))
+    labels = prior.derived(("label_array",), lambda: np.asarray(prior.labels))
+    angles = prior.derived(("node_directions",), lambda: _node_directions(prior))
     beside = np.arange(round(4 * BAND_BESIDE), round(4 * BAND_SEARCH) + 1)        # quarter radii
     shares = {}
     for vessel in BAND_VESSELS:
@@ -691,10 +690,12 @@ def _check_bands(blocks: np.ndarray, noise: float, sign: float, small: np.ndarra
     ``factor`` block means, ``noise`` theirs, ``sign`` +1 where the masked vessels are brighter
     than around them (-1: darker); ``small``, ``skeleton``: the mask and its skeleton on the
     working grid. Returns ``{vessel: share of its centre line}``."""
-    rows, cols = min(blocks.shape[0], small.shape[0]), min(blocks.shape[1], small.shape[1])
-    oriented = blocks[:rows, :cols] if sign >= 0 else -blocks[:rows, :cols]
-    small, skeleton = small[:rows, :cols], skeleton[:rows, :cols]
-    shares = _band_shares(oriented, skeleton, ndi.distance_transform_edt(small), prior, factor, shift, noise)
+    oriented = blocks if sign >= 0 else -blocks        # may lack the grid's last partial block: sampled clamped
+    box = _padded_box(small, 1)
+    rows, cols = np.nonzero(skeleton[box])
+    half_width = ndi.distance_transform_edt(small[box])[rows, cols]
+    rows, cols = rows + box[0].start, cols + box[1].start
+    shares = _band_shares(oriented, rows, cols, half_width, small.shape, prior, factor, shift, noise)
     for vessel, (share, where) in shares.items():
         if share < MIN_BAND_SHARE:
             raise QualityError(f"frame check: {vessel} not found as a contrast-filled vessel near pixel (u={where[0]:.0f}, "
