@@ -5,6 +5,9 @@ Each seed's phantom case (:func:`phantom.distractors.bench_case`) is rendered as
 
 - ``every``: every distractor, unsubtracted; ``every_dsa``: every distractor, subtracted;
 - one frame per distractor alone (``spine``, ``pelvis``, ... ``exposure``), unsubtracted;
+- ``spine_under`` / ``every_spine_under``: the spine alone / every distractor, unsubtracted, the
+  vertebral column centred under the aorta and 3 times as dense as its iodine (as the aorta
+  over the spine of a patient's oblique view; ``Testing/test_spine_frame.py``);
 
 each with the vessels dark and bright. The frame is segmented as the pipeline does it
 (:func:`segmentation.segment_fluoro` with the pre-operative tree projected through the given
@@ -52,7 +55,9 @@ from FevarPlannerLib.phantom import distractors  # noqa: E402
 
 #: (kind, render keyword arguments) of the frames rendered per seed and polarity.
 KINDS = (("every", {}), ("every_dsa", {"subtracted": True})) + tuple(
-    (name, {"distractors": (name,)}) for name in distractors.DISTRACTORS)
+    (name, {"distractors": (name,)}) for name in distractors.DISTRACTORS) + (
+    ("spine_under", {"distractors": ("spine",), "spine_offset_mm": 0.0, "spine_gain": 3.0}),
+    ("every_spine_under", {"spine_offset_mm": 0.0, "spine_gain": 3.0}))
 POLARITIES = ("dark", "bright")
 REPO = Path(__file__).resolve().parents[2]
 FLUORO_PATH = "FevarPlanner/FevarPlannerLib/segmentation/fluoro.py"
