@@ -49,7 +49,8 @@ Measured per view, kind, polarity and prior: Dice / precision / recall of the ma
 truth over the open field and within the prior's band (``FluoroPrior.band``: the projected tree
 widened by its radius and the expected deformation), the mask's pixels in the prior's renal bands
 that the truth does not have (the renal arteries are real contrast the labels lack),
-``check_frame_mask``'s verdict (with the frame: every frame here is a usable angiogram, so a
+``check_frame_mask``'s verdict (accepted: with the aorta's band share, the fraction of its centre
+line along a band denser than both sides; with the frame: every frame here is a usable angiogram, so a
 refusal is a false refusal; except a renal artery "not found" in a DSA-like frame: the
 subtraction here removes only the labelled arteries' iodine, so the renals are absent from it by
 construction), the per-pixel contrast to noise (``quality.vessel_contrast_to_noise``, the
