@@ -7,6 +7,9 @@ under the aorta and three times as dense as its iodine (``render_bench_frame(spi
 spine_gain=3)``): a mask whose aorta runs along the column's edge is accepted by the check of the
 previous code; the check now measures, across the mask's aorta, whether it runs along a band
 denser than both sides (a contrast-filled lumen) or along a step (a bone's edge), and refuses it.
+The same on a default bench frame (the column beside the aorta) with the mask along the column's
+far edge: the previous check accepted it (``test_default_bench_frame_mask_along_the_far_column_edge_is_refused``
+fails on it, with nothing new in the rendering).
 """
 
 import dataclasses
@@ -85,3 +88,35 @@ def test_spine_options_change_only_the_spine():
                                            spine_offset_mm=0.0)
     assert np.array_equal(beside.mask, under.mask)
     assert not np.array_equal(beside.parts["spine"], under.parts["spine"])
+
+
+
+def along_far_column_edge(truth: np.ndarray, aorta: np.ndarray, column: np.ndarray) -> np.ndarray:
+    """``truth`` with its aorta moved onto the column: on each row, as wide as the aorta there, from
+    the column's edge farther from the aorta inwards."""
+    wrong = truth & ~aorta
+    for row in np.flatnonzero(aorta.any(axis=1) & column.any(axis=1)):
+        width, centre, cols = np.count_nonzero(aorta[row]), np.flatnonzero(aorta[row]).mean(), np.flatnonzero(column[row])
+        if cols[-1] - centre > centre - cols[0]:
+            wrong[row, cols[-1] - width + 1:cols[-1] + 1] = True
+        else:
+            wrong[row, cols[0]:cols[0] + width] = True
+    return wrong
+
+
+def test_default_bench_frame_mask_along_the_far_column_edge_is_refused():
+    """Fails on the previous check (no new rendering option needed): on the default spine frame of
+    seed 319 (the column 8-20 mm beside the aorta) a mask whose aorta runs along the column's far
+    edge (Dice 0.35 against the truth, as on the real RAO 30 radiograph) was accepted, its aorta
+    fully "seen" after the in-plane shift."""
+    case = distractors.bench_case(319)
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_given)
+    frame = distractors.render_bench_frame(case, np.random.default_rng(319), distractors=("spine",))
+    aorta_only = dataclasses.replace(case.intraop, vessels={"aorta": case.intraop.vessels["aorta"]})
+    aorta, _ = _project_tubes(aorta_only, case.P_true, frame.mask.shape)
+    wrong = along_far_column_edge(frame.mask, aorta, frame.parts["spine"])
+    assert seg.dice(wrong, frame.mask) <= 0.4
+    assert quality.check_frame_mask(wrong, prior)["coverage"]["aorta"] >= 0.9      # the projected tree alone passes it
+    with pytest.raises(quality.QualityError, match=r"aorta not found as a contrast-filled vessel near pixel"):
+        quality.check_frame_mask(wrong, prior, frame=frame.frame)
+    assert quality.check_frame_mask(frame.mask, prior, frame=frame.frame)["band_share"]["aorta"] >= 0.9
