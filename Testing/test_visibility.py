@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from FevarPlannerLib import evaluation, io, phantom, pipeline
-from FevarPlannerLib.pipeline.visibility import _collimated_bands
+from FevarPlannerLib.pipeline.visibility import _collimated_bands, shutter_filled
 from FevarPlannerLib.projection import project, write_geometry_json
 from fixtures import phantom_case_fixtures
 CUT_BELOW_TOP_MM = 45
@@ -65,6 +65,55 @@ def test_a_frame_without_shutters_has_no_bands_and_a_flat_border_line_still_coun
     assert _collimated_bands(image) == dict.fromkeys(["top", "bottom", "left", "right"], 0)
     image[:, -7:] = 900                         # a flat blade on the right
     assert _collimated_bands(image) == {"top": 0, "bottom": 0, "left": 0, "right": 7}
+
+
+def _round_field_frame(size=200, radius=80, seed=2):
+    """A noisy exposed disc (radius ``radius``) on a black surround, a dark vertical vessel
+    (11 px wide) running out of it at the bottom, and the vessel's mask inside the disc."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.indices((size, size))
+    inside = (rows - size / 2) ** 2 + (cols - size / 2) ** 2 <= radius ** 2
+    vessel = (np.abs(cols - 100) <= 5) & (rows >= 60)
+    image = np.where(inside, 2000 + 40 * rng.normal(size=(size, size)) - 800 * vessel, 0).astype(np.uint16)
+    return image, vessel & inside
+
+
+def test_a_round_field_is_found_and_beyond_it_nothing_is_shown():
+    image, mask = _round_field_frame()
+    vis = pipeline.frame_visibility(mask, image)
+    assert vis.field is not None and vis.exposed == (20, 180, 20, 180)       # the disc's bounding box
+    assert vis.clipped_border == ["bottom"] and 4 <= vis.field.margin_px <= 7
+    # the disc's centre, the vessel inside, at the disc's edge (within the margin), beyond the edge
+    shown = vis.shows(np.array([[100.0, 100.0], [100.0, 160.0], [100.0, 177.0], [100.0, 185.0], [30.0, 30.0]]))
+    assert shown.tolist() == [True, True, False, False, False]
+    assert 0.45 < vis.to_dict()["shaped_field"]["exposed_fraction"] < 0.55     # pi 80^2 / 200^2 = 0.50
+
+
+def test_a_subtracted_frames_grey_background_and_plain_bands_are_no_shaped_field():
+    rng = np.random.default_rng(3)
+    image = (2000 + 60 * rng.normal(size=(120, 120))).astype(np.uint16)
+    mask = np.zeros(image.shape, dtype=bool)
+    mask[10:110, 55:66] = True
+    image[mask] -= 700
+    assert pipeline.frame_visibility(mask, image).field is None
+    image[:15] = 0                                                            # a straight blade: a band
+    vis = pipeline.frame_visibility(mask, image)
+    assert vis.field is None and vis.exposed[0] == 15
+
+
+def test_the_segmentation_sees_the_round_fields_surround_as_background():
+    image, _ = _round_field_frame()
+    filled, unexposed = shutter_filled(image)
+    inside = image > 0
+    surround = ~inside
+    surround[:20] = surround[181:] = surround[:, :20] = surround[:, 181:] = False   # the bands stay
+    assert filled.dtype == image.dtype
+    np.testing.assert_array_equal(filled[inside], image[inside])
+    assert np.all(np.abs(filled[surround].astype(float) - 2000.0) < 20)        # the field's level at its edge
+    assert not filled[:20].any()
+    np.testing.assert_array_equal(unexposed, surround)
+    plain = (2000 + np.random.default_rng(0).normal(size=(64, 64)) * 30).astype(np.uint16)
+    assert shutter_filled(plain)[0] is plain and shutter_filled(plain)[1] is None
 
 
 case, preop = phantom_case_fixtures("clipped", upper_bend_deg=15.0)

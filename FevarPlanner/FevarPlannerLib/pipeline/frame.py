@@ -24,7 +24,7 @@ from .fallback import _never_worse_than_sv
 from .multiview import (MAX_CANDIDATE_COMBINATIONS, _deform_with, follow_anchor, outside_silhouette_warnings,
                         score_floor)
 from .results import FrameResult, METHODS, ViewFrame
-from .visibility import Visibility, frame_visibility
+from .visibility import Visibility, frame_visibility, shutter_filled
 
 
 def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
@@ -170,7 +170,7 @@ def _route_offsets(preop: Preoperative, P: np.ndarray, visibility: Visibility) -
     (4)-(5), centring, the held upper aorta). Kept on ``preop`` for the last
     :data:`ROUTE_OFFSETS_KEPT` geometries (a tracked run keeps its geometry from frame to frame;
     a frame whose pose check corrects ``P`` uses two, and several views one each)."""
-    key = (np.asarray(P, dtype=float).tobytes(), visibility.shape, visibility.exposed)
+    key = (np.asarray(P, dtype=float).tobytes(),) + visibility.key()
     kept = preop.route_offsets
     if key in kept:
         kept[key] = kept.pop(key)           # the most recently used last
@@ -188,9 +188,7 @@ def _rendered_assignments(preop: Preoperative, P: np.ndarray, visibility: Visibi
     radii or where Algorithm 1 fails on it."""
     if preop.graph.radii is None:
         return [], None
-    rendered = np.zeros(visibility.shape, dtype=bool)
-    r0, r1, c0, c1 = visibility.exposed
-    rendered[r0:r1 + 1, c0:c1 + 1] = matching.render_lumen(preop.graph, P, visibility.shape)[r0:r1 + 1, c0:c1 + 1]
+    rendered = matching.render_lumen(preop.graph, P, visibility.shape) & visibility.exposed_mask()
     try:
         c2 = _classify_2d(_skeleton2d_graph(rendered, 1.0 / pixels_per_mm(P, preop.centre)), P, preop.centre)
         g2 = graph.smooth_positions(c2.graph, SMOOTHING_ITERATIONS)
@@ -493,7 +491,9 @@ def _source_mask(source: ViewSource) -> np.ndarray:
         return condition_given_mask(source.given_mask)
     from .. import segmentation
 
-    return segmentation.segment_fluoro(source.image, source.prior)
+    frame, unexposed = shutter_filled(source.image)
+    mask = segmentation.segment_fluoro(frame, source.prior)
+    return mask & ~unexposed if unexposed is not None else mask
 
 
 def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pose, centre: bool = True) -> ViewOutcome:

@@ -26,27 +26,74 @@ class Visibility:
         Per clipped side, the vessel half-width there (px): within it the 2D skeleton is
         the thinning's artefact of the cut (it bends or forks towards the corners), so
         projections closer to the border than this get no data term.
+    field : Field or None
+        A round (image intensifier) or otherwise shaped exposed field inside ``exposed``;
+        None when the whole rectangle is exposed.
     """
 
     shape: tuple
     exposed: tuple
     clipped_border: list
     margin_px: dict
+    field: "Field | None" = None
 
     def shows(self, uv: np.ndarray) -> np.ndarray:
         """True for the 2D points (u, v) inside the part of the frame that shows vessels."""
         r0, r1, c0, c1 = self.exposed
         m = {side: self.margin_px.get(side, 0.0) for side in _SIDES}
         u, v = uv[:, 0], uv[:, 1]
-        return ((v >= r0 - 0.5 + m["top"]) & (v <= r1 + 0.5 - m["bottom"])
-                & (u >= c0 - 0.5 + m["left"]) & (u <= c1 + 0.5 - m["right"]))
+        inside = ((v >= r0 - 0.5 + m["top"]) & (v <= r1 + 0.5 - m["bottom"])
+                  & (u >= c0 - 0.5 + m["left"]) & (u <= c1 + 0.5 - m["right"]))
+        return inside & self.field.shows(uv) if self.field is not None else inside
+
+    def exposed_mask(self) -> np.ndarray:
+        """The frame's exposed pixels: the rectangle, less what the shaped field leaves dark."""
+        shown = np.zeros(self.shape, dtype=bool)
+        r0, r1, c0, c1 = self.exposed
+        shown[r0:r1 + 1, c0:c1 + 1] = True
+        return shown & ~self.field.unexposed if self.field is not None else shown
+
+    def key(self) -> tuple:
+        """What the exposed part of the frame depends on, hashable (a cache key)."""
+        return self.shape, self.exposed, None if self.field is None else self.field.unexposed.tobytes()
 
     def to_dict(self, nodes_outside: int | None = None) -> dict:
         data = {"clipped_border": list(self.clipped_border), "exposed_rows_cols": list(map(int, self.exposed)),
                 "margin_px": {k: round(float(v), 2) for k, v in self.margin_px.items()}}
+        if self.field is not None:
+            data["shaped_field"] = {"exposed_fraction": round(float(1.0 - self.field.unexposed.mean()), 4),
+                                    "margin_px": round(float(self.field.margin_px), 2)}
         if nodes_outside is not None:
             data["nodes_outside"] = int(nodes_outside)
         return data
+
+
+@dataclass
+class Field:
+    """A shaped exposed field: the dark (or white) shutter around a round image-intensifier
+    field or a shaped collimator, flat and connected to the rectangle's corners.
+
+    Attributes
+    ----------
+    unexposed : (rows, cols) bool
+        Shutter pixels (no anatomy shown).
+    distance_px : (rows // FIELD_STEP + 1, cols // FIELD_STEP + 1) float
+        Distance (px) of each coarse grid point to the shutter.
+    margin_px : float
+        The vessel half-width where the vessel mask meets the shutter (0 when it does not):
+        projections closer to the shutter than this get no data term, as at a straight border.
+    """
+
+    unexposed: np.ndarray
+    distance_px: np.ndarray
+    margin_px: float
+
+    def shows(self, uv: np.ndarray) -> np.ndarray:
+        """True for the points (u, v) farther than ``margin_px`` from the shutter (on the frame)."""
+        rows, cols = self.distance_px.shape
+        r = np.clip(np.rint(uv[:, 1] / FIELD_STEP), 0, rows - 1).astype(int)
+        c = np.clip(np.rint(uv[:, 0] / FIELD_STEP), 0, cols - 1).astype(int)
+        return self.distance_px[r, c] > max(self.margin_px, FIELD_STEP)
 
 
 _SIDES = ("top", "bottom", "left", "right")
@@ -95,6 +142,131 @@ def _borders_could_be_flat(image: np.ndarray) -> dict:
     return {side: bool(np.std(line.astype(float)) < bound) for side, line in lines.items()}
 
 
+#: A shaped field's shutter: a corner patch this many pixels square, flat to
+#: :data:`FLAT_BAND_FRACTION` of the frame's range and at its darkest or brightest value.
+CORNER_PATCH_PX = 8
+#: Shutter regions smaller than this fraction of the rectangle (burned-in text boxes) are ignored.
+MIN_SHUTTER_FRACTION = 0.005
+#: The distance to a shaped field's shutter is kept on a grid of this step (px).
+FIELD_STEP = 4
+#: The shutter is filled with the median of the exposed ring this wide (px) along its edge (the
+#: field's level there, vignetting included).
+EDGE_RING_PX = 8
+#: A vessel runs into a shaped field's shutter when its mask comes this close (px): the
+#: segmentation stops a pixel or two short of the shutter's step edge.
+SHUTTER_REACH_PX = 3
+
+
+def _corners(shape: tuple) -> list:
+    """(row, col) of the first pixel of each corner patch of a frame of ``shape``."""
+    rows, cols = shape
+    k = CORNER_PATCH_PX
+    return [(0, 0), (0, cols - k), (rows - k, 0), (rows - k, cols - k)]
+
+
+def _flat_corners(image: np.ndarray) -> list:
+    """The corners whose patch varies by less than :data:`FLAT_BAND_FRACTION` of its
+    difference from the frame's centre: a cheap first look (no whole-frame statistics), so that
+    a frame without a shaped shutter costs almost nothing."""
+    rows, cols = image.shape
+    k = CORNER_PATCH_PX
+    middle = float(np.median(image[rows // 2 - 2 * k:rows // 2 + 2 * k, cols // 2 - 2 * k:cols // 2 + 2 * k]))
+    flat = []
+    for r, c in _corners(image.shape):
+        patch = image[r:r + k, c:c + k].astype(float)
+        if float(patch.std()) < FLAT_BAND_FRACTION * abs(float(np.median(patch)) - middle):
+            flat.append((r, c))
+    return flat
+
+
+def _shutter_levels(image: np.ndarray, corners: list, limit: float) -> list:
+    """(row, col, level) of each of ``corners`` whose patch is flat to ``limit`` and at the
+    frame's darkest or brightest value (a shutter, not a subtracted frame's grey background)."""
+    darkest, brightest = float(image.min()), float(image.max())
+    k = CORNER_PATCH_PX
+    found = []
+    for r, c in corners:
+        patch = image[r:r + k, c:c + k].astype(float)
+        level = float(np.median(patch))
+        if float(patch.std()) < limit and min(abs(level - darkest), abs(level - brightest)) <= limit:
+            found.append((r, c, level))
+    return found
+
+
+def _shutter(image: np.ndarray) -> np.ndarray | None:
+    """The flat shutter of a rectangle's ``image`` flooded from its corners, or None."""
+    if min(image.shape) < 4 * CORNER_PATCH_PX:
+        return None
+    corners = _flat_corners(image)
+    if not corners:
+        return None
+    low, high = np.percentile(image[::FIELD_STEP, ::FIELD_STEP], [1, 99])
+    limit = FLAT_BAND_FRACTION * max(float(high - low), 1e-12)
+    unexposed = np.zeros(image.shape, dtype=bool)
+    for r, c, level in _shutter_levels(image, corners, limit):
+        if not unexposed[r, c]:
+            pieces, _ = ndimage.label(np.abs(image.astype(np.float32) - np.float32(level)) <= limit)
+            unexposed |= pieces == pieces[r, c]
+    return unexposed if unexposed.mean() >= MIN_SHUTTER_FRACTION else None
+
+
+def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
+    """The largest half-width (px) of ``mask`` at the pixels ``where``: its distance to the
+    background, on the box around them padded by the mask's extent there (the caller counts
+    the shutter as vessel, so that a vessel cut by it is measured across, not to its cut end)."""
+    rows, cols = np.nonzero(where)
+    pad = max(int(rows.max() - rows.min()), int(cols.max() - cols.min())) + 2
+    r0, c0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
+    box = mask[r0:rows.max() + pad + 1, c0:cols.max() + pad + 1]
+    return float(ndimage.distance_transform_edt(box)[rows - r0, cols - c0].max())
+
+
+def _sides_towards(touching: np.ndarray, exposed: tuple) -> list:
+    """Sides ("top" ... "right") of the rectangle ``exposed`` towards which the ``touching``
+    pixels lie (each 8-connected piece by its direction from the rectangle's centre)."""
+    pieces, count = ndimage.label(touching, structure=np.ones((3, 3)))
+    r0, r1, c0, c1 = exposed
+    sides = []
+    for row, col in ndimage.center_of_mass(touching, pieces, range(1, count + 1)):
+        dr, dc = row - (r0 + r1) / 2.0, col - (c0 + c1) / 2.0
+        sides.append(("bottom" if dr > 0 else "top") if abs(dr) >= abs(dc) else ("right" if dc > 0 else "left"))
+    return sides
+
+
+def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """A raw frame with its shaped field's shutter (a round image intensifier's dark surround)
+    set to the exposed field's level along the shutter's edge, for the vessel segmentation;
+    and the shutter's pixels (None when the frame has none), which no vessel mask may hold.
+
+    The shutter's step edge and its extreme level otherwise reach the segmentation's band
+    around the projected tree: they change its normalisation and its judgement of a flat
+    (subtracted) background, and a faint renal was lost. Collimator bands along the sides stay
+    as they are; a run of frames (3D) is returned unchanged.
+    """
+    image = np.asarray(image)
+    if image.ndim != 2:
+        return image, None
+    r0, r1, c0, c1 = _exposed_rectangle(image)
+    shutter = _shutter(image[r0:r1 + 1, c0:c1 + 1])
+    if shutter is None:
+        return image, None
+    filled = image.copy()
+    inside = filled[r0:r1 + 1, c0:c1 + 1]
+    edge = ndimage.binary_dilation(shutter, structure=np.ones((3, 3), dtype=bool), iterations=EDGE_RING_PX) & ~shutter
+    inside[shutter] = np.median(inside[edge]).astype(image.dtype)
+    unexposed = np.zeros(image.shape, dtype=bool)
+    unexposed[r0:r1 + 1, c0:c1 + 1] = shutter
+    return filled, unexposed
+
+
+def _exposed_rectangle(image: np.ndarray) -> tuple:
+    """(row_min, row_max, col_min, col_max) of ``image`` less its collimator bands."""
+    rows, cols = image.shape
+    bands = _collimated_bands(image)
+    r0, r1, c0, c1 = bands["top"], rows - 1 - bands["bottom"], bands["left"], cols - 1 - bands["right"]
+    return (r0, r1, c0, c1) if r0 <= r1 and c0 <= c1 else (0, rows - 1, 0, cols - 1)
+
+
 def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Visibility:
     """Where a frame shows anatomy and where its vessels run out of it.
 
@@ -116,11 +288,7 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     mask = np.asarray(mask2d, dtype=bool)
     rows, cols = mask.shape
     has_image = image is not None and np.shape(image) == mask.shape
-    bands = _collimated_bands(image) if has_image else dict.fromkeys(_SIDES, 0)
-    r0, r1 = bands["top"], rows - 1 - bands["bottom"]
-    c0, c1 = bands["left"], cols - 1 - bands["right"]
-    if r0 > r1 or c0 > c1:
-        r0, r1, c0, c1 = 0, rows - 1, 0, cols - 1
+    r0, r1, c0, c1 = _exposed_rectangle(np.asarray(image)) if has_image else (0, rows - 1, 0, cols - 1)
     shown = mask[r0:r1 + 1, c0:c1 + 1]
     sides = {"top": (0, slice(None)), "bottom": (-1, slice(None)), "left": (slice(None), 0),
              "right": (slice(None), -1)}
@@ -130,7 +298,25 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
         if np.count_nonzero(on_border) >= MIN_BORDER_PIXELS:
             clipped.append(side)
             margin[side] = _half_width_at_border(shown, side, index, on_border)
-    return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin)
+    shutter = _shutter(np.asarray(image)[r0:r1 + 1, c0:c1 + 1]) if has_image else None
+    field = None
+    if shutter is not None:         # a round or shaped field inside the rectangle
+        unexposed = np.ones((rows, cols), dtype=bool)
+        unexposed[r0:r1 + 1, c0:c1 + 1] = shutter
+        touching = mask & ndimage.binary_dilation(unexposed & ~_outside(unexposed.shape, (r0, r1, c0, c1)),
+                                                  structure=np.ones((3, 3), dtype=bool), iterations=SHUTTER_REACH_PX)
+        distance = ndimage.distance_transform_edt(~unexposed[::FIELD_STEP, ::FIELD_STEP]) * FIELD_STEP
+        field = Field(unexposed, distance, _half_width(mask | unexposed, touching) if touching.any() else 0.0)
+        clipped += [side for side in _sides_towards(touching, (r0, r1, c0, c1)) if side not in clipped]
+    return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin, field)
+
+
+def _outside(shape: tuple, exposed: tuple) -> np.ndarray:
+    """The pixels of a frame of ``shape`` outside the rectangle ``exposed`` (its bands)."""
+    r0, r1, c0, c1 = exposed
+    outside = np.ones(shape, dtype=bool)
+    outside[r0:r1 + 1, c0:c1 + 1] = False
+    return outside
 
 
 def _longest_run(flags: np.ndarray) -> int:
