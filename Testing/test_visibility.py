@@ -12,10 +12,10 @@ import json
 import numpy as np
 import pytest
 
-from FevarPlannerLib import evaluation, io, phantom, pipeline
+from FevarPlannerLib import evaluation, io, phantom, pipeline, quality
 from FevarPlannerLib.pipeline.visibility import _collimated_bands, shutter_filled
 from FevarPlannerLib.projection import project, write_geometry_json
-from fixtures import phantom_case_fixtures
+from fixtures import phantom_case_fixtures, preop_model
 CUT_BELOW_TOP_MM = 45
 
 
@@ -114,6 +114,30 @@ def test_the_segmentation_sees_the_round_fields_surround_as_background():
     np.testing.assert_array_equal(unexposed, surround)
     plain = (2000 + np.random.default_rng(0).normal(size=(64, 64)) * 30).astype(np.uint16)
     assert shutter_filled(plain)[0] is plain and shutter_filled(plain)[1] is None
+
+
+def test_a_round_fields_surround_does_not_cost_the_frames_segmentation():
+    """Seed 410's case 0 (``write_phantom_set(seed=410, preset="random")``) seen through a
+    round field 0.84 of the frame across: Dice 0.959 when the segmentation saw the black
+    surround, 0.979 with it filled (0.983 on the open frame)."""
+    params = phantom.random_params(np.random.default_rng(np.random.SeedSequence(410).spawn(6)[0]),
+                                   ct_spacing_mm=2.0)
+    case = phantom.generate_case(params, name="round")
+    tree = preop_model(case)
+    image, truth = phantom.render_fluoro(case.intraop, case.P_true, case.carm, case.params,
+                                         np.random.default_rng([params.seed, 2]))
+    rows, cols = np.indices(image.shape)
+    half = image.shape[0] / 2.0
+    outside = (rows - half) ** 2 + (cols - half) ** 2 > (0.42 * image.shape[0]) ** 2
+    image[outside] = 0
+    truth &= ~outside
+    prior = quality.FluoroPrior.from_centerline(tree.centerline, case.P_given)
+    outcome = pipeline.prepare_views(tree, [pipeline.ViewSource("main", case.P_given, image, prior=prior)])[0]
+    mask, field = outcome.mask, outcome.view.visibility.field
+    r0, r1, c0, c1 = outcome.view.visibility.exposed
+    assert field is not None and not (mask & field.unexposed)[r0:r1 + 1, c0:c1 + 1].any()    # none in the surround
+    assert 2.0 * (mask & truth).sum() / (mask.sum() + truth.sum()) >= 0.975
+    assert "bottom" in outcome.view.visibility.clipped_border
 
 
 case, preop = phantom_case_fixtures("clipped", upper_bend_deg=15.0)
