@@ -149,6 +149,8 @@ CORNER_PATCH_PX = 8
 MIN_SHUTTER_FRACTION = 0.005
 #: The distance to a shaped field's shutter is kept on a grid of this step (px).
 FIELD_STEP = 4
+#: A vessel's contact with a shaped field's shutter holds at least this many mask pixels.
+MIN_TOUCH_PX = 20
 #: The shutter is filled with the median of the exposed ring this wide (px) along its edge (the
 #: field's level there, vignetting included).
 EDGE_RING_PX = 8
@@ -223,13 +225,20 @@ def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
 
 def _sides_towards(touching: np.ndarray, exposed: tuple) -> list:
     """Sides ("top" ... "right") of the rectangle ``exposed`` towards which the ``touching``
-    pixels lie (each 8-connected piece by its direction from the rectangle's centre)."""
-    pieces, count = ndimage.label(touching, structure=np.ones((3, 3)))
+    pixels lie, each piece (fragments a few pixels apart joined; pieces under
+    :data:`MIN_TOUCH_PX`, a compressed frame's specks along the edge, left out) by its
+    direction from the rectangle's centre; each side once."""
+    joined = ndimage.binary_dilation(touching, structure=np.ones((3, 3), dtype=bool), iterations=SHUTTER_REACH_PX)
+    pieces, count = ndimage.label(joined)
+    sizes = ndimage.sum(touching, pieces, range(1, count + 1))
+    centres = ndimage.center_of_mass(touching, pieces, range(1, count + 1))
     r0, r1, c0, c1 = exposed
     sides = []
-    for row, col in ndimage.center_of_mass(touching, pieces, range(1, count + 1)):
+    for (row, col), size in zip(centres, sizes):
         dr, dc = row - (r0 + r1) / 2.0, col - (c0 + c1) / 2.0
-        sides.append(("bottom" if dr > 0 else "top") if abs(dr) >= abs(dc) else ("right" if dc > 0 else "left"))
+        side = ("bottom" if dr > 0 else "top") if abs(dr) >= abs(dc) else ("right" if dc > 0 else "left")
+        if size >= MIN_TOUCH_PX and side not in sides:
+            sides.append(side)
     return sides
 
 
