@@ -99,6 +99,8 @@ def test_a_subtracted_frames_grey_background_and_plain_bands_are_no_shaped_field
     image[:15] = 0                                                            # a straight blade: a band
     vis = pipeline.frame_visibility(mask, image)
     assert vis.field is None and vis.exposed[0] == 15
+    # a mask-only case's stand-in frame (dark vessels on flat grey) has no surround either
+    assert pipeline.frame_visibility(mask, io.frame_from_mask(mask).image).field is None
 
 
 def test_the_segmentation_sees_the_round_fields_surround_as_background():

@@ -192,7 +192,8 @@ def _flipped_registrations(preop, views, outcomes, refine_pose, alpha, beta) -> 
     """The mirror test's other hypotheses: per view, the case registered with that view's
     frame flipped left-right and the others as given (:func:`register_view_flipped`)."""
     frames = [(outcome.mask, view.P) for view, outcome in zip(views, outcomes)]
-    names, images = [view.name for view in views], [view.fluoro.image for view in views]
+    names = [view.name for view in views]
+    images = [view.fluoro.image if view.has_frame else None for view in views]     # as _view_source
     return [register_view_flipped(preop, frames, k, names=names, images=images, refine_pose=refine_pose, alpha=alpha,
                                   beta=beta) for k in range(len(views))]
 

@@ -147,6 +147,9 @@ def _borders_could_be_flat(image: np.ndarray) -> dict:
 CORNER_PATCH_PX = 8
 #: Shutter regions smaller than this fraction of the rectangle (burned-in text boxes) are ignored.
 MIN_SHUTTER_FRACTION = 0.005
+#: A field exposes at least this fraction of its rectangle (an inscribed disc: 79 %); less is a
+#: flat background around the vessels themselves (a mask's stand-in frame), not a shutter.
+MIN_FIELD_FRACTION = 0.25
 #: The distance to a shaped field's shutter is kept on a grid of this step (px).
 FIELD_STEP = 4
 #: A vessel's contact with a shaped field's shutter holds at least this many mask pixels.
@@ -209,7 +212,8 @@ def _shutter(image: np.ndarray) -> np.ndarray | None:
         if not unexposed[r, c]:
             pieces, _ = ndimage.label(np.abs(image.astype(np.float32) - np.float32(level)) <= limit)
             unexposed |= pieces == pieces[r, c]
-    return unexposed if unexposed.mean() >= MIN_SHUTTER_FRACTION else None
+    shown = 1.0 - unexposed.mean()
+    return unexposed if unexposed.mean() >= MIN_SHUTTER_FRACTION and shown >= MIN_FIELD_FRACTION else None
 
 
 def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
