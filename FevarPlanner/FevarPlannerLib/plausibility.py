@@ -53,6 +53,7 @@ __all__ = [
     "registration_verdict",
     "registration_warnings",
     "check_registration",
+    "check_registrations",
 ]
 
 #: Voxel sizes of a human CT, mm: finer is a micro-CT, coarser is not an image of vessels.
@@ -332,6 +333,24 @@ RENAL_CONTINUATION_BRANCHES_MM = 8.0
 #: ... counted from frame pixels within this of the registered renal's projected end, mm (the
 #: first pixel beyond the explained band, and a few more for the skeleton's pixel steps).
 RENAL_END_REACH_MM = EXPLAINED_WITHIN_MM + 3.0
+#: A renal artery the registration could not lay onto the frame's vessels: the mean distance (mm)
+#: of its registered nodes inside the frame to the 2D skeleton. The data term (eq. 6, S_D) pulls
+#: every registered node onto its target, and a right frame's renal, whatever the deformation,
+#: comes to lie on the frame's renal to the skeleton's pixel steps; the length term (S_L) and the
+#: CT's renal shape cannot lay it onto a renal of another length, course or place (another
+#: patient's, a frame of another view). Image-only development right frames (bench frames
+#: 241-248, scenario image_only seeds 0 / 300, 16 answered): 0.14-0.54 mm, but for bench 246,
+#: whose deformation the registration's fallback rejected (the tree kept rigid, 2.8 mm off the
+#: frame over all, its iliacs 5-7 mm): 2.8 mm; 225 answered right frames of earlier
+#: wrong_frames.json runs (mask cases, two views, large deformations): at most 0.75 mm. Wrong
+#: image-only frames answered on main: 1.35-21.7 mm on 11 of 19. From this a renal is a doubt
+#: (:func:`_doubts`) ...
+RENAL_FIT_DOUBT_MM = 1.0
+#: ... and from this it refuses on its own, when the registered aorta lies on the frame's vessels
+#: at least :data:`RENAL_FIT_OVER_AORTA` times closer (the frame shows its vessels that sharply:
+#: bench 246's rigid tree fitted the aorta 1.8 mm, its renals 1.5 and 2.8 mm).
+RENAL_FIT_REFUSE_MM = 2.5
+RENAL_FIT_OVER_AORTA = 3.0
 #: How many doubts together refuse a registration.
 DOUBTS_TO_REFUSE = 2
 #: The side check fits about this many pre-operative nodes, by this many translation-only ICP steps.
@@ -464,6 +483,12 @@ def _side_fits(tree: cKDTree, P, points: np.ndarray, mm_per_px: float) -> list:
     return [fit * mm_per_px for fit in _shifted_fits(tree, [uv, mirrored], SIDE_REACH_MM / mm_per_px)]
 
 
+def _worst(distance: np.ndarray, members: np.ndarray) -> int:
+    """The node of ``members`` (a boolean mask) with the largest finite ``distance``."""
+    nodes = np.flatnonzero(members & np.isfinite(distance))
+    return int(nodes[np.argmax(distance[nodes])])
+
+
 def _in_frame(uv: np.ndarray, frame_shape) -> np.ndarray:
     rows, cols = frame_shape[:2]
     return (uv[:, 0] >= 0) & (uv[:, 0] <= cols - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= rows - 1)
@@ -490,7 +515,8 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
     -------
     dict
         ``fit_mm`` (mean over the registered nodes inside the frame of their distance to the
-        skeleton, and the worst vessel's), ``unexplained`` (share of skeleton nodes, spurs left
+        skeleton; ``vessel_fit_mm`` per vessel, ``vessel_fit_where`` its node farthest from the
+        skeleton, projected), ``unexplained`` (share of skeleton nodes, spurs left
         out, farther than :data:`EXPLAINED_WITHIN_MM` from the projected registered tree;
         ``unexplained_with_spurs`` counts them in), ``renal_misfit_mm``
         (per renal, the pre-operative nodes' mean distance through ``P``), ``aorta_bend_mm``,
@@ -535,6 +561,7 @@ def registration_signals(preop, deformed, P, skeleton_points, skeleton_edges, fr
                             {v: uv[i] for v, i in ostia.items()}, mm_per_px)
     return {
         "fit_mm": float(np.nanmean(fit)) if np.isfinite(fit).any() else 0.0, "vessel_fit_mm": vessel_fit,
+        "vessel_fit_where": {v: uv[_worst(fit, members[v])].tolist() for v in vessel_fit},
         "unexplained": float(unexplained.mean()) if len(sample) else 0.0,
         "unexplained_with_spurs": float(far[::UNEXPLAINED_STRIDE].mean()) if len(far) else 0.0,
         "unexplained_where": sample[unexplained].mean(axis=0).tolist() if unexplained.any() else None,
@@ -615,16 +642,37 @@ def _continuation(vessel: str, signals: dict) -> str:
             f"{_at(signals['renal_continuation_where'][vessel])} (a wrong C-arm angle foreshortens it differently)")
 
 
+def _renal_off(signals: dict, vessel: str, limit: float) -> str:
+    """The phrase of a registered renal lying off the frame's vessels (:data:`RENAL_FIT_DOUBT_MM`)."""
+    fits = signals["vessel_fit_mm"]
+    aorta = f", the aorta {fits['aorta']:.1f} mm" if "aorta" in fits else ""
+    return (f"{vessel} does not fit the frame's vessels after registration: on average {fits[vessel]:.1f} mm off them "
+            f"(over {limit:g} mm{aorta}), worst {_at(signals['vessel_fit_where'][vessel])} (the CT's renal, its "
+            f"length kept, does not lie on the frame's: another patient's renal, or another view)")
+
+
+def _renals_off(signals: dict, limit: float) -> dict:
+    """Renal label -> its registered fit (mm), for the renals fitting worse than ``limit``."""
+    fits = signals.get("vessel_fit_mm") or {}
+    return {v: fits[v] for v in ("renal_left", "renal_right") if fits.get(v, 0.0) > limit}
+
+
 def _decisive(signals: dict) -> str | None:
     """One thing no right frame shows, as a phrase, or None: a renal the frame shows
     :data:`RENAL_CONTINUATION_REFUSE_MM` or more longer than the CT's projects, as one vessel
-    (:data:`RENAL_CONTINUATION_BRANCHES_MM`), or the aorta and
-    renals fitting mirrored under :data:`MIRROR_CERTAIN_RATIO` of their unmirrored fit."""
+    (:data:`RENAL_CONTINUATION_BRANCHES_MM`), a registered renal :data:`RENAL_FIT_REFUSE_MM` or
+    more off the frame's vessels where the aorta lies :data:`RENAL_FIT_OVER_AORTA` times closer,
+    or the aorta and renals fitting mirrored under :data:`MIRROR_CERTAIN_RATIO` of their
+    unmirrored fit."""
     beyond = signals.get("renal_continuation_mm") or {}
     branches = signals.get("renal_continuation_branches_mm") or {}
     single = {v: mm for v, mm in beyond.items() if branches.get(v, 0.0) <= RENAL_CONTINUATION_BRANCHES_MM}
     if single and max(single.values()) >= RENAL_CONTINUATION_REFUSE_MM:
         return _continuation(max(single, key=single.get), signals)
+    aorta = (signals.get("vessel_fit_mm") or {}).get("aorta", 0.0)
+    off = {v: mm for v, mm in _renals_off(signals, RENAL_FIT_REFUSE_MM).items() if mm >= RENAL_FIT_OVER_AORTA * aorta}
+    if off:
+        return _renal_off(signals, max(off, key=off.get), RENAL_FIT_REFUSE_MM)
     return _mirrored(signals, MIRROR_CERTAIN_RATIO)
 
 
@@ -632,7 +680,8 @@ def _doubts(signals: dict) -> list[str]:
     """What the fit needed that a right frame seldom needs, one phrase each: the aorta and
     renals fitting better mirrored, the renals off before deformation, the aorta bent or a
     renal ostium moved beyond a rigid motion, each renal the frame shows longer than the CT's
-    projects (:data:`RENAL_CONTINUATION_DOUBT_MM`)."""
+    projects (:data:`RENAL_CONTINUATION_DOUBT_MM`), a registered renal off the frame's vessels
+    (:data:`RENAL_FIT_DOUBT_MM`; the worse of the two, once)."""
     doubts = [phrase for phrase in [_mirrored(signals, MAX_MIRROR_RATIO)] if phrase]
     renal = signals["renal_misfit_mm"]
     if renal and np.mean(list(renal.values())) > MAX_RENAL_RIGID_MISFIT_MM:
@@ -651,6 +700,9 @@ def _doubts(signals: dict) -> list[str]:
     beyond = signals.get("renal_continuation_mm") or {}
     doubts += [_continuation(vessel, signals) for vessel, mm in sorted(beyond.items())
                if mm >= RENAL_CONTINUATION_DOUBT_MM]
+    off = _renals_off(signals, RENAL_FIT_DOUBT_MM)
+    if off:
+        doubts.append(_renal_off(signals, max(off, key=off.get), RENAL_FIT_DOUBT_MM))
     return doubts
 
 
@@ -670,6 +722,48 @@ def check_registration(preop, deformed, P, skeleton_points, skeleton_edges, fram
     verdict = registration_verdict(signals)
     if verdict is not None:
         _refuse_registration(verdict, deformed, P, frame, qc)
+    return signals
+
+
+def _evidence_rank(signals: dict) -> int:
+    """0: :func:`registration_verdict` refuses on one thing alone (a fit off the frame, vessels
+    left unexplained, :func:`_decisive`); 1: on doubts together; 2: it does not refuse."""
+    if registration_verdict(signals) is None:
+        return 2
+    alone = (signals["fit_mm"] > MAX_MEAN_FIT_MM or signals["unexplained"] > MAX_UNEXPLAINED_FRACTION
+             or _decisive(signals) is not None)
+    return 0 if alone else 1
+
+
+def check_registrations(preop, deformed, views) -> list[dict]:
+    """:func:`check_registration` on every view of one registration, the view with the strongest
+    evidence refused first: a wrong view pulls the shared registration off the right ones, which
+    may then gather doubts too, while the wrong view fails on one thing alone.
+
+    Parameters
+    ----------
+    preop, deformed : Centerline
+    views : list of tuple
+        Per view ``(P, skeleton_points, skeleton_edges, frame_shape, frame, qc, classification)``,
+        as :func:`check_registration` takes them.
+
+    Returns
+    -------
+    list of dict
+        Each view's signals, in the order of ``views``.
+
+    Raises
+    ------
+    quality.QualityError
+        As :func:`check_registration`, for the view refused first.
+    """
+    signals = [registration_signals(preop, deformed, P, points, edges, shape, classification)
+               for P, points, edges, shape, _, _, classification in views]
+    for k in sorted(range(len(views)), key=lambda k: _evidence_rank(signals[k])):
+        verdict = registration_verdict(signals[k])
+        if verdict is not None:
+            P, _, _, _, frame, qc, _ = views[k]
+            _refuse_registration(verdict, deformed, P, frame, qc)
     return signals
 
 

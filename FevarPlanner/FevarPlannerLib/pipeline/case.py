@@ -322,8 +322,9 @@ def check_result(case: Case, result: PlanResult) -> list[str]:
 
 
 def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
-    """:func:`plausibility.check_registration` on every view the registration used (the
-    refusal's QC picture shows that view's frame), and on each the mirror test
+    """:func:`plausibility.check_registrations` on every view the registration used (the
+    refusal's QC picture shows that view's frame; the view with the strongest evidence first),
+    and on each the mirror test
     (:func:`plausibility.check_not_mirrored`) when ``result`` holds it; the warnings of those
     it lets pass."""
     views = {view.name: view for view in getattr(case, "views", None) or []}
@@ -340,10 +341,9 @@ def _registration_check(case, result: PlanResult, frame_path) -> list[str]:
                            frame.classification2d))
             names.append(frame.name)
     flipped = dict(zip(views or [MAIN_VIEW], result.flipped or []))      # run_case's mirror_test
+    every = plausibility.check_registrations(result.preop, result.deformed, checks)
     notes = []
-    for name, (P, points, edges, shape, path, qc, classification) in zip(names, checks):
-        signals = plausibility.check_registration(result.preop, result.deformed, P, points, edges, shape, path, qc,
-                                                  classification)
+    for name, (P, points, edges, shape, path, qc, classification), signals in zip(names, checks, every):
         other = flipped.get(name)
         plausibility.check_not_mirrored(result.preop, result.deformed, P, result.energy, signals,
                                         other.seen_in(name) if other is not None else None, shape, path, qc)
