@@ -16,10 +16,13 @@ of what was read:
   vessels, or leaving many of them unexplained, is refused with a
   :class:`quality.QualityError`, so that the QC picture is written. So is a renal the frame
   shows much longer than the CT's renal projects through ``P`` (the length term cannot make
-  it up: a geometry of another view, a wrong C-arm angle), a frame that fits far better
+  it up: a geometry of another view, a wrong C-arm angle), a registered renal left far off the
+  frame's vessels where the aorta lies on them (the CT's renal, its length kept, cannot be laid
+  onto another patient's), a frame that fits far better
   mirrored, and two or more of these doubts together: the renals off before any deformation,
   the aorta bent or an ostium moved beyond a rigid motion, the aorta and renals fitting better
-  mirrored, a renal somewhat longer in the frame; one alone is a warning
+  mirrored, a renal somewhat longer in the frame, a registered renal somewhat off the frame's
+  vessels; one alone is a warning
   (:func:`registration_warnings`), since right frames with large deformations show one too.
   A single frame is also registered flipped left-right (:func:`mirror_verdict`): a frame
   that the flipped registration explains better on every count is mirrored.
