@@ -106,3 +106,15 @@ def test_another_cases_image_is_refused_and_this_cases_answered(image_only_pair)
     answered = plan_case(right, None, cache=cache)
     assert answered.errors["3d_mm"]["mean"] < 2.5
     assert not [note for note in answered.warnings if note.startswith("registration check")]
+
+
+def test_a_renal_off_one_view_of_several_is_no_evidence():
+    """Two views fitted at once: a steep second view (LAO 70, RAO 90) shows a renal along the ray,
+    its shadow on the aorta's, and right frames leave it 5-8 mm off that view's skeleton."""
+    tree = hand_tree()
+    frame = renal_shifted(tree, "renal_right", 4.0)
+    alone = plausibility.registration_signals(tree, tree, P, *skeleton_of(frame), SHAPE)
+    several = plausibility.registration_signals(tree, tree, P, *skeleton_of(frame), SHAPE, views=2)
+    assert several["vessel_fit_mm"]["renal_right"] == alone["vessel_fit_mm"]["renal_right"] > 3.0
+    assert "renal_right does not fit" in plausibility.registration_verdict(alone)
+    assert plausibility.registration_verdict(several) is None and plausibility.registration_warnings(several) == []
