@@ -30,18 +30,20 @@ def renal_shifted(tree, label: str, mm: float):
     return tree.with_points(points)
 
 
-def test_a_renal_3_mm_off_the_frames_renal_is_refused_by_name_and_place():
+def test_a_renal_5_mm_off_the_frames_renal_is_refused_by_name_and_place():
     tree = hand_tree()
-    frame = renal_shifted(tree, "renal_right", 3.0)        # the registered tree is the CT's: renal_right 3 mm below
+    frame = renal_shifted(tree, "renal_right", 4.0)        # the registered tree is the CT's: renal_right 4 mm below
     signals = plausibility.registration_signals(tree, tree, P, *skeleton_of(frame), SHAPE)
-    assert 2.5 <= signals["vessel_fit_mm"]["renal_right"] <= 3.0 and signals["vessel_fit_mm"]["aorta"] < 0.1
+    assert 3.0 <= signals["vessel_fit_mm"]["renal_right"] < plausibility.RENAL_FIT_REFUSE_MM
+    assert signals["vessel_fit_mm"]["aorta"] < 0.1
     assert max(signals["renal_misfit_mm"].values()) < plausibility.MAX_RENAL_RIGID_MISFIT_MM   # no other doubt
+    assert plausibility.registration_verdict(signals) is None and len(plausibility.registration_warnings(signals)) == 1
     with pytest.raises(quality.QualityError) as caught:
-        check(tree, tree, renal_shifted(tree, "renal_right", 4.0))
+        check(tree, tree, renal_shifted(tree, "renal_right", 5.5))
     message = str(caught.value)
     assert "\n" not in message and message.startswith("frame.png: registration check: renal_right does not fit")
-    assert "on average 3.6 mm off them (over 2.5 mm, the aorta 0.0 mm)" in message
-    assert "worst near pixel (u=236, v=152)" in message     # its second node, (-14, 0, 108) mm, projected
+    assert "on average 4.9 mm off them (over 4 mm, the aorta 0.0 mm)" in message
+    assert "worst near pixel (u=190, v=160)" in message     # its end, (-60, 0, 100) mm, projected
 
 
 def test_a_renal_1_5_mm_off_is_a_warning_and_half_a_millimetre_is_nothing():
@@ -56,7 +58,7 @@ def test_a_renal_off_where_the_aorta_is_off_too_is_only_a_doubt():
     """A registration the fallback kept rigid lies off the whole frame (bench 246, a right frame:
     aorta 1.8 mm, renal 2.8 mm): the renal is no worse than the rest, one doubt, a warning."""
     tree = hand_tree()
-    frame = renal_shifted(moved(tree, "aorta", (1.5, 0.0, 0.0)), "renal_left", 4.0)
+    frame = renal_shifted(moved(tree, "aorta", (2.0, 0.0, 0.0)), "renal_left", 6.0)
     signals = check(tree, tree, frame)
     assert signals["vessel_fit_mm"]["renal_left"] >= plausibility.RENAL_FIT_REFUSE_MM
     assert signals["vessel_fit_mm"]["renal_left"] < plausibility.RENAL_FIT_OVER_AORTA * signals["vessel_fit_mm"]["aorta"]
@@ -112,9 +114,9 @@ def test_a_renal_off_one_view_of_several_is_no_evidence():
     """Two views fitted at once: a steep second view (LAO 70, RAO 90) shows a renal along the ray,
     its shadow on the aorta's, and right frames leave it 5-8 mm off that view's skeleton."""
     tree = hand_tree()
-    frame = renal_shifted(tree, "renal_right", 4.0)
+    frame = renal_shifted(tree, "renal_right", 5.5)
     alone = plausibility.registration_signals(tree, tree, P, *skeleton_of(frame), SHAPE)
     several = plausibility.registration_signals(tree, tree, P, *skeleton_of(frame), SHAPE, views=2)
-    assert several["vessel_fit_mm"]["renal_right"] == alone["vessel_fit_mm"]["renal_right"] > 3.0
+    assert several["vessel_fit_mm"]["renal_right"] == alone["vessel_fit_mm"]["renal_right"] > 4.0
     assert "renal_right does not fit" in plausibility.registration_verdict(alone)
     assert plausibility.registration_verdict(several) is None and plausibility.registration_warnings(several) == []
