@@ -212,8 +212,8 @@ def _shutter(image: np.ndarray) -> np.ndarray | None:
         if not unexposed[r, c]:
             pieces, _ = ndimage.label(np.abs(image.astype(np.float32) - np.float32(level)) <= limit)
             unexposed |= pieces == pieces[r, c]
-    shown = 1.0 - unexposed.mean()
-    return unexposed if unexposed.mean() >= MIN_SHUTTER_FRACTION and shown >= MIN_FIELD_FRACTION else None
+    share = float(unexposed.mean())
+    return unexposed if MIN_SHUTTER_FRACTION <= share <= 1.0 - MIN_FIELD_FRACTION else None
 
 
 def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
@@ -267,9 +267,7 @@ def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     inside = filled[r0:r1 + 1, c0:c1 + 1]
     edge = ndimage.binary_dilation(shutter, structure=np.ones((3, 3), dtype=bool), iterations=EDGE_RING_PX) & ~shutter
     inside[shutter] = np.median(inside[edge]).astype(image.dtype)
-    unexposed = np.zeros(image.shape, dtype=bool)
-    unexposed[r0:r1 + 1, c0:c1 + 1] = shutter
-    return filled, unexposed
+    return filled, _placed(shutter, image.shape, (r0, r1, c0, c1))
 
 
 def _exposed_rectangle(image: np.ndarray) -> tuple:
@@ -314,22 +312,23 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     shutter = _shutter(np.asarray(image)[r0:r1 + 1, c0:c1 + 1]) if has_image else None
     field = None
     if shutter is not None:         # a round or shaped field inside the rectangle
-        unexposed = np.ones((rows, cols), dtype=bool)
-        unexposed[r0:r1 + 1, c0:c1 + 1] = shutter
-        touching = mask & ndimage.binary_dilation(unexposed & ~_outside(unexposed.shape, (r0, r1, c0, c1)),
-                                                  structure=np.ones((3, 3), dtype=bool), iterations=SHUTTER_REACH_PX)
+        inner = _placed(shutter, (rows, cols), (r0, r1, c0, c1))
+        unexposed = inner | ~_placed(np.ones(shutter.shape, dtype=bool), (rows, cols), (r0, r1, c0, c1))
+        touching = mask & ndimage.binary_dilation(inner, structure=np.ones((3, 3), dtype=bool),
+                                                  iterations=SHUTTER_REACH_PX)
         distance = ndimage.distance_transform_edt(~unexposed[::FIELD_STEP, ::FIELD_STEP]) * FIELD_STEP
         field = Field(unexposed, distance, _half_width(mask | unexposed, touching) if touching.any() else 0.0)
         clipped += [side for side in _sides_towards(touching, (r0, r1, c0, c1)) if side not in clipped]
     return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin, field)
 
 
-def _outside(shape: tuple, exposed: tuple) -> np.ndarray:
-    """The pixels of a frame of ``shape`` outside the rectangle ``exposed`` (its bands)."""
+def _placed(part: np.ndarray, shape: tuple, exposed: tuple) -> np.ndarray:
+    """A bool image of ``shape``: ``part`` (the rectangle ``exposed``'s own pixels) in place,
+    False around it."""
     r0, r1, c0, c1 = exposed
-    outside = np.ones(shape, dtype=bool)
-    outside[r0:r1 + 1, c0:c1 + 1] = False
-    return outside
+    whole = np.zeros(shape, dtype=bool)
+    whole[r0:r1 + 1, c0:c1 + 1] = part
+    return whole
 
 
 def _longest_run(flags: np.ndarray) -> int:
