@@ -254,7 +254,9 @@ def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     The shutter's step edge and its extreme level otherwise reach the segmentation's band
     around the projected tree: they change its normalisation and its judgement of a flat
     (subtracted) background, and a faint renal was lost. Collimator bands along the sides stay
-    as they are; a run of frames (3D) is returned unchanged.
+    as they are on a frame without a shaped field; with one, they are filled too (a white
+    surround's bands otherwise reach the segmentation's box as its brightest pixels); a run of
+    frames (3D) is returned unchanged.
     """
     image = np.asarray(image)
     if image.ndim != 2:
@@ -263,11 +265,12 @@ def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     shutter = _shutter(image[r0:r1 + 1, c0:c1 + 1])
     if shutter is None:
         return image, None
-    filled = image.copy()
-    inside = filled[r0:r1 + 1, c0:c1 + 1]
+    inside = image[r0:r1 + 1, c0:c1 + 1]
     edge = ndimage.binary_dilation(shutter, structure=np.ones((3, 3), dtype=bool), iterations=EDGE_RING_PX) & ~shutter
-    inside[shutter] = np.median(inside[edge]).astype(image.dtype)
-    return filled, _placed(shutter, image.shape, (r0, r1, c0, c1))
+    unexposed = _unexposed(shutter, image.shape, (r0, r1, c0, c1))
+    filled = image.copy()
+    filled[unexposed] = np.median(inside[edge]).astype(image.dtype)
+    return filled, unexposed
 
 
 def _exposed_rectangle(image: np.ndarray) -> tuple:
@@ -313,13 +316,19 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     field = None
     if shutter is not None:         # a round or shaped field inside the rectangle
         inner = _placed(shutter, (rows, cols), (r0, r1, c0, c1))
-        unexposed = inner | ~_placed(np.ones(shutter.shape, dtype=bool), (rows, cols), (r0, r1, c0, c1))
+        unexposed = _unexposed(shutter, (rows, cols), (r0, r1, c0, c1))
         touching = mask & ndimage.binary_dilation(inner, structure=np.ones((3, 3), dtype=bool),
                                                   iterations=SHUTTER_REACH_PX)
         distance = ndimage.distance_transform_edt(~unexposed[::FIELD_STEP, ::FIELD_STEP]) * FIELD_STEP
         field = Field(unexposed, distance, _half_width(mask | unexposed, touching) if touching.any() else 0.0)
         clipped += [side for side in _sides_towards(touching, (r0, r1, c0, c1)) if side not in clipped]
     return Visibility((rows, cols), (r0, r1, c0, c1), clipped, margin, field)
+
+
+def _unexposed(shutter: np.ndarray, shape: tuple, exposed: tuple) -> np.ndarray:
+    """Every pixel of a frame of ``shape`` that a shaped field leaves dark: its ``shutter``
+    inside the rectangle ``exposed`` and the bands around the rectangle."""
+    return _placed(shutter, shape, exposed) | ~_placed(np.ones(shutter.shape, dtype=bool), shape, exposed)
 
 
 def _placed(part: np.ndarray, shape: tuple, exposed: tuple) -> np.ndarray:
