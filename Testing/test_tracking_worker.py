@@ -128,3 +128,38 @@ def test_a_run_parsed_once_gives_read_fluoros_frames_and_errors(run, tmp_path):
     np.testing.assert_array_equal(io.FluoroRun(picture).frame(0).image, io.read_fluoro(picture).image)
     with pytest.raises(io.InputError, match="missing.dcm: no such file"):
         io.FluoroRun(tmp_path / "missing.dcm").frame(0)
+
+
+def test_a_tracked_frame_of_a_round_field_is_segmented_and_registered_as_plan_does(tmp_path):
+    """``track`` takes a frame's mask from the same route as ``plan`` (``pipeline.segment_frame``:
+    the round field's surround filled, no vessel kept there) and registers it with the frame,
+    so that nodes beyond the field get no data term (it segmented the raw frame and registered
+    the mask without the frame before)."""
+    import pydicom
+
+    from FevarPlannerLib.pipeline import register_frame, segment_frame
+
+    folder, _ = phantom_run_folder(tmp_path, 1)
+    dataset = pydicom.dcmread(folder / "fluoro.dcm")
+    pixels = dataset.pixel_array.copy()
+    rows, cols = np.indices(pixels.shape[-2:])
+    half = pixels.shape[-1] / 2.0
+    outside = (rows - half) ** 2 + (cols - half) ** 2 > (0.42 * pixels.shape[-1]) ** 2
+    pixels[..., outside] = 0
+    dataset.PixelData = pixels.tobytes()
+    dataset.save_as(folder / "fluoro.dcm")
+    case = io.load_case(folder, frame=0)
+    preop = preop_model(case, use_cache=False).preop
+    prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P)
+    workers.set_enabled(False)
+    try:
+        result, times, frame, mask = tracking._registered_run_frame(preop, case, 0, method="proposed",
+                                                                   start="iliac_right", target="renal_left",
+                                                                   prior=prior, run=None)
+    finally:
+        workers.set_enabled(None)
+    np.testing.assert_array_equal(mask, segment_frame(frame.image, prior))
+    assert not (mask & outside).any()
+    planned = register_frame(preop, mask, case.P, image=frame.image)
+    assert planned.views[0].visibility.field is not None
+    np.testing.assert_array_equal(result.deformed.points, planned.deformed.points)

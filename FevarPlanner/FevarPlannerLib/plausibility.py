@@ -611,6 +611,18 @@ def registration_verdict(signals: dict) -> str | None:
     tree does not lie on the frame's vessels, or leaves too many of them unexplained, or one
     thing no right frame shows (:func:`_decisive`), or the fit needed :data:`DOUBTS_TO_REFUSE`
     or more of the things a right frame seldom needs (:func:`_doubts`)."""
+    alone = _refused_alone(signals)
+    if alone is not None:
+        return alone
+    doubts = _doubts(signals)
+    if len(doubts) >= DOUBTS_TO_REFUSE:
+        return f"{'; and '.join(doubts)}; {_NOT_THIS_FRAME}"
+    return None
+
+
+def _refused_alone(signals: dict) -> str | None:
+    """The part of :func:`registration_verdict` that refuses on one thing alone: the tree off
+    the frame's vessels, too many of them unexplained, or :func:`_decisive`; None otherwise."""
     if signals["fit_mm"] > MAX_MEAN_FIT_MM:
         vessel = max(signals["vessel_fit_mm"], key=signals["vessel_fit_mm"].get)
         return (f"the registered tree does not fit the frame: on average {signals['fit_mm']:.1f} mm from its vessels "
@@ -621,12 +633,7 @@ def registration_verdict(signals: dict) -> str | None:
                 f"the registered tree (largely {_at(signals['unexplained_where'])}; at most "
                 f"{100 * MAX_UNEXPLAINED_FRACTION:.0f}% allowed); {_NOT_THIS_FRAME}")
     decisive = _decisive(signals)
-    if decisive is not None:
-        return f"{decisive}; {_NOT_THIS_FRAME}"
-    doubts = _doubts(signals)
-    if len(doubts) >= DOUBTS_TO_REFUSE:
-        return f"{'; and '.join(doubts)}; {_NOT_THIS_FRAME}"
-    return None
+    return None if decisive is None else f"{decisive}; {_NOT_THIS_FRAME}"
 
 
 def registration_warnings(signals: dict) -> list[str]:
@@ -746,11 +753,9 @@ def check_registration(preop, deformed, P, skeleton_points, skeleton_edges, fram
 def _evidence_rank(signals: dict) -> int:
     """0: :func:`registration_verdict` refuses on one thing alone (a fit off the frame, vessels
     left unexplained, :func:`_decisive`); 1: on doubts together; 2: it does not refuse."""
-    if registration_verdict(signals) is None:
-        return 2
-    alone = (signals["fit_mm"] > MAX_MEAN_FIT_MM or signals["unexplained"] > MAX_UNEXPLAINED_FRACTION
-             or _decisive(signals) is not None)
-    return 0 if alone else 1
+    if _refused_alone(signals) is not None:
+        return 0
+    return 1 if registration_verdict(signals) is not None else 2
 
 
 def check_registrations(preop, deformed, views) -> list[dict]:

@@ -135,8 +135,7 @@ def _registered_run_frame(preop, case, index: int, *, method: str, start: str, t
                           run: FluoroRun | None):
     """:func:`register_run_frame`, also returning the frame read and its vessel mask: ``(PlanResult,
     times, frame, mask)`` (the run's side check uses them again, :func:`_check_run_side`)."""
-    from .pipeline import PlanResult, register_frame
-    from .segmentation import segment_fluoro
+    from .pipeline import PlanResult, register_frame, segment_frame
 
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P) if prior is None else prior
     times = {}
@@ -145,12 +144,12 @@ def _registered_run_frame(preop, case, index: int, *, method: str, start: str, t
     frame_path = f"{case.fluoro.path} (frame {index})"
     times["read"] = time.perf_counter() - t
     t = time.perf_counter()
-    mask = segment_fluoro(fluoro.image, prior)
+    mask = segment_frame(fluoro.image, prior)
     times["segmentation"] = time.perf_counter() - t
     check = _frame_check_job(preop, mask, prior, fluoro.image)
     t = time.perf_counter()
     try:
-        frame, failure = register_frame(preop, mask, case.P, method=method), None
+        frame, failure = register_frame(preop, mask, case.P, method=method, image=fluoro.image), None
     except Exception as exc:        # noqa: BLE001  (raised after the frame check's failure)
         frame, failure = None, exc
     except BaseException:           # interrupted: the worker's answer must not be left in its pipe

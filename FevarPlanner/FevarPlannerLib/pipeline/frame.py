@@ -489,10 +489,17 @@ def _source_mask(source: ViewSource) -> np.ndarray:
         from ..given_mask import condition_given_mask
 
         return condition_given_mask(source.given_mask)
+    return segment_frame(source.image, source.prior)
+
+
+def segment_frame(image: np.ndarray, prior) -> np.ndarray:
+    """A raw frame's vessel mask, as ``plan`` and ``track`` both take it: segmented with the
+    projected tree ``prior`` (:func:`segmentation.segment_fluoro`) on the frame whose round or
+    shaped field's surround is filled (:func:`shutter_filled`), and no vessel kept there."""
     from .. import segmentation
 
-    frame, unexposed = shutter_filled(source.image)
-    mask = segmentation.segment_fluoro(frame, source.prior)
+    frame, unexposed = shutter_filled(image)
+    mask = segmentation.segment_fluoro(frame, prior)
     return mask & ~unexposed if unexposed is not None else mask
 
 
