@@ -368,6 +368,30 @@ def test_fill_moves_an_unassigned_branch_with_its_trunk():
         assert error < 0.15 * staying and error < 0.3 * translating
 
 
+def test_fill_moves_an_unseen_side_branch_with_its_trunk_not_with_a_sibling():
+    # a trunk along -z; a renal (+x) and, 3 mm above it, an anterior side branch (-y) seen in no frame
+    trunk = np.column_stack([np.zeros(40), np.zeros(40), np.linspace(78, 0, 40)])
+    s = np.arange(1, 16)[:, None] * 2.0
+    renal = np.column_stack([s[:, 0], np.zeros(15), np.full(15, 40.0)])
+    side = np.column_stack([np.zeros(15), -s[:, 0], 42.0 - 0.8 * s[:, 0]])
+    points = np.vstack([trunk, renal, side])
+    edges = np.vstack([chain_edges(40), [[19, 40]], chain_edges(15) + 40, [[18, 55]], chain_edges(15) + 55])
+    adjacency = scipy.sparse.csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(70, 70))
+    vessels = ["aorta"] * 40 + ["renal"] * 15 + ["other"] * 15
+    assigned = np.r_[np.ones(55, bool), np.zeros(15, bool)]
+    moved = points + [2.0, 1.0, -3.0]
+    moved[40:55] += [0.0, -6.0, 6.0]                           # the wire lifts the renal at its ostium
+    truth = points[55:] + [2.0, 1.0, -3.0]                                       # the side branch rides the aorta
+
+    near_everything = fill_unassigned(points, moved, assigned, adjacency)
+    by_vessel = fill_unassigned(points, moved, assigned, adjacency, vessels=vessels)
+    np.testing.assert_array_equal(by_vessel[:55], moved[:55])
+    assert np.linalg.norm(by_vessel[55:] - truth, axis=1).max() < 0.05
+    assert np.linalg.norm(near_everything[55:] - truth, axis=1).max() > 0.5
+    with pytest.raises(ValueError, match="vessels"):
+        fill_unassigned(points, moved, assigned, adjacency, vessels=vessels[:-1])
+
+
 def test_fill_fills_gaps_and_handles_the_edge_cases():
     points, adjacency, groups = y_skeleton()
     shift = np.array([1.0, -2.0, 3.0])

@@ -69,6 +69,22 @@ def _choose_controls(points, graph, nodes, assigned, candidates, neighbourhood_m
     return found[order]
 
 
+def _connected_vessels(piece: np.ndarray, rows: np.ndarray, cols: np.ndarray, vessels: np.ndarray) -> np.ndarray:
+    """Nodes of the vessels an unassigned ``piece`` is connected to (the paper's "connected branches or trunks").
+
+    A side branch seen nowhere in the frame (a superior mesenteric artery) then follows the
+    aorta it leaves, not a renal beside it that the frame moved on its own. The vessels are
+    those of the nodes one edge outside the piece; with none (a piece on its own), every node.
+    """
+    inside = np.zeros(len(vessels), dtype=bool)
+    inside[piece] = True
+    outward = np.r_[cols[inside[rows] & ~inside[cols]], rows[inside[cols] & ~inside[rows]]]
+    touching = np.unique(vessels[outward])
+    if touching.size == 0:
+        return np.ones(len(vessels), dtype=bool)
+    return np.isin(vessels, touching)
+
+
 class _FillPlan:
     """Which unassigned nodes follow which controls, with each spline's fixed part (Algorithm 2 row 16).
 
@@ -78,7 +94,7 @@ class _FillPlan:
     """
 
     def __init__(self, points, rows, cols, assigned, groups, max_controls, neighbourhood_mm, regularization,
-                 min_extent_ratio):
+                 min_extent_ratio, vessels=None):
         n = len(points)
         self.splines = []                  # (unassigned nodes, their controls, FixedControlsTPS)
         graph = _edge_weighted_graph(points, rows, cols)
@@ -105,10 +121,11 @@ class _FillPlan:
         if remaining.size * n <= _DISTANCE_TABLE_LIMIT:      # one Dijkstra call for all components
             table = csgraph.dijkstra(graph, directed=False, indices=remaining, limit=neighbourhood_mm)
         for label in np.unique(component_of):
-            rows = np.flatnonzero(component_of == label)
-            nodes = remaining[rows]
-            near = None if table is None else table[rows].min(axis=0)
-            controls = _choose_controls(points, graph, nodes, assigned, everywhere, neighbourhood_mm,
+            members = np.flatnonzero(component_of == label)
+            nodes = remaining[members]
+            near = None if table is None else table[members].min(axis=0)
+            candidates = everywhere if vessels is None else _connected_vessels(nodes, rows, cols, vessels)
+            controls = _choose_controls(points, graph, nodes, assigned, candidates, neighbourhood_mm,
                                         max_controls, 4, near)
             self._add(points, controls, nodes, regularization, min_extent_ratio)
 
@@ -129,20 +146,20 @@ _plan_lock = threading.Lock()
 
 
 def _plan_for(points, adjacency, assigned, groups, max_controls, neighbourhood_mm, regularization,
-              min_extent_ratio) -> _FillPlan:
+              min_extent_ratio, vessels=None) -> _FillPlan:
     """The :class:`_FillPlan` of these inputs, from a small LRU cache keyed by their content."""
     rows, cols = _stored_edges(adjacency)
     groups = [np.unique(np.asarray(group, dtype=np.int64).reshape(-1)) for group in groups or ()]
     key = (points.shape, points.tobytes(), rows.tobytes(), cols.tobytes(), assigned.tobytes(),
            tuple(group.tobytes() for group in groups), int(max_controls), float(neighbourhood_mm),
-           float(regularization), float(min_extent_ratio))
+           float(regularization), float(min_extent_ratio), None if vessels is None else vessels.tobytes())
     with _plan_lock:
         plan = _plan_cache.get(key)
         if plan is not None:
             _plan_cache.move_to_end(key)
             return plan
     plan = _FillPlan(points, rows, cols, assigned, groups, max_controls, neighbourhood_mm, regularization,
-                     min_extent_ratio)
+                     min_extent_ratio, vessels)
     with _plan_lock:
         _plan_cache[key] = plan
         while len(_plan_cache) > _PLAN_CACHE_SIZE:
@@ -151,12 +168,13 @@ def _plan_for(points, adjacency, assigned, groups, max_controls, neighbourhood_m
 
 
 def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=None, max_controls=80,
-                    neighbourhood_mm=40.0, regularization=0.0, min_extent_ratio=0.05) -> np.ndarray:
+                    neighbourhood_mm=40.0, regularization=0.0, min_extent_ratio=0.05, vessels=None) -> np.ndarray:
     """Move the unassigned skeleton nodes with branch-wise 3D TPS (Algorithm 2 row 16).
 
     Each connected piece of unassigned nodes (in the skeleton restricted to them) follows a
     TPS whose controls are the assigned nodes within ``neighbourhood_mm`` of it along the
-    skeleton: the assigned parts of the branches and trunks it is connected to. With fewer
+    skeleton: the assigned parts of the branches and trunks it is connected to (with
+    ``vessels``, only those: not a sibling branch reached through the trunk). With fewer
     than 4 such controls the nearest assigned nodes further away are used. Where ``groups``
     are given, the unassigned nodes of a group use that group's assigned nodes instead.
 
@@ -180,6 +198,8 @@ def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=No
     min_extent_ratio : float
         Affine directions with less relative spread of the controls are dropped, so that
         near-collinear controls (a straight branch) do not extrapolate wildly sideways.
+    vessels : array_like, shape (n,), optional
+        The vessel (any label or code) of each node.
 
     Returns
     -------
@@ -206,7 +226,11 @@ def fill_unassigned(points, deformed_assigned, assigned, adjacency, *, groups=No
     if assigned.all() or not assigned.any():
         return result
 
+    if vessels is not None:
+        vessels = np.unique(np.asarray(vessels).reshape(-1), return_inverse=True)[1]
+        if len(vessels) != n:
+            raise ValueError(f"vessels: {len(vessels)} labels for {n} points")
     plan = _plan_for(points, adjacency, assigned, groups, max_controls, neighbourhood_mm, regularization,
-                     min_extent_ratio)
+                     min_extent_ratio, vessels)
     plan.apply(result, moved)
     return result

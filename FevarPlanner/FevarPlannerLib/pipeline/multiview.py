@@ -805,6 +805,11 @@ def _pass_targets(preop: Preoperative, views: list, correspondences, estimate):
     return nodes, data
 
 
+def _vessel_labels(preop: Preoperative) -> np.ndarray:
+    """The anatomical label of each kept node (the TPS fill's "connected branches or trunks")."""
+    return _facts(preop.graph).labels(preop.classification)[preop.kept]
+
+
 def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta, estimate=None):
     """Algorithm 2 rows 6-16 for one correspondence per view; returns (kept positions, energy, score).
 
@@ -839,7 +844,7 @@ def _deform_with(preop: Preoperative, views: list, correspondences, alpha, beta,
     assigned_fraction = _assigned_fraction(preop, nodes)
     in_deformation[_carry_unseen(preop, moved, in_deformation, [v.visible for v in views])] = True
     filled = deformation.fill_unassigned(g3.positions[preop.kept], moved[preop.kept], in_deformation[preop.kept],
-                                         preop.kept_adjacency)
+                                         preop.kept_adjacency, vessels=_vessel_labels(preop))
     score = matching.candidate_score(result.energy_final, assigned_fraction, preop.centerline.points, filled,
                                      preop.centerline.edges, alpha)
     return filled, float(result.energy_final), score
