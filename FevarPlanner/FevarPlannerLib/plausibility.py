@@ -692,7 +692,7 @@ def _notes_only(signals: dict) -> list[str]:
     """What the fit needed just beyond every right frame, one phrase each, which warns but is no
     doubt: a renal ostium moved over :data:`OSTIUM_MOVE_WARN_MM` (up to the doubt's
     :data:`MAX_OSTIUM_MOVE_MM`), a registered renal's end overhanging the frame's vessels by
-    :data:`RENAL_OVERHANG_WARN_MM` or more (one view only)."""
+    :data:`RENAL_OVERHANG_WARN_MM` or more (one view only; not a renal off on average, a doubt)."""
     notes = []
     ostia = signals["ostium_move_mm"]
     if ostia and OSTIUM_MOVE_WARN_MM < max(ostia.values()) <= MAX_OSTIUM_MOVE_MM:
@@ -701,7 +701,8 @@ def _notes_only(signals: dict) -> list[str]:
                      f"{_at(signals['ostium_where'][vessel])} (over {OSTIUM_MOVE_WARN_MM:g} mm, more than any right "
                      f"frame needed)")
     over = (signals.get("renal_overhang_mm") or {}) if signals.get("views", 1) == 1 else {}
-    over = {v: mm for v, mm in over.items() if mm >= RENAL_OVERHANG_WARN_MM}
+    off = _renals_off(signals, RENAL_FIT_DOUBT_MM)          # already a doubt: said once
+    over = {v: mm for v, mm in over.items() if mm >= RENAL_OVERHANG_WARN_MM and v not in off}
     if over:
         vessel = max(over, key=over.get)
         notes.append(f"{vessel} ends beyond the frame's vessel: its last {over[vessel]:.0f} mm lie off it, to "
