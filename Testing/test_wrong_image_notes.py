@@ -61,8 +61,9 @@ def renal_cut(tree, label: str, mm: float):
     points, edges = skeleton_of(tree)
     nodes = np.flatnonzero(np.asarray(tree.labels) == label)
     start, end = P[:2, :3] @ tree.points[nodes[0]] + P[:2, 3], P[:2, :3] @ tree.points[nodes[-1]] + P[:2, 3]
-    along = (points - start) @ (end - start) / np.linalg.norm(end - start)
-    near = np.abs(np.cross(end - start, points - start)) / np.linalg.norm(end - start) < 1.0
+    unit = (end - start) / np.linalg.norm(end - start)
+    along = (points - start) @ unit
+    near = np.abs((points - start) @ np.array([-unit[1], unit[0]])) < 1.0      # within 1 px of the renal's line
     gone = near & (along > np.linalg.norm(end - start) - mm)
     keep = ~gone[edges].any(axis=1)
     index = np.cumsum(~gone) - 1
