@@ -30,7 +30,7 @@ here its cases go through ``plan`` like any case folder. From each right case it
 
 Each folder runs through ``pipeline.plan_case`` (the CLI's route, proposed method). A refusal
 is a :class:`files.InputError` (exit code 2 in the CLI). Reported per kind: the refusal rate,
-how many answers carry a registration warning, and for the answers given the 3D error against the truth of the CT's own deformation
+how many answers carry a registration warning (and which answers carry none: case, 3D error), and for the answers given the 3D error against the truth of the CT's own deformation
 (``gt.json`` of the case whose CT it is). Right frames refused are false refusals.
 
 Outputs in ``--out``: ``wrong_frames.json`` (every run with its message and the gate's
@@ -374,8 +374,10 @@ def _rate(rows: list) -> dict:
         if r["refused"]:
             gates[r["gate"]] = gates.get(r["gate"], 0) + 1
     warned = sum(bool(r.get("warnings")) for r in rows if not r["refused"])
+    silent = [r for r in rows if not r["refused"] and not r.get("warnings")]
     return {"runs": len(rows), "refused": refused, "refusal_rate": refused / max(len(rows), 1), "by_gate": gates,
             "answered_with_registration_warning": warned,
+            "answered_without_warning": [(r["case"], r.get("3d_mm")) for r in silent],
             "answered_3d_mm_median": float(np.median(answered)) if answered else None,
             "answered_3d_mm_max": float(np.max(answered)) if answered else None}
 
