@@ -87,6 +87,18 @@ BAND_SEARCH = 2.0
 BAND_OF_BEST = 0.5
 BAND_MIN_NOISE = 1.0
 MIN_BAND_SHARE = 0.5
+#: A contrast-filled lumen is densest in its middle (its chord is longest there); a vessel
+#: phantom's empty or unfilled silicone tube is densest at its walls, where the rays run along
+#: them (a tram track): across the mask's aorta, at the mask's own half-width H, the middle
+#: (within FILLED_CORE H) must attenuate more than the rim (FILLED_RIM H) on at least
+#: MIN_FILLED_SHARE of its centre line. Chosen on the realbench family (Testing/benchmarks/
+#: realbench_frames.py, development seeds 480-485): contrast-filled aortas 0.86-1.0 with plan's
+#: masks (1.0 with the true masks), an empty silicone phantom in air 0.46 / 0.56. A water-filled
+#: phantom in air is a weak positive angiogram and an air-filled one in a water bath a negative
+#: one (0.92-1.0): their profiles are a filled lumen's, this rule does not see them.
+FILLED_CORE = (0.0, 0.25, 0.5)
+FILLED_RIM = (0.75, 0.9)
+MIN_FILLED_SHARE = 0.7
 #: The vessels whose cross profile is checked, and the fewest centre-line samples that judge one.
 BAND_VESSELS = ("aorta",)
 BAND_MIN_SAMPLES = 10
@@ -678,32 +690,58 @@ def _band_shares(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, half_
         band = (centred >= BAND_MIN_NOISE * noise) & (centred >= BAND_OF_BEST * contrast[:, 1:].max(axis=1))
         off = ~band
         where = (np.array([cols[on][off].mean(), rows[on][off].mean()]) + 0.5) * factor - 0.5 if off.any() else None
-        shares[vessel] = (float(band.mean()), where)
+        filled = _filled_middle(oriented, rows[on], cols[on], angles[node[on]], np.maximum(half_width[on], 1.0))
+        shares[vessel] = (float(band.mean()), where, float(filled.mean()))
     return shares
 
 
+def _filled_middle(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, angle: np.ndarray,
+                   half_width: np.ndarray) -> np.ndarray:
+    """Per centre-line pixel, whether the vessel's middle attenuates more than its rim
+    (:data:`FILLED_CORE`, :data:`FILLED_RIM`, in the mask's half-widths across its direction
+    ``angle``; each sample averaged along the vessel over +-:data:`BAND_ALONG` of it)."""
+    across = np.column_stack([-np.sin(angle), np.cos(angle)])
+    along = np.column_stack([np.cos(angle), np.sin(angle)])
+
+    def mean_at(fractions):
+        t = np.concatenate([np.asarray(fractions), -np.asarray(fractions)])
+        t = half_width[:, None, None] * t[None, :, None]
+        s = BAND_ALONG * half_width[:, None, None] * np.array([-1.0, 0.0, 1.0])[None, None, :]
+        v = rows[:, None, None] + t * across[:, 1, None, None] + s * along[:, 1, None, None]
+        u = cols[:, None, None] + t * across[:, 0, None, None] + s * along[:, 0, None, None]
+        values = ndi.map_coordinates(oriented, [v.ravel(), u.ravel()], order=1, mode="nearest")
+        return values.reshape(v.shape).mean(axis=(1, 2))
+
+    return mean_at(FILLED_CORE) > mean_at(FILLED_RIM)
+
+
 def _check_bands(blocks: np.ndarray, noise: float, sign: float, small: np.ndarray, skeleton: np.ndarray, prior,
-                 factor: int, shift: np.ndarray, qc: QCData | None) -> dict:
-    """Refuse a mask whose aorta is not a band centred on its centre line (:data:`MIN_BAND_SHARE`):
+                 factor: int, shift: np.ndarray, qc: QCData | None) -> tuple[dict, dict]:
+    """Refuse a mask whose aorta is not a band centred on its centre line (:data:`MIN_BAND_SHARE`),
+    or whose middle is not denser than its rim (:data:`MIN_FILLED_SHARE`, :func:`_filled_middle`):
     a bone's or a soft tissue's edge followed beside the vessel, which the projected tree's
     tolerance lets through (a confident wrong answer). ``blocks``: the frame's ``factor`` x
     ``factor`` block means, ``noise`` theirs, ``sign`` +1 where the masked vessels are brighter
     than around them (-1: darker); ``small``, ``skeleton``: the mask and its skeleton on the
-    working grid. Returns ``{vessel: share of its centre line}``."""
+    working grid. Returns ``{vessel: share of its centre line}`` for both rules."""
     oriented = blocks if sign >= 0 else -blocks        # may lack the grid's last partial block: sampled clamped
     box = _padded_box(small, 1)
     rows, cols = np.nonzero(skeleton[box])
     half_width = ndi.distance_transform_edt(small[box])[rows, cols]
     rows, cols = rows + box[0].start, cols + box[1].start
     shares = _band_shares(oriented, rows, cols, half_width, small.shape, prior, factor, shift, noise)
-    for vessel, (share, where) in shares.items():
+    for vessel, (share, where, filled) in shares.items():
+        if filled < MIN_FILLED_SHARE:
+            raise QualityError(f"frame check: {vessel} is not filled with contrast: on {100 * (1 - filled):.0f}% of its "
+                               f"segmented centre line its walls attenuate more than its middle (a hollow tube: a "
+                               f"vessel phantom without contrast?); not a usable angiogram (see segmentation_qc.png)", qc)
         if share < MIN_BAND_SHARE:
             raise QualityError(f"frame check: {vessel} not found as a contrast-filled vessel near pixel (u={where[0]:.0f}, "
                                f"v={where[1]:.0f}): {100 * share:.0f}% of its segmented centre line runs along a band "
                                f"denser than both sides (at least {100 * MIN_BAND_SHARE:.0f}% expected); the rest is a "
                                f"step with one side as dense, or beside such a band: a bone's or soft tissue's edge "
                                f"followed beside the vessel? (see segmentation_qc.png)", qc)
-    return {vessel: share for vessel, (share, _) in shares.items()}
+    return {vessel: share for vessel, (share, _, _) in shares.items()}, {vessel: filled for vessel, (_, _, filled) in shares.items()}
 
 
 def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame: np.ndarray | None = None,
@@ -739,7 +777,7 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     -------
     dict
         ``{"coverage": {vessel: fraction}, "shift_px": [du, dv]}``; with the ``frame`` also
-        ``"band_share": {vessel: fraction}`` (:func:`_check_bands`).
+        ``"band_share"`` and ``"filled_share"``: ``{vessel: fraction}`` (:func:`_check_bands`).
 
     Raises
     ------
@@ -786,8 +824,8 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
                                f"segmented vessels (see segmentation_qc.png)", qc)
     report = {"coverage": coverage, "shift_px": (shift * factor).tolist()}
     if frame is not None:
-        report["band_share"] = _check_bands(blocks, noise, float(np.sign(contrast)), small, skeleton, prior, factor,
-                                            shift, qc)
+        report["band_share"], report["filled_share"] = _check_bands(blocks, noise, float(np.sign(contrast)), small,
+                                                                    skeleton, prior, factor, shift, qc)
     return report
 
 

@@ -56,14 +56,35 @@ def run_route(folder: Path, out: Path, truth: np.ndarray) -> dict:
         result, seconds, _ = common.timed(pipeline.plan_case, folder, out)
     except quality.QualityError as refusal:
         qc = refusal.qc
+        _keep_mask(out, None if qc is None else qc.mask2d)
         return {"exit": 2, "refused": str(refusal), **mask_scores(None if qc is None else qc.mask2d, truth)}
     except io.InputError as refusal:
         return {"exit": 2, "refused": str(refusal)}
     except Exception as failure:          # noqa: BLE001 - the CLI's exit code 1, recorded
         return {"exit": 1, "error": f"{type(failure).__name__}: {failure}"}
+    _keep_mask(out, result.qc.mask2d if result.qc else None)
     row = {"exit": 0, "3d_mm": float(result.errors["3d_mm"]["mean"]), "time_s": seconds,
            "warnings": list(result.warnings), **mask_scores(result.qc.mask2d if result.qc else None, truth)}
     return row
+
+
+def _keep_mask(out: Path, mask) -> None:
+    """The vessel mask ``plan`` used, beside (not inside) its output folder."""
+    if mask is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        io.write_mask_png(out.parent / f"{out.name}.plan_mask.png", mask)
+
+
+def mask_picture(frame: np.ndarray, mask: np.ndarray, truth: np.ndarray, path: Path) -> None:
+    """The frame with the mask's agreement: green both, red mask only (false), blue truth only (missed)."""
+    grey = frame.astype(float)
+    grey = (grey - grey.min()) / max(np.ptp(grey), 1e-9)
+    rgb = np.repeat(grey[..., None], 3, axis=-1) * 0.75
+    for pixels, colour in ((mask & truth, (0.1, 0.9, 0.1)), (mask & ~truth, (1.0, 0.1, 0.1)), (~mask & truth, (0.2, 0.4, 1.0))):
+        rgb[pixels] = 0.45 * rgb[pixels] + 0.55 * np.asarray(colour)
+    from PIL import Image
+
+    Image.fromarray(np.round(255 * rgb).astype(np.uint8)).save(path)
 
 
 def evaluate_seed(root: Path, outputs: Path) -> dict:
@@ -73,6 +94,10 @@ def evaluate_seed(root: Path, outputs: Path) -> dict:
         row[route] = run_route(root / route, outputs / root.name / route, truth)
     if "3d_mm" in row["angio"] and "3d_mm" in row["angio_truemask"]:
         row["difference_mm"] = row["angio"]["3d_mm"] - row["angio_truemask"]["3d_mm"]
+    mask_file = outputs / root.name / "angio.plan_mask.png"
+    if mask_file.exists():
+        frame = io.read_fluoro(next((root / "angio").glob("fluoro.*"))).image
+        mask_picture(frame, io.read_mask_2d(mask_file) > 0, truth, outputs / root.name / "angio_mask_vs_truth.png")
     row["non_angiograms_answered"] = [r for r in MUST_REFUSE if row[r]["exit"] == 0]
     return row
 

@@ -618,8 +618,9 @@ def _carm(rng, anatomy) -> tuple[CArmGeometry, np.ndarray]:
 
 
 def render_frame(case, bench: Bench, chain: Chain, rng, *, contrast: bool, phantom: bool = True,
-                 anatomy=None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """One raw frame (display uint8 before text, and the 16-bit display for DICOM), its true vessel mask and facts."""
+                 anatomy=None, fill: Fill | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """One raw frame (uint8 display, before the burned-in text), its true vessel mask and what
+    was drawn; ``fill`` overrides the drawn filling (:func:`draw_fill`)."""
     rays = Rays.of(case.P_true, (case.carm.rows, case.carm.cols))
     film = Film(rays)
     render_bench(film, bench, rng)
@@ -627,13 +628,13 @@ def render_frame(case, bench: Bench, chain: Chain, rng, *, contrast: bool, phant
     facts = {"water_bath": bench.water}
     lumen = np.zeros(rays.shape)
     if phantom:
-        fill = draw_fill(rng, contrast)
+        fill = draw_fill(rng, contrast) if fill is None else fill
         lumen = render_phantom(film, anatomy, fill, rng, in_water=bench.water, wall_mm=rng.uniform(1.2, 3.0),
                                tubing_contrast=bool(rng.random() < 0.5) and contrast)
         facts.update(iodine_mg_ml=fill.iodine, lumen_medium=fill.medium, devices=render_devices(film, anatomy, rng, in_water=bench.water))
     nepers = pincushion(film.nepers, chain)
     field = exposed_field(nepers.shape, chain)
-    mask = (pincushion(lumen, chain, order=0) > 0.3) & field & contrast & phantom
+    mask = (pincushion(lumen, chain, order=0) > 0.3) & field & phantom
     signal = expose(nepers, chain, rng)
     grey = display(signal, field, chain, rng)
     return grey, mask, facts
@@ -697,6 +698,7 @@ def write_seed(out: Path, seed: int, kinds=KINDS) -> Path:
         grey, mask, facts = render_frame(case, bench, chain, frame_rng, contrast=kind != "no_contrast",
                                          phantom=kind != "box_only", anatomy=other)
         _write_case_folder(root / kind, ct_dir, case, grey, chain, frame_rng, when=when)
+        mask &= kind != "no_contrast"
         if kind == "angio":
             io.write_mask_png(root / "eval" / "true_mask.png", mask)
             io.write_mask_png(root / "eval" / "exposed_field.png", exposed_field(mask.shape, chain))
