@@ -1,0 +1,53 @@
+"""The frame check on raw bench-phantom frames of the independent realbench family.
+
+An empty silicone phantom in air (no contrast) shows its tubes as tram tracks: walls denser
+than the middle. The mask that follows such a tube passes every other frame rule (a band
+denser than both sides, along the projected tree, above the noise); the frame check must
+refuse it as not contrast-filled, while the same phantom filled with iodine passes.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "benchmarks"))
+
+import realbench_frames as rb  # noqa: E402
+from FevarPlannerLib import quality  # noqa: E402
+
+SEED = 483
+
+
+@pytest.fixture(scope="module")
+def frames():
+    case = rb.make_case(SEED)
+    rng = np.random.default_rng([SEED, 11])
+    bench = replace(rb.draw_bench(rng, case.intraop), water=False)
+    chain = rb.draw_chain(rng, (case.carm.rows, case.carm.cols))
+    empty = rb.Fill(0.0, 0.0, 0.0, {"renal": 1.0, "iliac": 1.0, "other": 1.0}, 0, "air")
+    filled = rb.Fill(60.0, 0.2, 0.3, {"renal": 0.9, "iliac": 0.9, "other": 0.8}, 3, "water")
+    shown = {}
+    for name, fill in (("empty", empty), ("filled", filled)):
+        grey, mask, _ = rb.render_frame(case, bench, chain, np.random.default_rng([SEED, 13]), contrast=True, fill=fill)
+        shown[name] = (grey, mask)
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_true)
+    return shown, prior
+
+
+def test_contrast_filled_phantom_passes_the_frame_check(frames):
+    shown, prior = frames
+    grey, mask = shown["filled"]
+    report = quality.check_frame_mask(mask, prior, frame=grey)
+    assert report["filled_share"]["aorta"] >= 0.9
+
+
+def test_empty_phantom_is_refused_as_not_contrast_filled(frames):
+    shown, prior = frames
+    grey, mask = shown["empty"]
+    with pytest.raises(quality.QualityError, match="not filled with contrast"):
+        quality.check_frame_mask(mask, prior, frame=grey)
