@@ -216,6 +216,108 @@ def _shutter(image: np.ndarray) -> np.ndarray | None:
     return unexposed if MIN_SHUTTER_FRACTION <= share <= 1.0 - MIN_FIELD_FRACTION else None
 
 
+#: Collimator leaves inside the field: a band along a side, from the field's edge to a straight
+#: edge (turned up to LEAF_MAX_TURN_DEG from the side), that lets a few per cent of the beam
+#: through, so that the display holds it at the field's extreme level (its 1st or 99th
+#: percentile, to within LEAF_FLATNESS of the field's range: either polarity), then leaves that
+#: level by at least LEAF_MIN_STEP of the range within LEAF_EDGE_PX. The band is at least
+#: LEAF_MIN_DEPTH_PX deep and reaches at most LEAF_MAX_DEPTH of the field's extent. Judged on
+#: LEAF_BLOCK x LEAF_BLOCK block means. Noisy or holding a dim image of the anatomy, such a band is
+#: no flat shutter to the corner flood, and the segmentation took it as vessel where a vessel ran
+#: into it (realbench development seeds 480-485: 480, 482, 484).
+LEAF_MAX_TURN_DEG = 6.0
+LEAF_TURN_STEP_DEG = 1.5
+LEAF_FLATNESS = 0.03
+LEAF_MIN_STEP = 0.1
+LEAF_EDGE_PX = 16
+LEAF_MIN_DEPTH_PX = 24
+LEAF_MAX_DEPTH = 0.3
+LEAF_BLOCK = 8
+#: Fewest field pixels (blocks) a distance bin of a leaf's profile needs.
+LEAF_MIN_BIN = 4
+
+
+def _leaf_profile(values: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``values`` per whole-block ``distance`` from a side, and which bins hold enough pixels."""
+    bins = np.floor(distance).astype(int)
+    counts = np.bincount(bins)
+    sums = np.bincount(bins, weights=values)
+    return sums / np.maximum(counts, 1), counts >= LEAF_MIN_BIN
+
+
+def _leaf_depth(profile: np.ndarray, valid: np.ndarray, extremes: tuple, span: float) -> int:
+    """Depth (bins) of a collimator leaf at the start of a side's ``profile``, or 0: from the
+    field's edge the profile stays at one of the field's ``extremes`` (:data:`LEAF_FLATNESS` of
+    ``span``) for :data:`LEAF_MIN_DEPTH_PX` at least, then leaves it by :data:`LEAF_MIN_STEP`
+    of ``span`` within :data:`LEAF_EDGE_PX`."""
+    filled = np.flatnonzero(valid)
+    min_depth = max(2, int(np.ceil(LEAF_MIN_DEPTH_PX / LEAF_BLOCK)))
+    edge = max(1, int(np.ceil(LEAF_EDGE_PX / LEAF_BLOCK)))
+    if len(filled) < 4 * min_depth:
+        return 0
+    start, stop = filled[0], filled[-1]
+    for extreme in extremes:
+        off = np.abs(profile[start:stop + 1] - extreme) > LEAF_FLATNESS * span
+        depth = int(np.argmax(off)) if off.any() else 0
+        if depth < min_depth or depth > LEAF_MAX_DEPTH * (stop - start):
+            continue
+        after = profile[start + depth:start + depth + edge + 1]
+        if np.max(np.abs(after - extreme)) >= LEAF_MIN_STEP * span:
+            return start + depth
+    return 0
+
+
+def _collimator_leaves(image: np.ndarray, unexposed: np.ndarray | None) -> np.ndarray | None:
+    """The collimator leaves inside a rectangle's ``image`` (not flat, so not part of the corner
+    flood's ``unexposed``), as a bool image, or None (:data:`LEAF_MAX_TURN_DEG` ...)."""
+    from ..quality import block_means
+
+    rows, cols = image.shape
+    if min(rows, cols) < 16 * LEAF_BLOCK:
+        return None
+    blocks = block_means(image, LEAF_BLOCK).astype(float)
+    field = np.ones(blocks.shape, dtype=bool)
+    if unexposed is not None:
+        field = ~unexposed[:blocks.shape[0] * LEAF_BLOCK:LEAF_BLOCK, :blocks.shape[1] * LEAF_BLOCK:LEAF_BLOCK]
+    field &= ~ndimage.binary_dilation(~field, iterations=2) if (~field).any() else field
+    values = blocks[field]
+    if values.size < 64:
+        return None
+    p1, p99 = np.percentile(values, [1, 99])
+    span = float(p99 - p1)
+    if span <= 0:
+        return None
+    rr, cc = np.nonzero(field)
+    leaves = np.zeros(blocks.shape, dtype=bool)
+    for turn in np.arange(-LEAF_MAX_TURN_DEG, LEAF_MAX_TURN_DEG + 1e-9, LEAF_TURN_STEP_DEG):
+        c, s_ = np.cos(np.deg2rad(turn)), np.sin(np.deg2rad(turn))
+        across_rows = rr * c - cc * s_
+        across_cols = cc * c + rr * s_
+        for distance in (across_rows - across_rows.min(), across_rows.max() - across_rows,
+                         across_cols - across_cols.min(), across_cols.max() - across_cols):
+            profile, valid = _leaf_profile(values, distance)
+            depth = _leaf_depth(profile, valid, (float(p1), float(p99)), span)
+            if depth:
+                inside = distance < depth
+                leaves[rr[inside], cc[inside]] = True
+    if not leaves.any():
+        return None
+    full = np.zeros((rows, cols), dtype=bool)
+    grown = np.repeat(np.repeat(leaves, LEAF_BLOCK, axis=0), LEAF_BLOCK, axis=1)
+    full[:grown.shape[0], :grown.shape[1]] = grown
+    return full
+
+
+def _shutter_and_leaves(image: np.ndarray) -> np.ndarray | None:
+    """The flat shutter flooded from the corners (:func:`_shutter`) and the collimator leaves
+    inside the field (:func:`_collimator_leaves`), together, or None when there is neither."""
+    shutter = _shutter(image)
+    leaves = _collimator_leaves(image, shutter)
+    if leaves is None:
+        return shutter
+    return leaves if shutter is None else shutter | leaves
+
+
 def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
     """The largest half-width (px) of ``mask`` at the pixels ``where``: its distance to the
     background, on the box around them padded by the mask's extent there (the caller counts
@@ -262,7 +364,7 @@ def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     if image.ndim != 2:
         return image, None
     r0, r1, c0, c1 = _exposed_rectangle(image)
-    shutter = _shutter(image[r0:r1 + 1, c0:c1 + 1])
+    shutter = _shutter_and_leaves(image[r0:r1 + 1, c0:c1 + 1])
     if shutter is None:
         return image, None
     inside = image[r0:r1 + 1, c0:c1 + 1]
@@ -312,7 +414,7 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
         if np.count_nonzero(on_border) >= MIN_BORDER_PIXELS:
             clipped.append(side)
             margin[side] = _half_width_at_border(shown, side, index, on_border)
-    shutter = _shutter(np.asarray(image)[r0:r1 + 1, c0:c1 + 1]) if has_image else None
+    shutter = _shutter_and_leaves(np.asarray(image)[r0:r1 + 1, c0:c1 + 1]) if has_image else None
     field = None
     if shutter is not None:         # a round or shaped field inside the rectangle
         inner = _placed(shutter, (rows, cols), (r0, r1, c0, c1))
