@@ -51,3 +51,24 @@ def test_empty_phantom_is_refused_as_not_contrast_filled(frames):
     grey, mask = shown["empty"]
     with pytest.raises(quality.QualityError, match="not filled with contrast"):
         quality.check_frame_mask(mask, prior, frame=grey)
+
+
+def test_collimator_leaves_inside_a_round_field_are_unexposed():
+    """Leaves that let a few per cent through are held at the display's extreme level but are
+    not flat enough for the corner flood: they must be unexposed too, and the field kept."""
+    from FevarPlannerLib.pipeline.visibility import shutter_filled
+
+    seed = 480
+    case = rb.make_case(seed)
+    rng = np.random.default_rng([seed, 11])
+    bench = rb.draw_bench(rng, case.intraop)
+    chain = rb.draw_chain(rng, (case.carm.rows, case.carm.cols))
+    chain = replace(chain, collimator=(0.0, 0.0, 0.13 * case.carm.cols, 0.1 * case.carm.cols, 2.0), inverted=False)
+    grey, _, _ = rb.render_frame(case, bench, chain, np.random.default_rng([seed, 13]), contrast=True)
+    exposed = rb.exposed_field(grey.shape, chain)
+    in_circle = rb._round_field(grey.shape, chain) >= 1.0
+    _, unexposed = shutter_filled(grey)
+    assert unexposed is not None
+    leaves = in_circle & ~exposed
+    assert np.mean(unexposed[leaves]) >= 0.6
+    assert np.mean(unexposed[exposed]) <= 0.01

@@ -28,6 +28,7 @@ import common
 
 common.single_threaded_blas()
 
+import shutil  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -51,7 +52,11 @@ def mask_scores(mask: np.ndarray | None, truth: np.ndarray) -> dict:
 
 
 def run_route(folder: Path, out: Path, truth: np.ndarray) -> dict:
-    """One ``plan`` run: exit code, refusal line, 3D error, mask scores, warnings."""
+    """One ``plan`` run: exit code, refusal line, 3D error, mask scores, warnings (``out``, this
+    benchmark's own folder, is emptied first)."""
+    shutil.rmtree(out, ignore_errors=True)
+    for stale in (out.parent / f"{out.name}.segmentation_qc.png", out.parent / f"{out.name}.plan_mask.png"):
+        stale.unlink(missing_ok=True)
     try:
         result, seconds, _ = common.timed(pipeline.plan_case, folder, out)
     except quality.QualityError as refusal:
