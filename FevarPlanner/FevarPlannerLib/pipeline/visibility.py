@@ -219,22 +219,26 @@ def _shutter(image: np.ndarray) -> np.ndarray | None:
 #: Collimator leaves inside the field: a band along a side, from the field's edge to a straight
 #: edge (turned up to LEAF_MAX_TURN_DEG from the side), that lets a few per cent of the beam
 #: through, so that the display holds it at the field's extreme level (its 1st or 99th
-#: percentile, to within LEAF_FLATNESS of the field's range: either polarity), then leaves that
-#: level by at least LEAF_MIN_STEP of the range within LEAF_EDGE_PX. The band is at least
-#: LEAF_MIN_DEPTH_PX deep and reaches at most LEAF_MAX_DEPTH of the field's extent. Judged on
-#: LEAF_BLOCK x LEAF_BLOCK block means. Noisy or holding a dim image of the anatomy, such a band is
-#: no flat shutter to the corner flood, and the segmentation took it as vessel where a vessel ran
-#: into it (realbench development seeds 480-485: 480, 482, 484).
+#: percentile, to within LEAF_FLATNESS of the field's range: either polarity). Across the band,
+#: at least LEAF_BAND_SHARE of each line's pixels lie at that level; within LEAF_EDGE_PX beyond
+#: its edge at most LEAF_FIELD_SHARE do (a subtracted frame's flat background stays at its level
+#: past any vessel). The band is at least LEAF_MIN_DEPTH_PX deep and reaches at most
+#: LEAF_MAX_DEPTH of the field's extent. Judged on LEAF_BLOCK x LEAF_BLOCK block means. Noisy or
+#: holding a dim image of the anatomy, such a band is no flat shutter to the corner flood, and the
+#: segmentation took it as vessel where a vessel ran into it (realbench development seeds 480-485).
 LEAF_MAX_TURN_DEG = 6.0
 LEAF_TURN_STEP_DEG = 1.5
 LEAF_FLATNESS = 0.03
-LEAF_MIN_STEP = 0.1
+LEAF_BAND_SHARE = 0.8
+LEAF_FIELD_SHARE = 0.2
 LEAF_EDGE_PX = 16
 LEAF_MIN_DEPTH_PX = 24
 LEAF_MAX_DEPTH = 0.3
 LEAF_BLOCK = 8
 #: Fewest field pixels (blocks) a distance bin of a leaf's profile needs.
 LEAF_MIN_BIN = 4
+#: Fewest of the field's pixels at an extreme level for a leaf to be looked for.
+LEAF_MIN_SHARE = 0.005
 
 
 def _leaf_profile(values: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -245,26 +249,23 @@ def _leaf_profile(values: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray,
     return sums / np.maximum(counts, 1), counts >= LEAF_MIN_BIN
 
 
-def _leaf_depth(profile: np.ndarray, valid: np.ndarray, extremes: tuple, span: float) -> int:
-    """Depth (bins) of a collimator leaf at the start of a side's ``profile``, or 0: from the
-    field's edge the profile stays at one of the field's ``extremes`` (:data:`LEAF_FLATNESS` of
-    ``span``) for :data:`LEAF_MIN_DEPTH_PX` at least, then leaves it by :data:`LEAF_MIN_STEP`
-    of ``span`` within :data:`LEAF_EDGE_PX`."""
+def _leaf_depth(share: np.ndarray, valid: np.ndarray) -> int:
+    """Depth (bins) of a collimator leaf at the start of a side's profile, or 0: ``share`` is the
+    fraction of each bin's field pixels at one extreme level; the band holds at least
+    :data:`LEAF_BAND_SHARE` of them from the field's edge for :data:`LEAF_MIN_DEPTH_PX` at least,
+    and within :data:`LEAF_EDGE_PX` after it at most :data:`LEAF_FIELD_SHARE`."""
     filled = np.flatnonzero(valid)
     min_depth = max(2, int(np.ceil(LEAF_MIN_DEPTH_PX / LEAF_BLOCK)))
     edge = max(1, int(np.ceil(LEAF_EDGE_PX / LEAF_BLOCK)))
     if len(filled) < 4 * min_depth:
         return 0
     start, stop = filled[0], filled[-1]
-    for extreme in extremes:
-        off = np.abs(profile[start:stop + 1] - extreme) > LEAF_FLATNESS * span
-        depth = int(np.argmax(off)) if off.any() else 0
-        if depth < min_depth or depth > LEAF_MAX_DEPTH * (stop - start):
-            continue
-        after = profile[start + depth:start + depth + edge + 1]
-        if np.max(np.abs(after - extreme)) >= LEAF_MIN_STEP * span:
-            return start + depth
-    return 0
+    inside = share[start:stop + 1] >= LEAF_BAND_SHARE
+    depth = int(np.argmin(inside)) if not inside.all() else 0
+    if depth < min_depth or depth > LEAF_MAX_DEPTH * (stop - start):
+        return 0
+    after = share[start + depth:start + depth + edge + 1]
+    return start + depth if np.min(after) <= LEAF_FIELD_SHARE else 0
 
 
 def _collimator_leaves(image: np.ndarray, unexposed: np.ndarray | None) -> np.ndarray | None:
@@ -287,6 +288,10 @@ def _collimator_leaves(image: np.ndarray, unexposed: np.ndarray | None) -> np.nd
     span = float(p99 - p1)
     if span <= 0:
         return None
+    at_extreme = [flags for flags in (np.abs(values - level) <= LEAF_FLATNESS * span for level in (p1, p99))
+                  if LEAF_MIN_SHARE <= flags.mean() <= 0.5]      # more: a flat background, not a band
+    if not at_extreme:
+        return None
     rr, cc = np.nonzero(field)
     leaves = np.zeros(blocks.shape, dtype=bool)
     for turn in np.arange(-LEAF_MAX_TURN_DEG, LEAF_MAX_TURN_DEG + 1e-9, LEAF_TURN_STEP_DEG):
@@ -295,11 +300,12 @@ def _collimator_leaves(image: np.ndarray, unexposed: np.ndarray | None) -> np.nd
         across_cols = cc * c + rr * s_
         for distance in (across_rows - across_rows.min(), across_rows.max() - across_rows,
                          across_cols - across_cols.min(), across_cols.max() - across_cols):
-            profile, valid = _leaf_profile(values, distance)
-            depth = _leaf_depth(profile, valid, (float(p1), float(p99)), span)
-            if depth:
-                inside = distance < depth
-                leaves[rr[inside], cc[inside]] = True
+            for flags in at_extreme:
+                share, valid = _leaf_profile(flags.astype(float), distance)
+                depth = _leaf_depth(share, valid)
+                if depth:
+                    inside = distance < depth
+                    leaves[rr[inside], cc[inside]] = True
     if not leaves.any():
         return None
     full = np.zeros((rows, cols), dtype=bool)
