@@ -272,12 +272,11 @@ def _lead_curve(rng, start) -> np.ndarray:
 def render_bench(film: Film, bench: Bench, rng) -> None:
     """The PMMA box, its screws, the table with edge and rails, the ruler, ECG electrodes and leads."""
     t = bench.wall_mm
-    outer = film.box(bench.box_low, bench.box_high, MU["pmma"])
+    film.box(bench.box_low, bench.box_high, MU["pmma"])
     inner_low, inner_high = bench.box_low + [t, 0.0, t], bench.box_high - [t, t, t]
     inner = film.box(inner_low, inner_high, -MU["pmma"])
     if bench.water:
         film.nepers += MU["water"] * inner * (rng.uniform(0.55, 0.8) if rng.random() < 0.3 else 1.0)
-    del outer
     for x in (bench.box_low[0] + t / 2, bench.box_high[0] - t / 2):
         for z in np.arange(bench.box_low[2] + 25.0, bench.box_high[2] - 10.0, rng.uniform(60, 90)):
             film.tube([[x, bench.box_low[1] - 2.0, z], [x, bench.box_low[1] + 14.0, z]], 1.9, MU["steel"])
