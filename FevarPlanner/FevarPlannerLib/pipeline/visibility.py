@@ -315,13 +315,15 @@ def _collimator_leaves(image: np.ndarray, unexposed: np.ndarray | None) -> np.nd
 
 
 def _shutter_and_leaves(image: np.ndarray) -> np.ndarray | None:
-    """The flat shutter flooded from the corners (:func:`_shutter`) and the collimator leaves
-    inside the field (:func:`_collimator_leaves`), together, or None when there is neither."""
+    """The flat shutter flooded from the corners (:func:`_shutter`) and, around a shaped (round)
+    field, the collimator leaves inside it (:func:`_collimator_leaves`), together; None without
+    a shaped field (a frame without one costs nothing more: its flat bands are found by
+    :func:`_collimated_bands`)."""
     shutter = _shutter(image)
+    if shutter is None:
+        return None
     leaves = _collimator_leaves(image, shutter)
-    if leaves is None:
-        return shutter
-    return leaves if shutter is None else shutter | leaves
+    return shutter if leaves is None else shutter | leaves
 
 
 def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
