@@ -600,12 +600,18 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
         vessels = _polarity_by_prior(small, distance, nearest, prior, factor)
     oriented = small if vessels == "bright" else 1.0 - small
     widest = prior.derived(("widest", small_shape, factor, reach), lambda: _widest_nearby(radius))
-    flat, level = _background_is_flat(oriented, where)
-    if flat:
+    pedestal, bright_share, level = _background_reading(oriented, where)
+    if pedestal < FLAT_PEDESTAL and bright_share <= FLAT_BRIGHT_SHARE:
+        flat = True
         oriented = oriented - np.float32(level)         # already flat: only its level goes
     else:
+        flat = False
         across = prior.derived(("across", small_shape, factor, reach), lambda: _lines_across(prior, nearest, radius))
-        oriented = _flatten_across(oriented, across)
+        over_bone = None
+        if pedestal >= BONE_PEDESTAL:       # bone under the vessels: its edges may cross the aorta's lumen
+            over_bone = prior.derived(("aorta_lumen", small_shape, factor, reach),
+                                      lambda: _projected_aorta_lumen(prior, where))
+        oriented = _flatten_across(oriented, across, over_bone)
     response = vesselness(oriented, sigmas, polarities=("bright",), inside=band)["bright"]
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
@@ -772,12 +778,12 @@ LINE_RADII = 2.8
 LINE_PAD_PX = 3.0
 LINE_CLASS_RATIO = 1.25
 #: A frame whose background next to the projected vessels stands less than this fraction of the
-#: vessels' contrast above the background away from them (:func:`_background_is_flat`) is not
+#: vessels' contrast above the background away from them (:func:`_background_reading`) is not
 #: flattened: it is already flat (a subtracted frame), and the openings cost ~4 ms at 1024^2.
 #: Between subtracted frames (< 0.12) and the unsubtracted bench frames (>= 0.2; seeds 102,
 #: 201-203, every distractor or the spine alone). And at most FLAT_BRIGHT_SHARE of the pixels
 #: away from the vessels may be brighter than they are (0 under an even or a falling exposure,
-#: >= 0.003 with a shutter in view; see :func:`_background_is_flat`).
+#: >= 0.003 with a shutter in view; see :func:`_background_reading`).
 FLAT_PEDESTAL = 0.13
 FLAT_BRIGHT_SHARE = 0.001
 FLAT_RING_PERCENTILE = 75.0
@@ -869,13 +875,18 @@ def _line_opening(image: np.ndarray, step: tuple, length: float) -> np.ndarray:
     return _line_extreme(eroded, (-step[0], -step[1]), n, np.maximum, -np.inf)
 
 
-def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
+def _flatten_across(oriented: np.ndarray, across: LinesAcross, over_bone: np.ndarray | None = None) -> np.ndarray:
     """``oriented`` (vessels bright) less its background: per pixel, the largest residue of the
     openings :class:`LinesAcross` allows there. A line across a vessel does not fit in its lumen,
     so the vessel stays; it fits in what is wider than the vessel across it (vertebral bodies,
     the pelvis, a step at a table or box edge, the exposure's slope), so that goes. On diagonal
     lines the opening by a square as wide as the line is long joins the background
-    (:data:`SQUARE_ON_DIAGONALS`)."""
+    (:data:`SQUARE_ON_DIAGONALS`).
+
+    ``over_bone`` (bool, the grid's shape): where a bone's edge may lie inside the lumen (the
+    projected aorta's, on a frame with bone under the vessels); there the residue is at least
+    the contrast of a band between two matching edges (:func:`_bands_between_edges`), which a
+    step inside the lumen leaves whole."""
     flat = np.zeros_like(oriented)
     boxes = {key: _box_around(chosen, 2 * (int(math.ceil(key[1])) + 2) * np.abs(LINE_STEPS[key[0]]))
              for key, chosen in across.where.items()}
@@ -890,7 +901,109 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
         residue = (part - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
         target = flat[box][inner]
         np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
+        if over_bone is not None and (chosen & over_bone).any():
+            band = _bands_between_edges(part, step, (length - LINE_PAD_PX) / LINE_RADII)
+            np.maximum(target, np.where((chosen & over_bone)[box][inner], band[inner], 0.0), out=target)
     return flat
+
+
+# ----------------------------------------------------------------------------------------
+# A bone's edge inside the aorta's lumen: a vessel is a band between two matching edges
+# ----------------------------------------------------------------------------------------
+
+#: A band's width along the line, in diameters of the projected vessel (the upper end + 1 px):
+#: the line runs up to 22.5 degrees off the vessel's perpendicular, and the vessel may turn.
+BAND_WIDTH_DIAMETERS = (0.75, 1.2)
+#: The weaker of a band's two edges is at least this fraction of the stronger.
+BAND_EDGE_BALANCE = 0.5
+#: Each half of a band's inside stands this fraction of the band's contrast above the flank on
+#: its side (a step inside the band is allowed: each half is measured against its own flank).
+BAND_INSIDE = 0.3
+#: A pedestal (:func:`_background_reading`) from which bone lies under the vessels: unsubtracted
+#: bench frames 0.17-0.53, subtracted ones with a shutter in view up to 0.22 (development seeds
+#: 231-250), whose masks a band between edges would only change.
+BONE_PEDESTAL = 0.25
+#: Where bands between edges are looked for: within this many projected radii (+
+#: BAND_LUMEN_PAD_PX) of the projected aorta (the vessel a vertebral body lies under).
+BAND_LUMEN_RADII = 1.5
+BAND_LUMEN_PAD_PX = 2.0
+
+
+def _projected_aorta_lumen(prior: FluoroPrior, where) -> np.ndarray:
+    """Pixels of the band's box nearest to the projected aorta and within
+    :data:`BAND_LUMEN_RADII` of its projected radius (+ :data:`BAND_LUMEN_PAD_PX`)."""
+    aorta = np.asarray(prior.labels)[where.nearest] == "aorta"
+    return aorta & (where.distance <= BAND_LUMEN_RADII * where.radius + BAND_LUMEN_PAD_PX)
+
+
+def _shifted(image: np.ndarray, step: tuple, n: int, fill) -> np.ndarray:
+    """``out[p] = image[p + n step]`` (``fill`` beyond the grid)."""
+    rows, cols = image.shape
+    pad_r, pad_c = abs(step[0] * n), abs(step[1] * n)
+    padded = np.pad(image, ((pad_r, pad_r), (pad_c, pad_c)), constant_values=fill)
+    dr, dc = step[0] * n, step[1] * n
+    return padded[pad_r + dr:pad_r + dr + rows, pad_c + dc:pad_c + dc + cols]
+
+
+def _steepest(jump: np.ndarray, step: tuple) -> np.ndarray:
+    """``jump`` where it is positive and a maximum along ``step`` (its two neighbours), else 0."""
+    peak = (jump > 0) & (jump >= _shifted(jump, step, 1, 0.0)) & (jump >= _shifted(jump, step, -1, 0.0))
+    return np.where(peak, jump, 0.0).astype(jump.dtype)
+
+
+def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.ndarray:
+    """Per pixel of ``part`` (vessels bright), the contrast of a band of the vessel's width that
+    holds it, read along ``step``: a rise and a fall (each where the change over 2 x about a
+    third of ``radius`` is steepest) :data:`BAND_WIDTH_DIAMETERS` apart, of matching size
+    (:data:`BAND_EDGE_BALANCE`), each half of the inside above the flank on its side
+    (:data:`BAND_INSIDE`); the band's contrast is the weaker edge's. Each rise is paired with its
+    nearest such fall and each fall with its nearest rise (the narrowest pairs first), so that a
+    vertebral body's edge just beyond the aorta's does not widen it.
+
+    A vertebral body under part of the aorta is a step inside its lumen: the line opening fits in
+    the aorta and the body together and flattens the aorta's part off the body away; the aorta's
+    own two edges are still there, of equal size, however the body's step lies between them.
+    """
+    norm = math.hypot(*step)
+    reach = max(1, int(round(radius / 3.0 / norm)))
+    with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: no edge there
+        jump = _shifted(part, step, reach, np.inf) - _shifted(part, step, -reach, np.inf)
+    jump[~np.isfinite(jump)] = 0.0
+    rise, fall = _steepest(jump, step), _steepest(-jump, step)
+    shortest = max(2, int(math.floor(BAND_WIDTH_DIAMETERS[0] * 2.0 * radius / norm)))
+    longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
+    before = _shifted(part, step, -reach, np.inf)
+    best = np.zeros_like(part)
+    rise_paired = np.zeros(part.shape, dtype=bool)
+    fall_paired = np.zeros(part.shape, dtype=bool)
+    for width in range(shortest, longest + 1):
+        partner = _shifted(fall, step, width, 0.0)
+        contrast = np.minimum(rise, partner)
+        paired = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(rise, partner))
+        paired &= _halves_above_flanks(part, step, width, reach, before, contrast)
+        paired &= ~rise_paired & ~_shifted(fall_paired, step, width, True)
+        rise_paired |= paired
+        fall_paired |= _shifted(paired, step, -width, False)
+        held = _line_extreme(np.where(paired, contrast, 0.0).astype(part.dtype), (-step[0], -step[1]), width + 1,
+                             np.maximum, -np.inf)
+        np.maximum(best, held, out=best)
+    return best
+
+
+def _halves_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, before: np.ndarray,
+                         contrast: np.ndarray) -> np.ndarray:
+    """For a band from each pixel ``s`` to ``s + width`` along ``step`` (edges read ``reach`` px to
+    either side), whether the least of each half of its inside stands :data:`BAND_INSIDE` times
+    ``contrast`` above the flank on that side (``before``: ``part`` at ``s - reach``)."""
+    inside = max(width - 2 * reach, 1)
+    half = (inside + 1) // 2
+    least = _line_extreme(part, step, half, np.minimum, np.inf)
+    with np.errstate(invalid="ignore"):
+        left = _shifted(least, step, reach, np.inf) - before
+        right = _shifted(least, step, width - reach - half + 1, np.inf) - _shifted(part, step, width + reach, np.inf)
+    margin = BAND_INSIDE * contrast
+    with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: not a band
+        return (left >= margin) & (right >= margin)
 
 
 def _square_opening(image: np.ndarray, side: float) -> np.ndarray:
@@ -922,12 +1035,10 @@ def _diagonal_squares(oriented: np.ndarray, across: LinesAcross) -> dict:
     return squares
 
 
-def _background_is_flat(oriented: np.ndarray, where) -> tuple[bool, float]:
-    """Whether the frame's background is already flat (a subtracted frame, no collimator shutter
-    in view), and its level (the median outside the prior's band).
-
-    Read on every other pixel of ``oriented`` (vessels bright) and of the prior's band ``where``,
-    against the vessels' contrast (the band's 99th percentile above the level):
+def _background_reading(oriented: np.ndarray, where) -> tuple[float, float, float]:
+    """(pedestal, bright share, level) of the frame's background, read on every other pixel of
+    ``oriented`` (vessels bright) and of the prior's band ``where``, against the vessels'
+    contrast (the band's 99th percentile above the level, the median outside the band):
 
     - the pedestal, how far the band more than :data:`FLAT_RING_GAP_PX` px off the projected
       lumen (its :data:`FLAT_RING_PERCENTILE` percentile) stands above the level, as a fraction
@@ -938,15 +1049,19 @@ def _background_is_flat(oriented: np.ndarray, where) -> tuple[bool, float]:
       keeps out of the mask (bench DSA frames, shutter across the iliacs: Dice 0.84-0.88 when
       not flattened, 0.97-0.98 flattened); an exposure fall-off (heel effect, vignetting)
       gives none.
+
+    The background is flat (a subtracted frame, no shutter in view) when the pedestal is under
+    :data:`FLAT_PEDESTAL` and the bright share at most :data:`FLAT_BRIGHT_SHARE`; with too few
+    pixels to read, (0, 1, 0): not flat, no bone.
     """
     o, band, distance, radius = (a[::2, ::2] for a in (oriented, where.band, where.distance, where.radius))
     ring, far = band & (distance > radius + FLAT_RING_GAP_PX), o[~band]
     if ring.sum() < 10 or far.size < 10:
-        return False, 0.0
+        return 0.0, 1.0, 0.0
     level = float(np.median(far))
     peak = float(np.percentile(o[band], 99))
     pedestal = (float(np.percentile(o[ring], FLAT_RING_PERCENTILE)) - level) / max(peak - level, 1e-6)
-    return pedestal < FLAT_PEDESTAL and float(np.mean(far > peak)) <= FLAT_BRIGHT_SHARE, level
+    return pedestal, float(np.mean(far > peak)), level
 
 
 def _box_around(region: np.ndarray, reach) -> tuple:
