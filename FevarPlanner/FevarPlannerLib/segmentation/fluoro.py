@@ -916,8 +916,8 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross, over_bone: np.nda
 BAND_WIDTH_DIAMETERS = (0.75, 1.2)
 #: The weaker of a band's two edges is at least this fraction of the stronger.
 BAND_EDGE_BALANCE = 0.5
-#: Each half of a band's inside stands this fraction of the band's contrast above the flank on
-#: its side (a step inside the band is allowed: each half is measured against its own flank).
+#: A band's inside stands this fraction of the band's contrast above the lower of its flanks (a
+#: bone's step inside the band is allowed).
 BAND_INSIDE = 0.3
 #: A pedestal (:func:`_background_reading`) from which bone lies under the vessels: unsubtracted
 #: bench frames 0.17-0.53, subtracted ones with a shutter in view up to 0.22 (development seeds
@@ -955,8 +955,7 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     """Per pixel of ``part`` (vessels bright), the contrast of a band of the vessel's width that
     holds it, read along ``step``: a rise and a fall (each where the change over 2 x about a
     third of ``radius`` is steepest) :data:`BAND_WIDTH_DIAMETERS` apart, of matching size
-    (:data:`BAND_EDGE_BALANCE`), each half of the inside above the flank on its side
-    (:data:`BAND_INSIDE`); the band's contrast is the weaker edge's. Each rise is paired with its
+    (:data:`BAND_EDGE_BALANCE`), the inside above the lower flank (:data:`BAND_INSIDE`); the band's contrast is the weaker edge's. Each rise is paired with its
     nearest such fall and each fall with its nearest rise (the narrowest pairs first), so that a
     vertebral body's edge just beyond the aorta's does not widen it.
 
@@ -980,7 +979,7 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
         partner = _shifted(fall, step, width, 0.0)
         contrast = np.minimum(rise, partner)
         paired = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(rise, partner))
-        paired &= _halves_above_flanks(part, step, width, reach, before, contrast)
+        paired &= _inside_above_flanks(part, step, width, reach, before, contrast)
         paired &= ~rise_paired & ~_shifted(fall_paired, step, width, True)
         rise_paired |= paired
         fall_paired |= _shifted(paired, step, -width, False)
@@ -990,20 +989,17 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     return best
 
 
-def _halves_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, before: np.ndarray,
+def _inside_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, before: np.ndarray,
                          contrast: np.ndarray) -> np.ndarray:
     """For a band from each pixel ``s`` to ``s + width`` along ``step`` (edges read ``reach`` px to
-    either side), whether the least of each half of its inside stands :data:`BAND_INSIDE` times
-    ``contrast`` above the flank on that side (``before``: ``part`` at ``s - reach``)."""
+    either side), whether the least of its inside stands :data:`BAND_INSIDE` times ``contrast``
+    above the lower of its two flanks (``before``: ``part`` at ``s - reach``): a bone's step
+    inside the band leaves it above the flank on the step's low side, a gap to a device beside
+    the vessel falls to the background."""
     inside = max(width - 2 * reach, 1)
-    half = (inside + 1) // 2
-    least = _line_extreme(part, step, half, np.minimum, np.inf)
-    with np.errstate(invalid="ignore"):
-        left = _shifted(least, step, reach, np.inf) - before
-        right = _shifted(least, step, width - reach - half + 1, np.inf) - _shifted(part, step, width + reach, np.inf)
-    margin = BAND_INSIDE * contrast
+    least = _shifted(_line_extreme(part, step, inside, np.minimum, np.inf), step, reach, np.inf)
     with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: not a band
-        return (left >= margin) & (right >= margin)
+        return least - np.minimum(before, _shifted(part, step, width + reach, np.inf)) >= BAND_INSIDE * contrast
 
 
 def _square_opening(image: np.ndarray, side: float) -> np.ndarray:
