@@ -601,17 +601,19 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     oriented = small if vessels == "bright" else 1.0 - small
     widest = prior.derived(("widest", small_shape, factor, reach), lambda: _widest_nearby(radius))
     pedestal, bright_share, level = _background_reading(oriented, where)
-    if pedestal < FLAT_PEDESTAL and bright_share <= FLAT_BRIGHT_SHARE:
-        flat = True
+    flat = pedestal < FLAT_PEDESTAL and bright_share <= FLAT_BRIGHT_SHARE
+    if flat:
         oriented = oriented - np.float32(level)         # already flat: only its level goes
+        extent = oriented
     else:
-        flat = False
         across = prior.derived(("across", small_shape, factor, reach), lambda: _lines_across(prior, nearest, radius))
-        over_bone = None
+        flattened = _flatten_across(oriented, across)
+        extent = flattened
         if pedestal >= BONE_PEDESTAL:       # bone under the vessels: its edges may cross the aorta's lumen
             over_bone = prior.derived(("aorta_lumen", small_shape, factor, reach),
                                       lambda: _projected_aorta_lumen(prior, where))
-        oriented = _flatten_across(oriented, across, over_bone)
+            extent = _with_bands_between_edges(flattened, oriented, across, over_bone)
+        oriented = flattened
     response = vesselness(oriented, sigmas, polarities=("bright",), inside=band)["bright"]
     total = small_shape[0] * small_shape[1]
     reference = _percentile_among_zeros(response, 99.5, total)
@@ -621,7 +623,7 @@ def _segment_fluoro_with_prior(frame: np.ndarray, prior: FluoroPrior, vessels: s
     if not tree.any():
         return np.zeros(frame.shape, dtype=bool)
     spine = _spine_lookup(tree)
-    vessel, relative = _vessel_region_relative(oriented, tree, spine, radius, float(sigmas[-1]), contrast_fraction)
+    vessel, relative = _vessel_region_relative(extent, tree, spine, radius, float(sigmas[-1]), contrast_fraction)
     vessel &= band
     vessel &= _within_expected_width(vessel, widest, spine=spine)
     thin = vessel & ~_diamond_opening(vessel, 1)
@@ -875,18 +877,13 @@ def _line_opening(image: np.ndarray, step: tuple, length: float) -> np.ndarray:
     return _line_extreme(eroded, (-step[0], -step[1]), n, np.maximum, -np.inf)
 
 
-def _flatten_across(oriented: np.ndarray, across: LinesAcross, over_bone: np.ndarray | None = None) -> np.ndarray:
+def _flatten_across(oriented: np.ndarray, across: LinesAcross) -> np.ndarray:
     """``oriented`` (vessels bright) less its background: per pixel, the largest residue of the
     openings :class:`LinesAcross` allows there. A line across a vessel does not fit in its lumen,
     so the vessel stays; it fits in what is wider than the vessel across it (vertebral bodies,
     the pelvis, a step at a table or box edge, the exposure's slope), so that goes. On diagonal
     lines the opening by a square as wide as the line is long joins the background
-    (:data:`SQUARE_ON_DIAGONALS`).
-
-    ``over_bone`` (bool, the grid's shape): where a bone's edge may lie inside the lumen (the
-    projected aorta's, on a frame with bone under the vessels); there the residue is at least
-    the contrast of a band between two matching edges (:func:`_bands_between_edges`), which a
-    step inside the lumen leaves whole."""
+    (:data:`SQUARE_ON_DIAGONALS`)."""
     flat = np.zeros_like(oriented)
     boxes = {key: _box_around(chosen, 2 * (int(math.ceil(key[1])) + 2) * np.abs(LINE_STEPS[key[0]]))
              for key, chosen in across.where.items()}
@@ -901,9 +898,6 @@ def _flatten_across(oriented: np.ndarray, across: LinesAcross, over_bone: np.nda
         residue = (part - background) / np.maximum(1.0 - background, np.float32(TRANSMISSION_FLOOR))
         target = flat[box][inner]
         np.maximum(target, np.where(chosen[box][inner], residue[inner], 0.0), out=target)
-        if over_bone is not None and (chosen & over_bone).any():
-            band = _bands_between_edges(part, step, (length - LINE_PAD_PX) / LINE_RADII)
-            np.maximum(target, np.where((chosen & over_bone)[box][inner], band[inner], 0.0), out=target)
     return flat
 
 
@@ -927,6 +921,29 @@ BONE_PEDESTAL = 0.25
 #: BAND_LUMEN_PAD_PX) of the projected aorta (the vessel a vertebral body lies under).
 BAND_LUMEN_RADII = 1.5
 BAND_LUMEN_PAD_PX = 2.0
+
+
+def _with_bands_between_edges(flattened: np.ndarray, oriented: np.ndarray, across: LinesAcross,
+                              over_bone: np.ndarray) -> np.ndarray:
+    """``flattened`` (:func:`_flatten_across` of ``oriented``, vessels bright), raised where
+    ``over_bone`` (bool, the grid's shape: the projected aorta's lumen on a frame with bone under
+    the vessels) to the contrast of a band between two matching edges read along the same lines
+    across (:func:`_bands_between_edges`), which a bone's step inside the lumen leaves whole.
+
+    Only the vessel's extent is read from this map: the vesselness and the hysteresis tree stay
+    those of ``flattened`` (their thresholds are fractions of the whole frame's responses).
+    """
+    extent = flattened.copy()
+    for (k, length), chosen in across.where.items():
+        here = chosen & over_bone
+        if not here.any():
+            continue
+        step = LINE_STEPS[k]
+        box, inner = _box_around(here, 2 * (int(math.ceil(length)) + 2) * np.abs(step))
+        band = _bands_between_edges(oriented[box], step, (length - LINE_PAD_PX) / LINE_RADII)
+        target = extent[box][inner]
+        np.maximum(target, np.where(here[box][inner], band[inner], 0.0), out=target)
+    return extent
 
 
 def _projected_aorta_lumen(prior: FluoroPrior, where) -> np.ndarray:
