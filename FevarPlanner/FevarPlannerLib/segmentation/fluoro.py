@@ -972,9 +972,11 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     """Per pixel of ``part`` (vessels bright), the contrast of a band of the vessel's width that
     holds it, read along ``step``: a rise and a fall (each where the change over 2 x about a
     third of ``radius`` is steepest) :data:`BAND_WIDTH_DIAMETERS` apart, of matching size
-    (:data:`BAND_EDGE_BALANCE`), the inside above the lower flank (:data:`BAND_INSIDE`); the band's contrast is the weaker edge's. Each rise is paired with its
-    nearest such fall and each fall with its nearest rise (the narrowest pairs first), so that a
-    vertebral body's edge just beyond the aorta's does not widen it.
+    (:data:`BAND_EDGE_BALANCE`), the inside above the lower flank (:data:`BAND_INSIDE`). Each rise
+    is paired with its nearest such fall and each fall with its nearest rise (the narrowest pairs
+    first), so that a vertebral body's edge just beyond the aorta's does not widen it. The value is
+    the pixel's height above the lowest flank of the bands that hold it, at most their contrast
+    (the weaker edge's): a lumen's chord keeps its shape, and its edge falls where it does.
 
     A vertebral body under part of the aorta is a step inside its lumen: the line opening fits in
     the aorta and the body together and flattens the aorta's part off the body away; the aorta's
@@ -990,6 +992,7 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
     before = _shifted(part, step, -reach, np.inf)
     best = np.zeros_like(part)
+    lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
     rise_paired = np.zeros(part.shape, dtype=bool)
     fall_paired = np.zeros(part.shape, dtype=bool)
     for width in range(shortest, longest + 1):
@@ -1003,7 +1006,11 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
         held = _line_extreme(np.where(paired, contrast, 0.0).astype(part.dtype), (-step[0], -step[1]), width + 1,
                              np.maximum, -np.inf)
         np.maximum(best, held, out=best)
-    return best
+        flank = np.where(paired, np.minimum(before, _shifted(part, step, width + reach, np.inf)), np.inf)
+        np.minimum(lowest_flank, _line_extreme(flank.astype(part.dtype), (-step[0], -step[1]), width + 1, np.minimum,
+                                               np.inf), out=lowest_flank)
+    with np.errstate(invalid="ignore"):
+        return np.where(best > 0, np.clip(part - lowest_flank, 0.0, best), 0.0).astype(part.dtype)
 
 
 def _inside_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, before: np.ndarray,
