@@ -311,8 +311,10 @@ def segment_fluoro(image: np.ndarray, prior: "FluoroPrior | None" = None, *, ves
     to the contrast on the vessel's centre line nearby and the edge is placed where it falls
     to :data:`EDGE_LEVEL` on the upsampled grid (the mask keeps the lumen's width and the
     branch its tip); a white top-hat
-    removes bone, soft tissue, table and collimator edges (broad or step-like structures);
-    long, straight components thinner than the vessel expected there (wires, catheters,
+    removes bone, soft tissue, table and collimator edges (broad or step-like structures); on
+    an unsubtracted frame with bone under the vessels the aorta's extent is read from bands
+    between two matching edges (:func:`_bands_between_edges`), which a vertebral body's edge
+    inside its lumen does not cut; long, straight components thinner than the vessel expected there (wires, catheters,
     sheaths) are dropped. A (n, rows, cols) run is reduced to its frame with the most
     contrast inside the projected tree (:func:`select_frame`).
 
