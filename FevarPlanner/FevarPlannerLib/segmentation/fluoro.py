@@ -950,9 +950,12 @@ def _with_bands_between_edges(flattened: np.ndarray, oriented: np.ndarray, acros
 
 def _projected_aorta_lumen(prior: FluoroPrior, where) -> np.ndarray:
     """Pixels of the band's box nearest to the projected aorta and within
-    :data:`BAND_LUMEN_RADII` of its projected radius (+ :data:`BAND_LUMEN_PAD_PX`)."""
-    aorta = np.asarray(prior.labels)[where.nearest] == "aorta"
-    return aorta & (where.distance <= BAND_LUMEN_RADII * where.radius + BAND_LUMEN_PAD_PX)
+    :data:`BAND_LUMEN_RADII` of its projected radius (+ :data:`BAND_LUMEN_PAD_PX`); not those
+    nearest to the aorta's free end (beyond it a vertebral body as wide as the aorta is a band
+    too, and its skeleton grew spurs off the aorta's end: bench seed 231)."""
+    degree = np.bincount(np.asarray(prior.edges, dtype=np.intp).ravel(), minlength=len(prior.uv))
+    inner_aorta = (np.asarray(prior.labels) == "aorta") & (degree != 1)
+    return inner_aorta[where.nearest] & (where.distance <= BAND_LUMEN_RADII * where.radius + BAND_LUMEN_PAD_PX)
 
 
 def _shifted(image: np.ndarray, step: tuple, n: int, fill) -> np.ndarray:
