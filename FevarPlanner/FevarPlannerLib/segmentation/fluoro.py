@@ -1008,12 +1008,13 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
         paired &= ~rise_paired & ~_shifted(fall_paired, step, width, True)
         rise_paired |= paired
         fall_paired |= _shifted(paired, step, -width, False)
-        held = _line_extreme(np.where(paired, contrast, 0.0).astype(part.dtype), (-step[0], -step[1]), width + 1,
-                             np.maximum, -np.inf)
+        # the band holds the pixels strictly between its edges: s + 1 .. s + width - 1
+        held = _line_extreme(_shifted(np.where(paired, contrast, 0.0).astype(part.dtype), step, -1, 0.0),
+                             (-step[0], -step[1]), width - 1, np.maximum, -np.inf)
         np.maximum(best, held, out=best)
         flank = np.where(paired, np.minimum(before, _shifted(part, step, width + reach, np.inf)), np.inf)
-        np.minimum(lowest_flank, _line_extreme(flank.astype(part.dtype), (-step[0], -step[1]), width + 1, np.minimum,
-                                               np.inf), out=lowest_flank)
+        np.minimum(lowest_flank, _line_extreme(_shifted(flank.astype(part.dtype), step, -1, np.inf),
+                                               (-step[0], -step[1]), width - 1, np.minimum, np.inf), out=lowest_flank)
     with np.errstate(invalid="ignore"):
         return np.where(best > 0, np.clip(part - lowest_flank, 0.0, best), 0.0).astype(part.dtype)
 
