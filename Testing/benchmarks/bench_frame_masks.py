@@ -24,7 +24,8 @@ error of an image-only plan against the same case given as masks (issue 11: with
 
 Develop on seeds 211-216; report on 201-203 and 221-223. End to end (issue 11, unsubtracted
 clean-up in ``segmentation/off_tree.py``): development seeds 231-250, held-out 274-279 (run
-once before and once after a change). ``--keep DIR`` keeps the case folders and every route's
+once before and once after a change); for the bands between edges over a vertebral body
+(``fluoro._bands_between_edges``) held-out 460-465. ``--keep DIR`` keeps the case folders and every route's
 outputs (``overlay.png``, ``segmentation_qc.png`` of a refusal) under ``DIR/outputs/<route>``.
 
     OMP_NUM_THREADS=1 .venv/bin/python Testing/benchmarks/bench_frame_masks.py --out OUT \\
