@@ -472,3 +472,31 @@ def test_radii_follow_the_graph_through_its_transformations():
     np.testing.assert_array_equal(graph.subgraph([3, 1]).radii, graph.radii[[3, 1]])
     with pytest.raises(ValueError, match="does not match"):
         SkeletonGraph.from_image(skeleton.skeletonize_2d(mask), mask=mask[:-1])
+
+
+def test_a_split_vessel_tip_keeps_its_longest_prong_as_the_vessel_end():
+    """A wide vessel's rounded end can thin into two prongs of a few pixels: both are shorter
+    than a spur, but the vessel ends there, so its longest prong stays the upper aorta's end.
+    With distal iliac forks giving five other candidate ends, the upper aorta was handed to a
+    renal before."""
+    from FevarPlannerLib import skeleton
+    c = 100.0
+    uv = np.stack(np.meshgrid(np.arange(200), np.arange(260)), axis=-1).astype(float)
+    segments = [(np.array([c, 10.0]), np.array([c, 190.0]), 10.0),
+                (np.array([c, 60.0]), np.array([c + 60.0, 70.0]), 3.5), (np.array([c, 66.0]), np.array([c - 60.0, 76.0]), 3.5),
+                (np.array([c, 190.0]), np.array([c + 45.0, 250.0]), 5.0), (np.array([c, 190.0]), np.array([c - 45.0, 250.0]), 5.0),
+                (np.array([c + 30.0, 230.0]), np.array([c + 18.0, 255.0]), 3.0),      # distal iliac forks
+                (np.array([c - 30.0, 230.0]), np.array([c - 18.0, 255.0]), 3.0)]
+    mask = draw_tubes(uv, segments, (np.array([c, 130.0]), 10.0))
+    thin = skeleton.skeletonize_2d(mask)
+    rows, cols = np.nonzero(thin)
+    top, col = rows[np.argmin(rows)], cols[np.argmin(rows)]
+    for k in range(1, 5):                                    # a second prong, up and to the left
+        thin[top + 4 - k, col - k] = True
+    graph = SkeletonGraph.from_image(thin, mask=mask)
+    directions = {"left": np.array([1.0, 0.0]), "superior": np.array([0.0, -1.0])}
+    result = classify(graph, iota=10.0, directions=directions)
+    label_anatomy(graph, result, **directions)
+    assert np.linalg.norm(graph.positions[result.branch("aorta").end] - (col, top)) < 6.0
+    assert np.linalg.norm(graph.positions[result.branch("renal_left").end] - (160, 70)) < 12.0
+    assert np.linalg.norm(graph.positions[result.branch("renal_right").end] - (40, 76)) < 12.0

@@ -155,7 +155,9 @@ def _ends_beyond_spurs(graph: SkeletonGraph, ends: np.ndarray, iota: float,
                        factor: float = SPUR_RADIUS_FACTOR, waves=None) -> np.ndarray:
     """The end nodes farther along the skeleton from every quasi-junction node than a spur reaches.
 
-    ``waves``: :func:`_fork_waves` of ``graph``, when already computed.
+    A vessel whose tip the thinning split (a wide rounded end: two prongs of a few pixels)
+    keeps its farthest prong's end: at a fork all of whose arms but one end as spurs
+    (:func:`_tip_fork_ends`). ``waves``: :func:`_fork_waves` of ``graph``, when already computed.
     """
     waves = _fork_waves(graph) if waves is None else waves
     if waves is None:
@@ -164,7 +166,20 @@ def _ends_beyond_spurs(graph: SkeletonGraph, ends: np.ndarray, iota: float,
     reachable = source[ends] >= 0
     limit = np.full(len(ends), float(iota))
     limit[reachable] = spur_length(graph, source[ends][reachable], iota, factor)
-    return ends[reach[ends] >= limit]
+    beyond = reach[ends] >= limit
+    return np.sort(np.r_[ends[beyond], _tip_fork_ends(graph, ends[~beyond], reach, source)])
+
+
+def _tip_fork_ends(graph: SkeletonGraph, spur_ends: np.ndarray, reach: np.ndarray, source: np.ndarray) -> np.ndarray:
+    """Of the spur ends, the farthest one of each fork where every arm but one ends in a spur:
+    the fork is a vessel's split tip, and its longest prong is that vessel's end."""
+    found = []
+    forks = source[spur_ends]
+    for fork in np.unique(forks[forks >= 0]):
+        prongs = spur_ends[forks == fork]
+        if graph.degrees[fork] - len(prongs) <= 1:
+            found.append(prongs[np.argmax(reach[prongs])])
+    return np.asarray(found, dtype=spur_ends.dtype)
 
 
 def _branch_calibres(graph: SkeletonGraph, ends: np.ndarray, waves=None) -> np.ndarray | None:
