@@ -986,6 +986,9 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     A vertebral body under part of the aorta is a step inside its lumen: the line opening fits in
     the aorta and the body together and flattens the aorta's part off the body away; the aorta's
     own two edges are still there, of equal size, however the body's step lies between them.
+
+    Edges are few (peaks along the line), so the pairs are sought from the rises only
+    (:func:`_paired_edges`) and the bands written over the pixels they hold (:func:`_held_by_bands`).
     """
     norm = math.hypot(*step)
     reach = max(1, int(round(radius / 3.0 / norm)))
@@ -995,41 +998,70 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     rise, fall = _steepest(jump, step), _steepest(-jump, step)
     shortest = max(2, int(math.floor(BAND_WIDTH_DIAMETERS[0] * 2.0 * radius / norm)))
     longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
-    before = _shifted(part, step, -reach, np.inf)
-    best = np.zeros_like(part)
-    lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
-    rise_paired = np.zeros(part.shape, dtype=bool)
-    fall_paired = np.zeros(part.shape, dtype=bool)
-    for width in range(shortest, longest + 1):
-        partner = _shifted(fall, step, width, 0.0)
-        contrast = np.minimum(rise, partner)
-        paired = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(rise, partner))
-        paired &= _inside_above_flanks(part, step, width, reach, before, contrast)
-        paired &= ~rise_paired & ~_shifted(fall_paired, step, width, True)
-        rise_paired |= paired
-        fall_paired |= _shifted(paired, step, -width, False)
-        # the band holds the pixels strictly between its edges: s + 1 .. s + width - 1
-        held = _line_extreme(_shifted(np.where(paired, contrast, 0.0).astype(part.dtype), step, -1, 0.0),
-                             (-step[0], -step[1]), width - 1, np.maximum, -np.inf)
-        np.maximum(best, held, out=best)
-        flank = np.where(paired, np.minimum(before, _shifted(part, step, width + reach, np.inf)), np.inf)
-        np.minimum(lowest_flank, _line_extreme(_shifted(flank.astype(part.dtype), step, -1, np.inf),
-                                               (-step[0], -step[1]), width - 1, np.minimum, np.inf), out=lowest_flank)
+    pairs = _paired_edges(part, step, reach, rise, fall, range(shortest, longest + 1))
+    best, lowest_flank = _held_by_bands(part, step, pairs)
     with np.errstate(invalid="ignore"):
         return np.where(best > 0, np.clip(part - lowest_flank, 0.0, best), 0.0).astype(part.dtype)
 
 
-def _inside_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, before: np.ndarray,
-                         contrast: np.ndarray) -> np.ndarray:
-    """For a band from each pixel ``s`` to ``s + width`` along ``step`` (edges read ``reach`` px to
-    either side), whether the least of its inside stands :data:`BAND_INSIDE` times ``contrast``
-    above the lower of its two flanks (``before``: ``part`` at ``s - reach``): a bone's step
-    inside the band leaves it above the flank on the step's low side, a gap to a device beside
-    the vessel falls to the background."""
-    inside = max(width - 2 * reach, 1)
-    least = _shifted(_line_extreme(part, step, inside, np.minimum, np.inf), step, reach, np.inf)
-    with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: not a band
-        return least - np.minimum(before, _shifted(part, step, width + reach, np.inf)) >= BAND_INSIDE * contrast
+def _paired_edges(part: np.ndarray, step: tuple, reach: int, rise: np.ndarray, fall: np.ndarray,
+                  widths: range) -> list:
+    """The bands of :func:`_bands_between_edges`: per width (narrowest first), each still unpaired
+    rise at ``s`` whose fall at ``s + width`` along ``step`` is still unpaired, of matching size
+    and with its inside above its flanks (:func:`_inside_above_flanks`). Returns
+    ``[(width, rows, cols, contrast, flank), ...]``: each band's rise, the weaker edge and the
+    lower flank. A rise or fall with an edge has its ``part`` ``reach`` px off it on the grid, so
+    every pixel a band reads is on the grid."""
+    rows, cols = np.nonzero(rise > 0)
+    fall_paired = np.zeros(part.shape, dtype=bool)
+    pairs = []
+    for width in widths:
+        to_row, to_col = rows + width * step[0], cols + width * step[1]
+        on_grid = (to_row >= 0) & (to_row < part.shape[0]) & (to_col >= 0) & (to_col < part.shape[1])
+        r, c, to_row, to_col = rows[on_grid], cols[on_grid], to_row[on_grid], to_col[on_grid]
+        up, partner = rise[r, c], fall[to_row, to_col]
+        contrast = np.minimum(up, partner)
+        paired = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(up, partner))
+        paired &= ~fall_paired[to_row, to_col]
+        r, c, to_row, to_col, contrast = r[paired], c[paired], to_row[paired], to_col[paired], contrast[paired]
+        above, flank = _inside_above_flanks(part, step, width, reach, r, c, contrast)
+        if not above.any():
+            continue
+        fall_paired[to_row[above], to_col[above]] = True
+        pairs.append((width, r[above], c[above], contrast[above], flank[above]))
+        unpaired = np.ones(part.shape, dtype=bool)
+        unpaired[r[above], c[above]] = False
+        keep = unpaired[rows, cols]
+        rows, cols = rows[keep], cols[keep]
+    return pairs
+
+
+def _inside_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, rows: np.ndarray,
+                         cols: np.ndarray, contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For a band from each pixel ``s`` (``rows``, ``cols``) to ``s + width`` along ``step`` (edges
+    read ``reach`` px to either side), whether the least of its inside stands :data:`BAND_INSIDE`
+    times ``contrast`` above the lower of its two flanks (``part`` at ``s - reach`` and at
+    ``s + width + reach``), and that flank: a bone's step inside the band leaves it above the
+    flank on the step's low side, a gap to a device beside the vessel falls to the background."""
+    inside = np.arange(reach, reach + max(width - 2 * reach, 1))
+    least = part[rows[:, None] + inside * step[0], cols[:, None] + inside * step[1]].min(axis=1)
+    flank = np.minimum(part[rows - reach * step[0], cols - reach * step[1]],
+                       part[rows + (width + reach) * step[0], cols + (width + reach) * step[1]])
+    return least - flank >= BAND_INSIDE * contrast, flank
+
+
+def _held_by_bands(part: np.ndarray, step: tuple, pairs: list) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``part``, the largest contrast and the lowest flank of the bands of ``pairs``
+    (:func:`_paired_edges`) that hold it (the pixels strictly between a band's edges, ``s + 1`` ..
+    ``s + width - 1``); 0 and inf where none does."""
+    best = np.zeros_like(part)
+    lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
+    for width, rows, cols, contrast, flank in pairs:
+        for k in range(1, width):
+            held = (rows + k * step[0], cols + k * step[1])
+            np.maximum.at(best, held, contrast)
+            np.minimum.at(lowest_flank, held, flank)
+    return best, lowest_flank
 
 
 def _square_opening(image: np.ndarray, side: float) -> np.ndarray:
