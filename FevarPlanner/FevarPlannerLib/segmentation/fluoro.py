@@ -940,9 +940,10 @@ def _with_bands_between_edges(flattened: np.ndarray, oriented: np.ndarray, acros
         here = chosen & over_bone
         if not here.any():
             continue
-        step = LINE_STEPS[k]
-        box, inner = _box_around(here, 2 * (int(math.ceil(length)) + 2) * np.abs(step))
-        band = _bands_between_edges(oriented[box], step, (length - LINE_PAD_PX) / LINE_RADII)
+        step, radius = LINE_STEPS[k], (length - LINE_PAD_PX) / LINE_RADII
+        reach, _, longest = _band_extents(step, radius)
+        box, inner = _box_around(here, (longest + reach + 1) * np.abs(step))     # all a band there reads
+        band = _bands_between_edges(oriented[box], step, radius, here[box])
         target = extent[box][inner]
         np.maximum(target, np.where(here[box][inner], band[inner], 0.0), out=target)
     return extent
@@ -960,11 +961,14 @@ def _projected_aorta_lumen(prior: FluoroPrior, where) -> np.ndarray:
 
 def _shifted(image: np.ndarray, step: tuple, n: int, fill) -> np.ndarray:
     """``out[p] = image[p + n step]`` (``fill`` beyond the grid)."""
+    out = np.full(image.shape, fill, dtype=image.dtype)
     rows, cols = image.shape
-    pad_r, pad_c = abs(step[0] * n), abs(step[1] * n)
-    padded = np.pad(image, ((pad_r, pad_r), (pad_c, pad_c)), constant_values=fill)
     dr, dc = step[0] * n, step[1] * n
-    return padded[pad_r + dr:pad_r + dr + rows, pad_c + dc:pad_c + dc + cols]
+    if abs(dr) >= rows or abs(dc) >= cols:
+        return out
+    out[max(-dr, 0):rows - max(dr, 0), max(-dc, 0):cols - max(dc, 0)] = \
+        image[max(dr, 0):rows + min(dr, 0), max(dc, 0):cols + min(dc, 0)]
+    return out
 
 
 def _steepest(jump: np.ndarray, step: tuple) -> np.ndarray:
@@ -973,7 +977,7 @@ def _steepest(jump: np.ndarray, step: tuple) -> np.ndarray:
     return np.where(peak, jump, 0.0).astype(jump.dtype)
 
 
-def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.ndarray:
+def _bands_between_edges(part: np.ndarray, step: tuple, radius: float, needed: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``part`` (vessels bright), the contrast of a band of the vessel's width that
     holds it, read along ``step``: a rise and a fall (each where the change over 2 x about a
     third of ``radius`` is steepest) :data:`BAND_WIDTH_DIAMETERS` apart, of matching size
@@ -989,19 +993,41 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
 
     Edges are few (peaks along the line), so the pairs are sought from the rises only
     (:func:`_paired_edges`) and the bands written over the pixels they hold (:func:`_held_by_bands`).
+    With ``needed`` (bool, ``part``'s shape) only those pixels get their value (the others 0), and
+    only the rises within the widest band of them along the line are paired: whether a band from
+    ``s`` to ``s + width`` is taken depends only on the edges between the two (the narrower bands
+    that took either edge lie between them), so the value there is the same.
     """
-    norm = math.hypot(*step)
-    reach = max(1, int(round(radius / 3.0 / norm)))
+    reach, shortest, longest = _band_extents(step, radius)
     with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: no edge there
         jump = _shifted(part, step, reach, np.inf) - _shifted(part, step, -reach, np.inf)
     jump[~np.isfinite(jump)] = 0.0
     rise, fall = _steepest(jump, step), _steepest(-jump, step)
-    shortest = max(2, int(math.floor(BAND_WIDTH_DIAMETERS[0] * 2.0 * radius / norm)))
-    longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
+    if needed is not None:
+        rise = np.where(_along_line_within(needed, step, longest), rise, 0.0).astype(rise.dtype)
     pairs = _paired_edges(part, step, reach, rise, fall, range(shortest, longest + 1))
     best, lowest_flank = _held_by_bands(part, step, pairs)
+    if needed is not None:
+        best[~needed] = 0.0
     with np.errstate(invalid="ignore"):
         return np.where(best > 0, np.clip(part - lowest_flank, 0.0, best), 0.0).astype(part.dtype)
+
+
+def _band_extents(step: tuple, radius: float) -> tuple[int, int, int]:
+    """(reach, shortest, longest) in steps along ``step`` of :func:`_bands_between_edges` for a
+    vessel of projected ``radius``: how far to either side an edge is read, the narrowest and the
+    widest band. A band's value at a pixel reads ``part`` at most ``longest + reach`` steps off it."""
+    norm = math.hypot(*step)
+    reach = max(1, int(round(radius / 3.0 / norm)))
+    shortest = max(2, int(math.floor(BAND_WIDTH_DIAMETERS[0] * 2.0 * radius / norm)))
+    longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
+    return reach, shortest, longest
+
+
+def _along_line_within(region: np.ndarray, step: tuple, n: int) -> np.ndarray:
+    """Pixels at most ``n`` steps along ``step`` (either way) from a pixel of ``region`` (bool)."""
+    ahead = _line_extreme(region.astype(np.float32), step, n + 1, np.maximum, -np.inf)
+    return _line_extreme(ahead, (-step[0], -step[1]), n + 1, np.maximum, -np.inf) > 0
 
 
 def _paired_edges(part: np.ndarray, step: tuple, reach: int, rise: np.ndarray, fall: np.ndarray,
