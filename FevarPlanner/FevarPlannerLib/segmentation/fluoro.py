@@ -1026,8 +1026,8 @@ def _band_extents(step: tuple, radius: float) -> tuple[int, int, int]:
 
 def _along_line_within(region: np.ndarray, step: tuple, n: int) -> np.ndarray:
     """Pixels at most ``n`` steps along ``step`` (either way) from a pixel of ``region`` (bool)."""
-    ahead = _line_extreme(region.astype(np.float32), step, n + 1, np.maximum, -np.inf)
-    return _line_extreme(ahead, (-step[0], -step[1]), n + 1, np.maximum, -np.inf) > 0
+    ahead = _line_extreme(region, step, n + 1, np.logical_or, False)
+    return _line_extreme(ahead, (-step[0], -step[1]), n + 1, np.logical_or, False)
 
 
 def _paired_edges(part: np.ndarray, step: tuple, reach: int, rise: np.ndarray, fall: np.ndarray,
@@ -1039,26 +1039,24 @@ def _paired_edges(part: np.ndarray, step: tuple, reach: int, rise: np.ndarray, f
     lower flank. A rise or fall with an edge has its ``part`` ``reach`` px off it on the grid, so
     every pixel a band reads is on the grid."""
     rows, cols = np.nonzero(rise > 0)
+    span = np.asarray(widths)
+    to_row, to_col = rows[:, None] + span * step[0], cols[:, None] + span * step[1]   # (rise, width)
+    on_grid = (to_row >= 0) & (to_row < part.shape[0]) & (to_col >= 0) & (to_col < part.shape[1])
+    up = rise[rows, cols][:, None]
+    partner = np.where(on_grid, fall[np.clip(to_row, 0, part.shape[0] - 1), np.clip(to_col, 0, part.shape[1] - 1)], 0.0)
+    contrast = np.minimum(up, partner)
+    matching = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(up, partner))
+    rise_free = np.ones(len(rows), dtype=bool)
     fall_paired = np.zeros(part.shape, dtype=bool)
     pairs = []
-    for width in widths:
-        to_row, to_col = rows + width * step[0], cols + width * step[1]
-        on_grid = (to_row >= 0) & (to_row < part.shape[0]) & (to_col >= 0) & (to_col < part.shape[1])
-        r, c, to_row, to_col = rows[on_grid], cols[on_grid], to_row[on_grid], to_col[on_grid]
-        up, partner = rise[r, c], fall[to_row, to_col]
-        contrast = np.minimum(up, partner)
-        paired = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(up, partner))
-        paired &= ~fall_paired[to_row, to_col]
-        r, c, to_row, to_col, contrast = r[paired], c[paired], to_row[paired], to_col[paired], contrast[paired]
-        above, flank = _inside_above_flanks(part, step, width, reach, r, c, contrast)
-        if not above.any():
-            continue
-        fall_paired[to_row[above], to_col[above]] = True
-        pairs.append((width, r[above], c[above], contrast[above], flank[above]))
-        unpaired = np.ones(part.shape, dtype=bool)
-        unpaired[r[above], c[above]] = False
-        keep = unpaired[rows, cols]
-        rows, cols = rows[keep], cols[keep]
+    for j, width in enumerate(span):
+        i = np.flatnonzero(matching[:, j] & rise_free)
+        i = i[~fall_paired[to_row[i, j], to_col[i, j]]]
+        above, flank = _inside_above_flanks(part, step, int(width), reach, rows[i], cols[i], contrast[i, j])
+        i, flank = i[above], flank[above]
+        rise_free[i] = False
+        fall_paired[to_row[i, j], to_col[i, j]] = True
+        pairs.append((int(width), rows[i], cols[i], contrast[i, j], flank))
     return pairs
 
 
@@ -1082,11 +1080,16 @@ def _held_by_bands(part: np.ndarray, step: tuple, pairs: list) -> tuple[np.ndarr
     ``s + width - 1``); 0 and inf where none does."""
     best = np.zeros_like(part)
     lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
+    held, contrasts, flanks = [], [], []
     for width, rows, cols, contrast, flank in pairs:
-        for k in range(1, width):
-            held = (rows + k * step[0], cols + k * step[1])
-            np.maximum.at(best, held, contrast)
-            np.minimum.at(lowest_flank, held, flank)
+        k = np.arange(1, width)
+        held.append(np.ravel_multi_index((rows[:, None] + k * step[0], cols[:, None] + k * step[1]), part.shape).ravel())
+        contrasts.append(np.repeat(contrast, width - 1))
+        flanks.append(np.repeat(flank, width - 1))
+    if held:
+        held = np.concatenate(held)
+        np.maximum.at(best.reshape(-1), held, np.concatenate(contrasts))
+        np.minimum.at(lowest_flank.reshape(-1), held, np.concatenate(flanks))
     return best, lowest_flank
 
 
