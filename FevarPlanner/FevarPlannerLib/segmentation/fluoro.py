@@ -1031,65 +1031,74 @@ def _along_line_within(region: np.ndarray, step: tuple, n: int) -> np.ndarray:
 
 
 def _paired_edges(part: np.ndarray, step: tuple, reach: int, rise: np.ndarray, fall: np.ndarray,
-                  widths: range) -> list:
+                  widths: range) -> tuple:
     """The bands of :func:`_bands_between_edges`: per width (narrowest first), each still unpaired
     rise at ``s`` whose fall at ``s + width`` along ``step`` is still unpaired, of matching size
-    and with its inside above its flanks (:func:`_inside_above_flanks`). Returns
-    ``[(width, rows, cols, contrast, flank), ...]``: each band's rise, the weaker edge and the
-    lower flank. A rise or fall with an edge has its ``part`` ``reach`` px off it on the grid, so
-    every pixel a band reads is on the grid."""
+    and with its inside above its flanks (:func:`_inside_above_flanks`). Returns (rise's flat
+    index in ``part``, width, contrast, flank) per band: the weaker edge and the lower flank. A
+    rise or fall with an edge has its ``part`` ``reach`` px off it on the grid, so every pixel a
+    band reads is on the grid, and flat indices step along the line by ``step``'s flat stride."""
     rows, cols = np.nonzero(rise > 0)
     span = np.asarray(widths)
-    to_row, to_col = rows[:, None] + span * step[0], cols[:, None] + span * step[1]   # (rise, width)
+    to_row, to_col = rows[None, :] + span[:, None] * step[0], cols[None, :] + span[:, None] * step[1]
     on_grid = (to_row >= 0) & (to_row < part.shape[0]) & (to_col >= 0) & (to_col < part.shape[1])
-    up = rise[rows, cols][:, None]
-    partner = np.where(on_grid, fall[np.clip(to_row, 0, part.shape[0] - 1), np.clip(to_col, 0, part.shape[1] - 1)], 0.0)
-    contrast = np.minimum(up, partner)
-    matching = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(up, partner))
-    rise_free = np.ones(len(rows), dtype=bool)
-    fall_paired = np.zeros(part.shape, dtype=bool)
-    pairs = []
-    for j, width in enumerate(span):
-        i = np.flatnonzero(matching[:, j] & rise_free)
-        i = i[~fall_paired[to_row[i, j], to_col[i, j]]]
-        above, flank = _inside_above_flanks(part, step, int(width), reach, rows[i], cols[i], contrast[i, j])
-        i, flank = i[above], flank[above]
-        rise_free[i] = False
-        fall_paired[to_row[i, j], to_col[i, j]] = True
-        pairs.append((int(width), rows[i], cols[i], contrast[i, j], flank))
-    return pairs
+    up = rise[rows, cols]
+    partner = np.where(on_grid, fall[np.clip(to_row, 0, part.shape[0] - 1), np.clip(to_col, 0, part.shape[1] - 1)],
+                       0.0)
+    contrast = np.minimum(up, partner)                                  # (width, rise)
+    width_at, rise_at = np.nonzero((contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(up, partner)))
+    stride = step[0] * part.shape[1] + step[1]
+    start = rows[rise_at] * part.shape[1] + cols[rise_at]
+    width, contrast = span[width_at], contrast[width_at, rise_at]
+    above, flank = _inside_above_flanks(part.reshape(-1), stride, start, width, reach, contrast)
+    width_at, rise_at, start, width, contrast, flank = (
+        a[above] for a in (width_at, rise_at, start, width, contrast, flank))
+    taken = _narrowest_first(rise_at, start + width * stride, np.searchsorted(width_at, np.arange(len(span) + 1)),
+                             len(rows), part.size)
+    return start[taken], width[taken], contrast[taken], flank[taken]
 
 
-def _inside_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, rows: np.ndarray,
-                         cols: np.ndarray, contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For a band from each pixel ``s`` (``rows``, ``cols``) to ``s + width`` along ``step`` (edges
-    read ``reach`` px to either side), whether the least of its inside stands :data:`BAND_INSIDE`
-    times ``contrast`` above the lower of its two flanks (``part`` at ``s - reach`` and at
-    ``s + width + reach``), and that flank: a bone's step inside the band leaves it above the
-    flank on the step's low side, a gap to a device beside the vessel falls to the background."""
-    inside = np.arange(reach, reach + max(width - 2 * reach, 1))
-    least = part[rows[:, None] + inside * step[0], cols[:, None] + inside * step[1]].min(axis=1)
-    flank = np.minimum(part[rows - reach * step[0], cols - reach * step[1]],
-                       part[rows + (width + reach) * step[0], cols + (width + reach) * step[1]])
+def _narrowest_first(rise_at: np.ndarray, fall_at: np.ndarray, bounds: np.ndarray, n_rises: int,
+                     n_falls: int) -> np.ndarray:
+    """Which candidate bands (their rise and fall indices, sorted by width: those of the j-th width
+    at ``bounds[j]:bounds[j + 1]``) are taken, width by width, each rise and fall at most once."""
+    taken = np.zeros(len(rise_at), dtype=bool)
+    rise_free, fall_free = np.ones(n_rises, dtype=bool), np.ones(n_falls, dtype=bool)
+    for first, last in zip(bounds[:-1], bounds[1:]):
+        free = first + np.flatnonzero(rise_free[rise_at[first:last]] & fall_free[fall_at[first:last]])
+        taken[free] = True
+        rise_free[rise_at[free]] = False
+        fall_free[fall_at[free]] = False
+    return taken
+
+
+def _inside_above_flanks(flat: np.ndarray, stride: int, start: np.ndarray, width: np.ndarray, reach: int,
+                         contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For a band from each pixel ``start`` (flat index of the grid ``flat``) to ``start + width``
+    along the line of flat ``stride`` (edges read ``reach`` px to either side), whether the least
+    of its inside stands :data:`BAND_INSIDE` times ``contrast`` above the lower of its two flanks
+    (``flat`` at ``start - reach`` and at ``start + width + reach``), and that flank: a bone's step
+    inside the band leaves it above the flank on the step's low side, a gap to a device beside the
+    vessel falls to the background."""
+    last = np.maximum(width - 2 * reach, 1) - 1                        # the inside: reach .. reach + last
+    offsets = np.minimum(np.arange(int(last.max(initial=0)) + 1)[None, :], last[:, None]) + reach
+    least = flat[start[:, None] + offsets * stride].min(axis=1, initial=np.inf)
+    flank = np.minimum(flat[start - reach * stride], flat[start + (width + reach) * stride])
     return least - flank >= BAND_INSIDE * contrast, flank
 
 
-def _held_by_bands(part: np.ndarray, step: tuple, pairs: list) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel of ``part``, the largest contrast and the lowest flank of the bands of ``pairs``
+def _held_by_bands(part: np.ndarray, step: tuple, bands: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``part``, the largest contrast and the lowest flank of the ``bands``
     (:func:`_paired_edges`) that hold it (the pixels strictly between a band's edges, ``s + 1`` ..
     ``s + width - 1``); 0 and inf where none does."""
+    start, width, contrast, flank = bands
     best = np.zeros_like(part)
     lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
-    held, contrasts, flanks = [], [], []
-    for width, rows, cols, contrast, flank in pairs:
-        k = np.arange(1, width)
-        held.append(np.ravel_multi_index((rows[:, None] + k * step[0], cols[:, None] + k * step[1]), part.shape).ravel())
-        contrasts.append(np.repeat(contrast, width - 1))
-        flanks.append(np.repeat(flank, width - 1))
-    if held:
-        held = np.concatenate(held)
-        np.maximum.at(best.reshape(-1), held, np.concatenate(contrasts))
-        np.minimum.at(lowest_flank.reshape(-1), held, np.concatenate(flanks))
+    k = np.arange(1, int(width.max(initial=1)))[None, :]
+    holds = k < width[:, None]
+    held = (start[:, None] + k * (step[0] * part.shape[1] + step[1]))[holds]
+    np.maximum.at(best.reshape(-1), held, np.broadcast_to(contrast[:, None], holds.shape)[holds])
+    np.minimum.at(lowest_flank.reshape(-1), held, np.broadcast_to(flank[:, None], holds.shape)[holds])
     return best, lowest_flank
 
 
