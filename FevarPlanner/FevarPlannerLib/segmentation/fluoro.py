@@ -971,10 +971,13 @@ def _shifted(image: np.ndarray, step: tuple, n: int, fill) -> np.ndarray:
     return out
 
 
-def _steepest(jump: np.ndarray, step: tuple) -> np.ndarray:
-    """``jump`` where it is positive and a maximum along ``step`` (its two neighbours), else 0."""
-    peak = (jump > 0) & (jump >= _shifted(jump, step, 1, 0.0)) & (jump >= _shifted(jump, step, -1, 0.0))
-    return np.where(peak, jump, 0.0).astype(jump.dtype)
+def _steepest(jump: np.ndarray, step: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(rise, fall): ``jump`` where it is positive and a maximum along ``step`` (against its two
+    neighbours, 0 beyond the grid), else 0; ``-jump`` where it is positive and a minimum, else 0."""
+    ahead, behind = _shifted(jump, step, 1, 0.0), _shifted(jump, step, -1, 0.0)
+    rise = np.where((jump > 0) & (jump >= ahead) & (jump >= behind), jump, 0.0).astype(jump.dtype)
+    fall = np.where((jump < 0) & (jump <= ahead) & (jump <= behind), -jump, 0.0).astype(jump.dtype)
+    return rise, fall
 
 
 def _bands_between_edges(part: np.ndarray, step: tuple, radius: float, needed: np.ndarray | None = None) -> np.ndarray:
@@ -1002,7 +1005,7 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float, needed: n
     with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: no edge there
         jump = _shifted(part, step, reach, np.inf) - _shifted(part, step, -reach, np.inf)
     jump[~np.isfinite(jump)] = 0.0
-    rise, fall = _steepest(jump, step), _steepest(-jump, step)
+    rise, fall = _steepest(jump, step)
     if needed is not None:
         rise = np.where(_along_line_within(needed, step, longest), rise, 0.0).astype(rise.dtype)
     pairs = _paired_edges(part, step, reach, rise, fall, range(shortest, longest + 1))
