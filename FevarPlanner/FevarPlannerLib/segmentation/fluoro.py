@@ -942,7 +942,7 @@ def _with_bands_between_edges(flattened: np.ndarray, oriented: np.ndarray, acros
             continue
         step, radius = LINE_STEPS[k], (length - LINE_PAD_PX) / LINE_RADII
         reach, _, longest = _band_extents(step, radius)
-        box, inner = _box_around(here, (longest + reach + 1) * np.abs(step))     # all a band there reads
+        box, inner = _box_around(here, (longest + reach + 1) * np.abs(step))     # all its bands read
         band = _bands_between_edges(oriented[box], step, radius, here[box])
         target = extent[box][inner]
         np.maximum(target, np.where(here[box][inner], band[inner], 0.0), out=target)
@@ -980,7 +980,8 @@ def _steepest(jump: np.ndarray, step: tuple) -> tuple[np.ndarray, np.ndarray]:
     return rise, fall
 
 
-def _bands_between_edges(part: np.ndarray, step: tuple, radius: float, needed: np.ndarray | None = None) -> np.ndarray:
+def _bands_between_edges(part: np.ndarray, step: tuple, radius: float,
+                         needed: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``part`` (vessels bright), the contrast of a band of the vessel's width that
     holds it, read along ``step``: a rise and a fall (each where the change over 2 x about a
     third of ``radius`` is steepest) :data:`BAND_WIDTH_DIAMETERS` apart, of matching size
@@ -1095,7 +1096,7 @@ def _held_by_bands(part: np.ndarray, step: tuple, bands: tuple) -> tuple[np.ndar
     (:func:`_paired_edges`) that hold it (the pixels strictly between a band's edges, ``s + 1`` ..
     ``s + width - 1``); 0 and inf where none does."""
     start, width, contrast, flank = bands
-    best = np.zeros_like(part)
+    best = np.zeros(part.shape, dtype=part.dtype)
     lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
     k = np.arange(1, int(width.max(initial=1)))[None, :]
     holds = k < width[:, None]
