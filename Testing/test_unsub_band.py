@@ -80,3 +80,83 @@ def test_the_aorta_off_the_vertebral_bodies_is_kept(vertebrae_under_the_aorta):
     mask = seg.segment_fluoro(frame.frame, prior)
     assert (mask & off_bone).sum() / off_bone.sum() >= 0.7      # 0.49 before (0.77 now)
     assert seg.dice(mask, frame.mask) >= 0.88                   # 0.82 before (0.90 now)
+
+
+def bands_one_pixel_at_a_time(part: np.ndarray, step: tuple, radius: float) -> np.ndarray:
+    """The bands between edges read pixel by pixel along the lines (the definition of
+    ``fluoro._bands_between_edges``, slowly): every pixel tried as a band's rise at every width,
+    narrowest first, each rise and each fall taken once."""
+    reach, shortest, longest = fluoro._band_extents(step, radius)
+    rows, cols = part.shape
+
+    def on_grid(p):
+        return 0 <= p[0] < rows and 0 <= p[1] < cols
+
+    def at(p, n):
+        return (p[0] + n * step[0], p[1] + n * step[1])
+
+    def value(p):
+        return part[p] if on_grid(p) else np.inf
+
+    def jump(p):
+        change = value(at(p, reach)) - value(at(p, -reach)) if on_grid(p) else 0.0
+        return change if np.isfinite(change) else 0.0
+
+    def steepest(p, sign):
+        here = sign * jump(p)
+        return here if here > 0 and here >= sign * jump(at(p, 1)) and here >= sign * jump(at(p, -1)) else 0.0
+
+    pixels = [(r, c) for r in range(rows) for c in range(cols)]
+    rise = {p: steepest(p, 1.0) for p in pixels}
+    fall = {p: steepest(p, -1.0) for p in pixels}
+    rise_taken, fall_taken, bands = set(), set(), []
+    for width in range(shortest, longest + 1):
+        taken = []
+        for s in pixels:
+            end = at(s, width)
+            if s in rise_taken or not on_grid(end) or end in fall_taken:
+                continue
+            contrast = min(rise[s], fall[end])
+            if not (contrast > 0 and contrast >= fluoro.BAND_EDGE_BALANCE * max(rise[s], fall[end])):
+                continue
+            least = min(value(at(s, reach + j)) for j in range(max(width - 2 * reach, 1)))
+            flank = min(value(at(s, -reach)), value(at(end, reach)))
+            if least - flank >= fluoro.BAND_INSIDE * contrast:
+                taken.append((s, end, width, contrast, flank))
+        for s, end, width_, contrast, flank in taken:
+            rise_taken.add(s)
+            fall_taken.add(end)
+            bands.append((s, width_, contrast, flank))
+    best, lowest = np.zeros_like(part), np.full_like(part, np.inf)
+    for s, width, contrast, flank in bands:
+        for k in range(1, width):
+            best[at(s, k)] = max(best[at(s, k)], contrast)
+            lowest[at(s, k)] = min(lowest[at(s, k)], flank)
+    return np.where(best > 0, np.clip(part - np.where(best > 0, lowest, 0.0), 0.0, best), 0.0)
+
+
+def vessels_over_steps(seed: int, size: int = 40) -> np.ndarray:
+    """A noisy frame (vessels bright) of bright bars 4-14 px wide, across and along, some
+    crossing a bone's step, and a ramp: many rises and falls, matching and not."""
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:size, 0:size].astype(np.float64)
+    image = 0.004 * c + 0.3 * (r + rng.uniform(-8, 8) * np.sign(c - 20) > rng.uniform(10, 30))
+    for _ in range(4):
+        angle, offset, width = rng.uniform(0, np.pi), rng.uniform(-15, 15), rng.uniform(4, 14)
+        across = (c - 20) * np.cos(angle) + (r - 20) * np.sin(angle) - offset
+        image += rng.uniform(0.2, 0.5) * (np.abs(across) < width / 2)
+    return ndimage.gaussian_filter(image, 0.8) + rng.normal(0.0, 0.02, image.shape)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("step", [(0, 1), (1, 1), (1, 0), (1, -1)])
+def test_the_bands_paired_from_the_rises_are_those_of_every_pixel_and_width(seed, step):
+    image = vessels_over_steps(seed)
+    for radius in (2.2, 4.0):
+        expected = bands_one_pixel_at_a_time(image, step, radius)
+        assert (expected > 0).sum() >= 40                       # the frame has bands to find
+        np.testing.assert_array_equal(fluoro._bands_between_edges(image, step, radius), expected)
+        needed = np.zeros(image.shape, dtype=bool)
+        needed[12:28, 15:30] = True                             # only these: only the rises near them paired
+        np.testing.assert_array_equal(fluoro._bands_between_edges(image, step, radius, needed),
+                                      np.where(needed, expected, 0.0))

@@ -940,9 +940,10 @@ def _with_bands_between_edges(flattened: np.ndarray, oriented: np.ndarray, acros
         here = chosen & over_bone
         if not here.any():
             continue
-        step = LINE_STEPS[k]
-        box, inner = _box_around(here, 2 * (int(math.ceil(length)) + 2) * np.abs(step))
-        band = _bands_between_edges(oriented[box], step, (length - LINE_PAD_PX) / LINE_RADII)
+        step, radius = LINE_STEPS[k], (length - LINE_PAD_PX) / LINE_RADII
+        reach, _, longest = _band_extents(step, radius)
+        box, inner = _box_around(here, (longest + reach + 1) * np.abs(step))     # all its bands read
+        band = _bands_between_edges(oriented[box], step, radius, here[box])
         target = extent[box][inner]
         np.maximum(target, np.where(here[box][inner], band[inner], 0.0), out=target)
     return extent
@@ -960,20 +961,27 @@ def _projected_aorta_lumen(prior: FluoroPrior, where) -> np.ndarray:
 
 def _shifted(image: np.ndarray, step: tuple, n: int, fill) -> np.ndarray:
     """``out[p] = image[p + n step]`` (``fill`` beyond the grid)."""
+    out = np.full(image.shape, fill, dtype=image.dtype)
     rows, cols = image.shape
-    pad_r, pad_c = abs(step[0] * n), abs(step[1] * n)
-    padded = np.pad(image, ((pad_r, pad_r), (pad_c, pad_c)), constant_values=fill)
     dr, dc = step[0] * n, step[1] * n
-    return padded[pad_r + dr:pad_r + dr + rows, pad_c + dc:pad_c + dc + cols]
+    if abs(dr) >= rows or abs(dc) >= cols:
+        return out
+    out[max(-dr, 0):rows - max(dr, 0), max(-dc, 0):cols - max(dc, 0)] = \
+        image[max(dr, 0):rows + min(dr, 0), max(dc, 0):cols + min(dc, 0)]
+    return out
 
 
-def _steepest(jump: np.ndarray, step: tuple) -> np.ndarray:
-    """``jump`` where it is positive and a maximum along ``step`` (its two neighbours), else 0."""
-    peak = (jump > 0) & (jump >= _shifted(jump, step, 1, 0.0)) & (jump >= _shifted(jump, step, -1, 0.0))
-    return np.where(peak, jump, 0.0).astype(jump.dtype)
+def _steepest(jump: np.ndarray, step: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(rise, fall): ``jump`` where it is positive and a maximum along ``step`` (against its two
+    neighbours, 0 beyond the grid), else 0; ``-jump`` where it is positive and a minimum, else 0."""
+    ahead, behind = _shifted(jump, step, 1, 0.0), _shifted(jump, step, -1, 0.0)
+    rise = np.where((jump > 0) & (jump >= ahead) & (jump >= behind), jump, 0.0).astype(jump.dtype)
+    fall = np.where((jump < 0) & (jump <= ahead) & (jump <= behind), -jump, 0.0).astype(jump.dtype)
+    return rise, fall
 
 
-def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.ndarray:
+def _bands_between_edges(part: np.ndarray, step: tuple, radius: float,
+                         needed: np.ndarray | None = None) -> np.ndarray:
     """Per pixel of ``part`` (vessels bright), the contrast of a band of the vessel's width that
     holds it, read along ``step``: a rise and a fall (each where the change over 2 x about a
     third of ``radius`` is steepest) :data:`BAND_WIDTH_DIAMETERS` apart, of matching size
@@ -986,50 +994,116 @@ def _bands_between_edges(part: np.ndarray, step: tuple, radius: float) -> np.nda
     A vertebral body under part of the aorta is a step inside its lumen: the line opening fits in
     the aorta and the body together and flattens the aorta's part off the body away; the aorta's
     own two edges are still there, of equal size, however the body's step lies between them.
+
+    Edges are few (peaks along the line), so the pairs are sought from the rises only
+    (:func:`_paired_edges`) and the bands written over the pixels they hold (:func:`_held_by_bands`).
+    With ``needed`` (bool, ``part``'s shape) only those pixels get their value (the others 0), and
+    only the rises within the widest band of them along the line are paired: whether a band from
+    ``s`` to ``s + width`` is taken depends only on the edges between the two (the narrower bands
+    that took either edge lie between them), so the value there is the same.
     """
-    norm = math.hypot(*step)
-    reach = max(1, int(round(radius / 3.0 / norm)))
+    reach, shortest, longest = _band_extents(step, radius)
     with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: no edge there
         jump = _shifted(part, step, reach, np.inf) - _shifted(part, step, -reach, np.inf)
     jump[~np.isfinite(jump)] = 0.0
-    rise, fall = _steepest(jump, step), _steepest(-jump, step)
-    shortest = max(2, int(math.floor(BAND_WIDTH_DIAMETERS[0] * 2.0 * radius / norm)))
-    longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
-    before = _shifted(part, step, -reach, np.inf)
-    best = np.zeros_like(part)
-    lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
-    rise_paired = np.zeros(part.shape, dtype=bool)
-    fall_paired = np.zeros(part.shape, dtype=bool)
-    for width in range(shortest, longest + 1):
-        partner = _shifted(fall, step, width, 0.0)
-        contrast = np.minimum(rise, partner)
-        paired = (contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(rise, partner))
-        paired &= _inside_above_flanks(part, step, width, reach, before, contrast)
-        paired &= ~rise_paired & ~_shifted(fall_paired, step, width, True)
-        rise_paired |= paired
-        fall_paired |= _shifted(paired, step, -width, False)
-        # the band holds the pixels strictly between its edges: s + 1 .. s + width - 1
-        held = _line_extreme(_shifted(np.where(paired, contrast, 0.0).astype(part.dtype), step, -1, 0.0),
-                             (-step[0], -step[1]), width - 1, np.maximum, -np.inf)
-        np.maximum(best, held, out=best)
-        flank = np.where(paired, np.minimum(before, _shifted(part, step, width + reach, np.inf)), np.inf)
-        np.minimum(lowest_flank, _line_extreme(_shifted(flank.astype(part.dtype), step, -1, np.inf),
-                                               (-step[0], -step[1]), width - 1, np.minimum, np.inf), out=lowest_flank)
+    rise, fall = _steepest(jump, step)
+    if needed is not None:
+        rise = np.where(_along_line_within(needed, step, longest), rise, 0.0).astype(rise.dtype)
+    pairs = _paired_edges(part, step, reach, rise, fall, range(shortest, longest + 1))
+    best, lowest_flank = _held_by_bands(part, step, pairs)
+    if needed is not None:
+        best[~needed] = 0.0
     with np.errstate(invalid="ignore"):
         return np.where(best > 0, np.clip(part - lowest_flank, 0.0, best), 0.0).astype(part.dtype)
 
 
-def _inside_above_flanks(part: np.ndarray, step: tuple, width: int, reach: int, before: np.ndarray,
-                         contrast: np.ndarray) -> np.ndarray:
-    """For a band from each pixel ``s`` to ``s + width`` along ``step`` (edges read ``reach`` px to
-    either side), whether the least of its inside stands :data:`BAND_INSIDE` times ``contrast``
-    above the lower of its two flanks (``before``: ``part`` at ``s - reach``): a bone's step
-    inside the band leaves it above the flank on the step's low side, a gap to a device beside
-    the vessel falls to the background."""
-    inside = max(width - 2 * reach, 1)
-    least = _shifted(_line_extreme(part, step, inside, np.minimum, np.inf), step, reach, np.inf)
-    with np.errstate(invalid="ignore"):         # inf - inf beyond the grid: not a band
-        return least - np.minimum(before, _shifted(part, step, width + reach, np.inf)) >= BAND_INSIDE * contrast
+def _band_extents(step: tuple, radius: float) -> tuple[int, int, int]:
+    """(reach, shortest, longest) in steps along ``step`` of :func:`_bands_between_edges` for a
+    vessel of projected ``radius``: how far to either side an edge is read, the narrowest and the
+    widest band. A band's value at a pixel reads ``part`` at most ``longest + reach`` steps off it."""
+    norm = math.hypot(*step)
+    reach = max(1, int(round(radius / 3.0 / norm)))
+    shortest = max(2, int(math.floor(BAND_WIDTH_DIAMETERS[0] * 2.0 * radius / norm)))
+    longest = int(math.ceil((BAND_WIDTH_DIAMETERS[1] * 2.0 * radius + 1.0) / norm))
+    return reach, shortest, longest
+
+
+def _along_line_within(region: np.ndarray, step: tuple, n: int) -> np.ndarray:
+    """Pixels at most ``n`` steps along ``step`` (either way) from a pixel of ``region`` (bool)."""
+    ahead = _line_extreme(region, step, n + 1, np.logical_or, False)
+    return _line_extreme(ahead, (-step[0], -step[1]), n + 1, np.logical_or, False)
+
+
+def _paired_edges(part: np.ndarray, step: tuple, reach: int, rise: np.ndarray, fall: np.ndarray,
+                  widths: range) -> tuple:
+    """The bands of :func:`_bands_between_edges`: per width (narrowest first), each still unpaired
+    rise at ``s`` whose fall at ``s + width`` along ``step`` is still unpaired, of matching size
+    and with its inside above its flanks (:func:`_inside_above_flanks`). Returns (rise's flat
+    index in ``part``, width, contrast, flank) per band: the weaker edge and the lower flank. A
+    rise or fall with an edge has its ``part`` ``reach`` px off it on the grid, so every pixel a
+    band reads is on the grid, and flat indices step along the line by ``step``'s flat stride."""
+    rows, cols = np.nonzero(rise > 0)
+    span = np.asarray(widths)
+    to_row, to_col = rows[None, :] + span[:, None] * step[0], cols[None, :] + span[:, None] * step[1]
+    on_grid = (to_row >= 0) & (to_row < part.shape[0]) & (to_col >= 0) & (to_col < part.shape[1])
+    up = rise[rows, cols]
+    partner = np.where(on_grid, fall[np.clip(to_row, 0, part.shape[0] - 1), np.clip(to_col, 0, part.shape[1] - 1)],
+                       0.0)
+    contrast = np.minimum(up, partner)                                  # (width, rise)
+    width_at, rise_at = np.nonzero((contrast > 0) & (contrast >= BAND_EDGE_BALANCE * np.maximum(up, partner)))
+    stride = step[0] * part.shape[1] + step[1]
+    start = rows[rise_at] * part.shape[1] + cols[rise_at]
+    width, contrast = span[width_at], contrast[width_at, rise_at]
+    above, flank = _inside_above_flanks(part.reshape(-1), stride, start, width, reach, contrast)
+    width_at, rise_at, start, width, contrast, flank = (
+        a[above] for a in (width_at, rise_at, start, width, contrast, flank))
+    taken = _narrowest_first(rise_at, start + width * stride, np.searchsorted(width_at, np.arange(len(span) + 1)),
+                             len(rows), part.size)
+    return start[taken], width[taken], contrast[taken], flank[taken]
+
+
+def _narrowest_first(rise_at: np.ndarray, fall_at: np.ndarray, bounds: np.ndarray, n_rises: int,
+                     n_falls: int) -> np.ndarray:
+    """Which candidate bands (their rise and fall indices, sorted by width: those of the j-th width
+    at ``bounds[j]:bounds[j + 1]``) are taken, width by width, each rise and fall at most once."""
+    taken = np.zeros(len(rise_at), dtype=bool)
+    rise_free, fall_free = np.ones(n_rises, dtype=bool), np.ones(n_falls, dtype=bool)
+    for first, last in zip(bounds[:-1], bounds[1:]):
+        free = first + np.flatnonzero(rise_free[rise_at[first:last]] & fall_free[fall_at[first:last]])
+        taken[free] = True
+        rise_free[rise_at[free]] = False
+        fall_free[fall_at[free]] = False
+    return taken
+
+
+def _inside_above_flanks(flat: np.ndarray, stride: int, start: np.ndarray, width: np.ndarray, reach: int,
+                         contrast: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For a band from each pixel ``start`` (flat index of the grid ``flat``) to ``start + width``
+    along the line of flat ``stride`` (edges read ``reach`` px to either side), whether the least
+    of its inside stands :data:`BAND_INSIDE` times ``contrast`` above the lower of its two flanks
+    (``flat`` at ``start - reach`` and at ``start + width + reach``), and that flank: a bone's step
+    inside the band leaves it above the flank on the step's low side, a gap to a device beside the
+    vessel falls to the background."""
+    last = np.maximum(width - 2 * reach, 1) - 1                        # the inside: reach .. reach + last
+    offsets = np.minimum(np.arange(int(last.max(initial=0)) + 1)[None, :], last[:, None]) + reach
+    least = flat[start[:, None] + offsets * stride].min(axis=1, initial=np.inf)
+    flank = np.minimum(flat[start - reach * stride], flat[start + (width + reach) * stride])
+    return least - flank >= BAND_INSIDE * contrast, flank
+
+
+def _held_by_bands(part: np.ndarray, step: tuple, bands: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of ``part``, the largest contrast and the lowest flank of the ``bands``
+    (:func:`_paired_edges`) that hold it (the pixels strictly between a band's edges, ``s + 1`` ..
+    ``s + width - 1``); 0 and inf where none does."""
+    start, width, contrast, flank = bands
+    best = np.zeros(part.shape, dtype=part.dtype)
+    lowest_flank = np.full(part.shape, np.inf, dtype=part.dtype)
+    k = np.arange(1, int(width.max(initial=1)))[None, :]
+    holds = k < width[:, None]
+    held = (start[:, None] + k * (step[0] * part.shape[1] + step[1]))[holds]
+    np.maximum.at(best.reshape(-1), held, np.broadcast_to(contrast[:, None], holds.shape)[holds])
+    np.minimum.at(lowest_flank.reshape(-1), held, np.broadcast_to(flank[:, None], holds.shape)[holds])
+    return best, lowest_flank
 
 
 def _square_opening(image: np.ndarray, side: float) -> np.ndarray:
