@@ -4,6 +4,12 @@ An empty silicone phantom in air (no contrast) shows its tubes as tram tracks: w
 than the middle. The mask that follows such a tube passes every other frame rule (a band
 denser than both sides, along the projected tree, above the noise); the frame check must
 refuse it as not contrast-filled, while the same phantom filled with iodine passes.
+
+An air-filled phantom in a water bath is a negative angiogram: its lumen attenuates less than
+the water around it, and since either display polarity is accepted its mask looks like a
+vessel's. The metal in and along it (guidewire, catheter marker) says which grey side is dense;
+the frame check must refuse the lumen on the other side, in either display polarity, while the
+iodine-filled phantom passes in both.
 """
 
 from __future__ import annotations
@@ -50,6 +56,41 @@ def test_empty_phantom_is_refused_as_not_contrast_filled(frames):
     shown, prior = frames
     grey, mask = shown["empty"]
     with pytest.raises(quality.QualityError, match="not filled with contrast"):
+        quality.check_frame_mask(mask, prior, frame=grey)
+
+
+@pytest.fixture(scope="module")
+def bath_frames():
+    case = rb.make_case(SEED)
+    rng = np.random.default_rng([SEED, 11])
+    bench = replace(rb.draw_bench(rng, case.intraop), water=True)
+    chain = rb.draw_chain(rng, (case.carm.rows, case.carm.cols))
+    air = rb.Fill(0.0, 0.0, 0.0, {"renal": 1.0, "iliac": 1.0, "other": 1.0}, 0, "air")
+    iodine = rb.Fill(40.0, 0.3, 0.3, {"renal": 0.9, "iliac": 0.9, "other": 0.8}, 3, "water")
+    shown = {}
+    for name, fill in (("air", air), ("iodine", iodine)):
+        grey, mask, _ = rb.render_frame(case, bench, replace(chain, inverted=False),
+                                        np.random.default_rng([SEED, 13]), contrast=True, fill=fill)
+        shown[name, False] = (grey, mask)
+        shown[name, True] = (255 - grey, mask)        # the display's grey scale inverted
+    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_true)
+    return shown, prior
+
+
+@pytest.mark.parametrize("inverted", [False, True])
+def test_iodine_phantom_in_a_water_bath_passes_in_either_polarity(bath_frames, inverted):
+    shown, prior = bath_frames
+    grey, mask = shown["iodine", inverted]
+    report = quality.check_frame_mask(mask, prior, frame=grey)
+    assert report["dense_side"] == (1 if inverted else -1)
+
+
+@pytest.mark.parametrize("inverted", [False, True])
+def test_air_filled_phantom_in_a_water_bath_is_refused_as_a_negative_angiogram(bath_frames, inverted):
+    shown, prior = bath_frames
+    grey, mask = shown["air", inverted]
+    assert quality.dense_side(grey, mask) == (1 if inverted else -1)
+    with pytest.raises(quality.QualityError, match="less dense than their surroundings: air or CO2, not iodine"):
         quality.check_frame_mask(mask, prior, frame=grey)
 
 

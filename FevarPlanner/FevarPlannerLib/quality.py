@@ -755,10 +755,10 @@ def _check_polarity(grey: np.ndarray, mask: np.ndarray, contrast: float, qc: QCD
     dense (:func:`dense_side`); returns that side (0: no verdict)."""
     side = dense_side(grey, mask)
     if side * contrast < 0:
-        shown = "darker" if side < 0 else "brighter"
-        raise QualityError(f"frame check: the vessels are less dense than their surroundings (metal, the densest, "
-                           f"shows {shown}; the segmented vessels the opposite, by {abs(contrast):.0f} grey levels): "
-                           f"air or CO2, not iodine; this product needs an iodine angiogram (see "
+        dense, light = ("darker", "brighter") if side < 0 else ("brighter", "darker")
+        raise QualityError(f"frame check: the vessels are less dense than their surroundings: air or CO2, not iodine; "
+                           f"this product needs an iodine angiogram (the metal, the densest, shows {dense} than "
+                           f"around it, the segmented vessels {light} by {abs(contrast):.0f} grey levels; see "
                            f"segmentation_qc.png)", qc)
     return side
 
@@ -877,9 +877,9 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
                                f"segmented vessels (see segmentation_qc.png)", qc)
     report = {"coverage": coverage, "shift_px": (shift * factor).tolist()}
     if frame is not None:
-        report["dense_side"] = _check_polarity(grey, mask, contrast, qc)
         report["band_share"], report["filled_share"] = _check_bands(blocks, noise, float(np.sign(contrast)), small,
                                                                     skeleton, prior, factor, shift, qc)
+        report["dense_side"] = _check_polarity(grey, mask, contrast, qc)
     return report
 
 
