@@ -89,9 +89,9 @@ def test_iodine_phantom_in_a_water_bath_passes_in_either_polarity(bath_frames, i
 def test_air_filled_phantom_in_a_water_bath_is_refused_as_a_negative_angiogram(bath_frames, inverted):
     shown, prior = bath_frames
     grey, mask = shown["air", inverted]
-    assert quality.dense_side(grey, mask) == (1 if inverted else -1)
     with pytest.raises(quality.QualityError, match="less dense than their surroundings: air or CO2, not iodine"):
         quality.check_frame_mask(mask, prior, frame=grey)
+    assert quality.dense_side(grey, mask) == (1 if inverted else -1)
 
 
 def test_collimator_leaves_inside_a_round_field_are_unexposed():
