@@ -8,7 +8,8 @@ A confident wrong answer is the worst outcome: before the frame is registered,
 - the 2D vessel mask must look like an angiogram of that tree: not empty, not covering the
   frame, and, after the best in-plane shift, most of each projected main vessel must lie
   close to the mask's skeleton, and the mask's aorta must run along a band denser than both
-  sides, not along a bone's edge (:func:`check_frame_mask`).
+  sides, not along a bone's edge, and denser than its surroundings where the metal shows which
+  side of the grey scale is dense (:func:`check_frame_mask`, :func:`dense_side`).
 
 A failure raises :class:`QualityError` (an :class:`files.InputError`: one line, exit code 2)
 naming the vessel and where it was expected; it carries what :func:`write_segmentation_qc`
