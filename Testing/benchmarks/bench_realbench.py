@@ -14,7 +14,9 @@ phantom without contrast, the box alone, another phantom's frame). Each folder g
   the QC data), with precision and recall;
 - whether a non-angiogram was refused (it must be).
 
-Development seeds 480-485; held-out seeds 486-491 (run once, at the end).
+Development seeds 480-485; held-out seeds 486-491 (run once, at the end); for the display
+polarity read from the metal (``quality.dense_side``: an air-filled phantom in a water bath is a
+negative angiogram, refused) held-out seeds 510-515.
 
     python Testing/benchmarks/bench_realbench.py --out OUT --seeds 480 481 482 483 484 485 [--keep DIR]
 
