@@ -29,20 +29,29 @@ from FevarPlannerLib import quality  # noqa: E402
 SEED = 483
 
 
-@pytest.fixture(scope="module")
-def frames():
+def rendered_fills(water: bool, fills: dict, inverted=None):
+    """Seed 483's phantom on a bench with or without a water bath, rendered once per named
+    ``fill`` (the same noise each time), with its projected tree; ``inverted`` forces the
+    display's polarity (None: the seed's own)."""
     case = rb.make_case(SEED)
     rng = np.random.default_rng([SEED, 11])
-    bench = replace(rb.draw_bench(rng, case.intraop), water=False)
+    bench = replace(rb.draw_bench(rng, case.intraop), water=water)
     chain = rb.draw_chain(rng, (case.carm.rows, case.carm.cols))
-    empty = rb.Fill(0.0, 0.0, 0.0, {"renal": 1.0, "iliac": 1.0, "other": 1.0}, 0, "air")
-    filled = rb.Fill(60.0, 0.2, 0.3, {"renal": 0.9, "iliac": 0.9, "other": 0.8}, 3, "water")
+    chain = chain if inverted is None else replace(chain, inverted=inverted)
     shown = {}
-    for name, fill in (("empty", empty), ("filled", filled)):
+    for name, fill in fills.items():
         grey, mask, _ = rb.render_frame(case, bench, chain, np.random.default_rng([SEED, 13]), contrast=True, fill=fill)
         shown[name] = (grey, mask)
-    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_true)
-    return shown, prior
+    return shown, quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_true)
+
+
+AIR = rb.Fill(0.0, 0.0, 0.0, {"renal": 1.0, "iliac": 1.0, "other": 1.0}, 0, "air")
+
+
+@pytest.fixture(scope="module")
+def frames():
+    filled = rb.Fill(60.0, 0.2, 0.3, {"renal": 0.9, "iliac": 0.9, "other": 0.8}, 3, "water")
+    return rendered_fills(False, {"empty": AIR, "filled": filled})
 
 
 def test_contrast_filled_phantom_passes_the_frame_check(frames):
@@ -61,19 +70,12 @@ def test_empty_phantom_is_refused_as_not_contrast_filled(frames):
 
 @pytest.fixture(scope="module")
 def bath_frames():
-    case = rb.make_case(SEED)
-    rng = np.random.default_rng([SEED, 11])
-    bench = replace(rb.draw_bench(rng, case.intraop), water=True)
-    chain = rb.draw_chain(rng, (case.carm.rows, case.carm.cols))
-    air = rb.Fill(0.0, 0.0, 0.0, {"renal": 1.0, "iliac": 1.0, "other": 1.0}, 0, "air")
     iodine = rb.Fill(40.0, 0.3, 0.3, {"renal": 0.9, "iliac": 0.9, "other": 0.8}, 3, "water")
+    rendered, prior = rendered_fills(True, {"air": AIR, "iodine": iodine}, inverted=False)
     shown = {}
-    for name, fill in (("air", air), ("iodine", iodine)):
-        grey, mask, _ = rb.render_frame(case, bench, replace(chain, inverted=False),
-                                        np.random.default_rng([SEED, 13]), contrast=True, fill=fill)
+    for name, (grey, mask) in rendered.items():
         shown[name, False] = (grey, mask)
         shown[name, True] = (255 - grey, mask)        # the display's grey scale inverted
-    prior = quality.FluoroPrior.from_centerline(case.preop.to_centerline(), case.P_true)
     return shown, prior
 
 
