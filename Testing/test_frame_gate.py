@@ -145,3 +145,24 @@ def test_slabs_beside_the_tree_are_refused_though_inside_its_band(prior, broken)
     with pytest.raises(quality.QualityError, match=r"fall apart into 3 pieces .*: 0 lie away from the projected "
                                                    r"tree and 2 beside a larger piece on the same stretch of it"):
         quality.check_frame_mask(slabs, prior)
+
+
+def test_a_side_branch_projected_along_the_aorta_leaves_it_the_aorta_s_radius():
+    """An SMA seen from the front projects onto the aorta's centre line over centimetres; the
+    pixels both draw belong to the wider vessel, so the aorta keeps its projected radius there
+    (the narrow branch's had made the aorta's core look like separate blocks: a plain DSA frame
+    segmented to nothing and refused as "no vessel found")."""
+    points, edges, labels = [], [], []
+    for label, start, end, step in (("aorta", (0, 0, 200), (0, 0, -100), 5.0), ("other", (0, 0, 150), (0, 0, 40), 2.0)):
+        count = int(np.ceil(np.linalg.norm(np.subtract(end, start)) / step)) + 1
+        first = len(points)
+        points += list(np.linspace(start, end, count))
+        labels += [label] * count
+        edges += [(first + k, first + k + 1) for k in range(count - 1)]
+    prior = quality.FluoroPrior(np.array(points), np.array(edges), labels, P, radii_mm=[10.0 if v == "aorta" else 3.0
+                                                                                         for v in labels])
+    where = prior.band(SHAPE, 4)
+    rows, cols = where.box
+    centre = (260 - 95) // 4 - rows.start, 250 // 4 - cols.start      # halfway along the SMA, on the aorta's axis
+    assert where.radius[centre] == pytest.approx(10.0 / 4, abs=0.01)
+    assert np.asarray(prior.labels)[where.nearest[centre]] == "aorta"

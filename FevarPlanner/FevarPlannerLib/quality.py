@@ -225,7 +225,10 @@ class FluoroPrior:
             cols, rows = np.round(points[:, 0]).astype(int), np.round(points[:, 1]).astype(int)
             inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
             nodes = np.where(t < 0.5, edges[edge_index, 0], edges[edge_index, 1])
-            node_of_pixel[rows[inside], cols[inside]] = nodes[inside]
+            # the widest vessel drawn on a pixel owns it (written last): a side branch projecting
+            # along the aorta (an SMA in an AP view) does not take the aorta's pixels and radius
+            order = np.flatnonzero(inside)[np.argsort(self.radii_px[nodes[inside]], kind="stable")]
+            node_of_pixel[rows[order], cols[order]] = nodes[order]
         if not (node_of_pixel >= 0).any():
             return np.full(shape, np.inf, dtype=np.float32), np.full(shape, -1, dtype=np.int64)
         distance, (ri, ci) = ndi.distance_transform_edt(node_of_pixel < 0, return_indices=True)
