@@ -662,14 +662,7 @@ def _band_contrast(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, ang
     core = np.arange(-round(4 * BAND_CORE), round(4 * BAND_CORE) + 1)
     flank = round(4 * (1.0 + BAND_GAP)) + np.arange(5)
     reach = int(np.abs(shifts).max()) + int(flank[-1])
-    steps = np.arange(-reach, reach + 1)
-    across = np.column_stack([-np.sin(angle), np.cos(angle)])          # (du, dv) across the vessel
-    along = np.column_stack([np.cos(angle), np.sin(angle)])
-    t = 0.25 * radius[:, None, None] * steps[None, :, None]
-    s = BAND_ALONG * radius[:, None, None] * np.array([-1.0, 0.0, 1.0])[None, None, :]
-    v = rows[:, None, None] + t * across[:, 1, None, None] + s * along[:, 1, None, None]
-    u = cols[:, None, None] + t * across[:, 0, None, None] + s * along[:, 0, None, None]
-    profile = ndi.map_coordinates(oriented, [v.ravel(), u.ravel()], order=1, mode="nearest").reshape(v.shape).mean(axis=2)
+    profile = _samples_across(oriented, rows, cols, angle, 0.25 * radius, np.arange(-reach, reach + 1)).mean(axis=2)
     centre = reach + np.asarray(shifts, dtype=int)[:, None]
 
     def mean_over(offsets):
@@ -719,19 +712,29 @@ def _filled_middle(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, ang
     """Per centre-line pixel, whether the vessel's middle attenuates more than its rim
     (:data:`FILLED_CORE`, :data:`FILLED_RIM`, in the mask's half-widths across its direction
     ``angle``; each sample averaged along the vessel over +-:data:`BAND_ALONG` of it)."""
-    across = np.column_stack([-np.sin(angle), np.cos(angle)])
-    along = np.column_stack([np.cos(angle), np.sin(angle)])
-
     def mean_at(fractions):
-        t = np.concatenate([np.asarray(fractions), -np.asarray(fractions)])
-        t = half_width[:, None, None] * t[None, :, None]
-        s = BAND_ALONG * half_width[:, None, None] * np.array([-1.0, 0.0, 1.0])[None, None, :]
-        v = rows[:, None, None] + t * across[:, 1, None, None] + s * along[:, 1, None, None]
-        u = cols[:, None, None] + t * across[:, 0, None, None] + s * along[:, 0, None, None]
-        values = ndi.map_coordinates(oriented, [v.ravel(), u.ravel()], order=1, mode="nearest")
-        return values.reshape(v.shape).mean(axis=(1, 2))
+        both_sides = np.concatenate([np.asarray(fractions), -np.asarray(fractions)])
+        return _samples_across(oriented, rows, cols, angle, half_width, both_sides, along=half_width).mean(axis=(1, 2))
 
     return mean_at(FILLED_CORE) > mean_at(FILLED_RIM)
+
+
+def _samples_across(oriented: np.ndarray, rows: np.ndarray, cols: np.ndarray, angle: np.ndarray, step: np.ndarray,
+                    offsets: np.ndarray, along: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear samples of ``oriented`` across a vessel at centre-line pixels ``rows, cols`` (its
+    projected direction ``angle`` of (du, dv)), at ``offsets`` times each pixel's ``step``, each
+    also at +-:data:`BAND_ALONG` of ``along`` along the vessel (default: 4 ``step``, the
+    radius whose quarter :func:`_band_contrast` steps by); (n, len(offsets), 3): the three
+    samples along of each offset."""
+    along = 4.0 * step if along is None else along
+    across_uv = np.column_stack([-np.sin(angle), np.cos(angle)])          # (du, dv) across the vessel
+    along_uv = np.column_stack([np.cos(angle), np.sin(angle)])
+    t = step[:, None, None] * np.asarray(offsets)[None, :, None]
+    s = BAND_ALONG * along[:, None, None] * np.array([-1.0, 0.0, 1.0])[None, None, :]
+    v = rows[:, None, None] + t * across_uv[:, 1, None, None] + s * along_uv[:, 1, None, None]
+    u = cols[:, None, None] + t * across_uv[:, 0, None, None] + s * along_uv[:, 0, None, None]
+    samples = ndi.map_coordinates(oriented, [v.ravel(), u.ravel()], order=1, mode="nearest")
+    return samples.reshape(v.shape)
 
 
 def dense_side(grey: np.ndarray, mask: np.ndarray) -> int:
