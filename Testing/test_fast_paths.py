@@ -1154,3 +1154,39 @@ def test_nearest_nodes_on_the_legs_reuse_the_legs_cost_queries_to_the_bit():
     assert len(legs) >= 2
     assert _same_bits(distance, plain_distance)
     np.testing.assert_array_equal(index, plain_index)
+
+
+def _metal_tails_written_out(grey, mask):
+    """The polarity reading's (dark, bright, floor) as first written: SciPy's grey closing and
+    opening of 2 f - 1 px and the binary dilation of the mask (:func:`quality._metal_tails`)."""
+    from FevarPlannerLib import quality
+
+    factor = quality._working_scale(mask.shape)
+    box = quality._padded_box(mask, quality.METAL_REACH * factor + 2 * factor)
+    values = ndi.gaussian_filter(np.asarray(grey[box], dtype=np.float32), quality.METAL_SMOOTH * factor)
+    near = ndi.binary_dilation(mask[box], iterations=quality.METAL_REACH * factor)
+    size = max(3, 2 * factor - 1)
+    dark = float(np.percentile((ndi.grey_closing(values, size=size) - values)[near], quality.METAL_TAIL))
+    bright = float(np.percentile((values - ndi.grey_opening(values, size=size))[near], quality.METAL_TAIL))
+    return dark, bright, quality.METAL_MIN_NOISE * quality._pixel_noise(values)
+
+
+@pytest.mark.parametrize("scale", [1, 2, 3, 4])
+def test_the_metal_tails_by_doubling_spans_equal_scipys_closing_and_opening_to_the_bit(scale):
+    """Frames of 256 scale px (working scales 1 to 4) with a dark wire and a bright marker near a
+    vessel mask, which reaches the frame's edge on some: the polarity reading's top-hats and
+    dilation by shifted slices equal SciPy's grey and binary morphology."""
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(20 + scale)
+    for k, small in enumerate(random_masks(seed=21 + scale, count=8)):
+        shape = (256 * scale - 7 * k, 256 * scale)
+        mask = np.zeros(shape, dtype=bool)
+        mask[:small.shape[0] * scale, 5 * k:5 * k + small.shape[1] * scale] = np.kron(small, np.ones((scale, scale)))
+        if not mask.any():
+            continue
+        grey = 900.0 - 200.0 * mask + rng.normal(0.0, 15.0, shape)
+        grey[rng.integers(0, shape[0]), :] -= 400.0                                 # a dark wire across
+        grey[shape[0] // 3:shape[0] // 3 + scale, 20 * k:20 * k + 2 * scale] += 600.0     # a bright marker
+        grey = grey.astype(np.uint16) if k % 2 else grey.astype(np.float32)
+        assert quality._metal_tails(grey, mask) == _metal_tails_written_out(grey, mask)

@@ -741,19 +741,31 @@ def dense_side(grey: np.ndarray, mask: np.ndarray) -> int:
     """The display polarity read from the metal around a vessel mask (:data:`METAL_RATIO`): -1
     where the densest thin structures (guidewire, markers) are darker than their surroundings,
     +1 where brighter, 0 when neither side stands out (a subtracted frame, no metal)."""
-    factor = _working_scale(mask.shape)
-    box = _padded_box(mask, METAL_REACH * factor + 2 * factor)
-    values = ndi.gaussian_filter(np.asarray(grey[box], dtype=np.float32), METAL_SMOOTH * factor)
-    near = ndi.binary_dilation(mask[box], iterations=METAL_REACH * factor)
-    size = max(3, 2 * factor - 1)
-    dark = float(np.percentile((ndi.grey_closing(values, size=size) - values)[near], METAL_TAIL))
-    bright = float(np.percentile((values - ndi.grey_opening(values, size=size))[near], METAL_TAIL))
-    floor = METAL_MIN_NOISE * _pixel_noise(values)
+    dark, bright, floor = _metal_tails(grey, mask)
     if dark >= max(METAL_RATIO * bright, floor):
         return -1
     if bright >= max(METAL_RATIO * dark, floor):
         return 1
     return 0
+
+
+def _metal_tails(grey: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
+    """(dark, bright, floor) of :func:`dense_side`: the :data:`METAL_TAIL` percentiles, near the
+    mask, of the thin structures darker (grey closing less the frame) and brighter (the frame less
+    its grey opening) than around them, and :data:`METAL_MIN_NOISE` pixel noises; all on the
+    frame smoothed by :data:`METAL_SMOOTH` working-scale blocks in the mask's box widened by the
+    reach and the top-hat. The square filters by doubling spans and the cross dilation by shifted
+    ORs (:mod:`segmentation.fluoro`) give SciPy's grey and binary morphology to the bit, 5 x faster."""
+    from .segmentation.fluoro import _cross_dilation, _local_contrast
+
+    factor = _working_scale(mask.shape)
+    box = _padded_box(mask, METAL_REACH * factor + 2 * factor)
+    values = ndi.gaussian_filter(np.asarray(grey[box], dtype=np.float32), METAL_SMOOTH * factor)
+    near = _cross_dilation(mask[box], METAL_REACH * factor)
+    radius = max(1, factor - 1)         # top-hats of 2 f - 1 px (closing less values = white top-hat of -values)
+    dark = float(np.percentile(_local_contrast(-values, radius)[near], METAL_TAIL))
+    bright = float(np.percentile(_local_contrast(values, radius)[near], METAL_TAIL))
+    return dark, bright, METAL_MIN_NOISE * _pixel_noise(values)
 
 
 def _check_polarity(grey: np.ndarray, mask: np.ndarray, contrast: float, qc: QCData | None) -> int:
