@@ -768,11 +768,13 @@ def _metal_tails(grey: np.ndarray, mask: np.ndarray) -> tuple[float, float, floa
     return dark, bright, METAL_MIN_NOISE * _pixel_noise(values)
 
 
-def _check_polarity(grey: np.ndarray, mask: np.ndarray, contrast: float, qc: QCData | None) -> int:
+def _check_polarity(grey: np.ndarray, mask: np.ndarray, contrast: float, qc: QCData | None,
+                    known: int | None = None) -> int:
     """Refuse a mask whose vessels attenuate less than their surroundings (``contrast``: the
     mask's median less its ring's, in the frame's grey) while the metal says which side is
-    dense (:func:`dense_side`); returns that side (0: no verdict)."""
-    side = dense_side(grey, mask)
+    dense (:func:`dense_side`, or the side ``known`` already: a run's, read on an earlier frame
+    of it); returns that side (0: no verdict)."""
+    side = dense_side(grey, mask) if known is None else known
     if side * contrast < 0:
         dense, light = ("darker", "brighter") if side < 0 else ("brighter", "darker")
         raise QualityError(f"frame check: the vessels are less dense than their surroundings: air or CO2, not iodine; "
@@ -813,7 +815,8 @@ def _check_bands(blocks: np.ndarray, noise: float, sign: float, small: np.ndarra
 
 def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame: np.ndarray | None = None,
                      min_fraction: float = MIN_SEEN_FRACTION, tolerance_mm: float | None = None,
-                     shift_mm: float = SHIFT_MM, min_cnr: float = MIN_CONTRAST_TO_NOISE) -> dict:
+                     shift_mm: float = SHIFT_MM, min_cnr: float = MIN_CONTRAST_TO_NOISE,
+                     run_dense_side: int | None = None) -> dict:
     """Check that a frame's vessel mask is an angiogram of the projected pre-operative tree.
 
     The mask must be neither empty nor cover more than :data:`MAX_MASK_FRACTION` of the frame,
@@ -843,6 +846,10 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     mask : numpy.ndarray of bool
     prior : segmentation.FluoroPrior
     qc : QCData, optional
+    run_dense_side : {-1, 1}, optional
+        The display's dense side when it is known already (a run's, read by :func:`dense_side`
+        on an earlier frame of the same run: the display does not change within a run): the
+        polarity rule uses it instead of reading the frame's metal again.
 
     Returns
     -------
@@ -898,7 +905,7 @@ def check_frame_mask(mask: np.ndarray, prior, qc: QCData | None = None, *, frame
     if frame is not None:
         report["band_share"], report["filled_share"] = _check_bands(blocks, noise, float(np.sign(contrast)), small,
                                                                     skeleton, prior, factor, shift, qc)
-        report["dense_side"] = _check_polarity(grey, mask, contrast, qc)
+        report["dense_side"] = _check_polarity(grey, mask, contrast, qc, run_dense_side)
     return report
 
 
