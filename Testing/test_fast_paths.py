@@ -1269,3 +1269,15 @@ def test_the_leaf_search_over_every_turn_at_once_and_the_flooded_shutter_equal_t
         assert np.array_equal(leaves[:grown.shape[0], :grown.shape[1]], grown) and not leaves[grown.shape[0]:].any()
         found += 1
     assert found >= 4
+
+
+def test_piece_sizes_and_centres_over_the_touching_pixels_equal_ndimage_measurements():
+    from FevarPlannerLib.pipeline import visibility
+
+    for mask in random_masks(seed=32, count=60):
+        pieces, count = ndi.label(ndi.binary_dilation(mask, iterations=2))
+        if not count:
+            continue
+        sizes, centres = visibility._piece_sizes_and_centres(mask, pieces, count)
+        np.testing.assert_array_equal(sizes, ndi.sum(mask, pieces, range(1, count + 1)))
+        np.testing.assert_array_equal(centres, np.array(ndi.center_of_mass(mask, pieces, range(1, count + 1))))

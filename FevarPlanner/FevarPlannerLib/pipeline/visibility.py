@@ -368,6 +368,18 @@ def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
     return float(ndimage.distance_transform_edt(box)[rows - r0, cols - c0].max())
 
 
+def _piece_sizes_and_centres(touching: np.ndarray, pieces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per piece 1 ... ``count`` of ``pieces``, its number of ``touching`` pixels and their mean
+    (row, col): ``ndimage.sum`` and ``ndimage.center_of_mass`` of ``touching`` by ``pieces`` (the
+    same sums of whole numbers), counted over the touching pixels only, not the whole frame."""
+    rows, cols = np.nonzero(touching)
+    at = pieces[rows, cols]
+    sizes = np.bincount(at, minlength=count + 1)[1:].astype(float)
+    centres = np.column_stack([np.bincount(at, weights=rows.astype(float), minlength=count + 1)[1:] / sizes,
+                               np.bincount(at, weights=cols.astype(float), minlength=count + 1)[1:] / sizes])
+    return sizes, centres
+
+
 def _sides_towards(touching: np.ndarray, exposed: tuple) -> list:
     """Sides ("top" ... "right") of the rectangle ``exposed`` towards which the ``touching``
     pixels lie, each piece (fragments a few pixels apart joined; pieces under
@@ -375,8 +387,7 @@ def _sides_towards(touching: np.ndarray, exposed: tuple) -> list:
     direction from the rectangle's centre; each side once."""
     joined = _square_dilation(touching, SHUTTER_REACH_PX)
     pieces, count = ndimage.label(joined)
-    sizes = ndimage.sum(touching, pieces, range(1, count + 1))
-    centres = ndimage.center_of_mass(touching, pieces, range(1, count + 1))
+    sizes, centres = _piece_sizes_and_centres(touching, pieces, count)
     r0, r1, c0, c1 = exposed
     sides = []
     for (row, col), size in zip(centres, sizes):
