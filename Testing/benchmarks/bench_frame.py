@@ -69,6 +69,7 @@ from common import argument_parser, pyplot, save_figure, single_threaded_blas, w
 single_threaded_blas()      # before NumPy
 
 import functools  # noqa: E402
+import inspect  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -287,7 +288,9 @@ def frame_check_cost(frames: dict, repeats: int) -> dict:
     """The frame check (:func:`quality.check_frame_mask`, as ``pipeline.frame._frame_check`` runs
     it on every frame) on each of ``frames`` ({name: (frame, prior, mask)}): median CPU ms of the
     whole check and of its parts (the pixel noise, the contrast to noise with it, the one-tree
-    check, the polarity reading :func:`quality.dense_side`), its verdict and the contrast to noise and its margin over ``MIN_CONTRAST_TO_NOISE``."""
+    check, the polarity reading :func:`quality.dense_side`), and of the check as ``track`` runs it
+    once its run's polarity is known (``check_run_side_known_cpu_ms``, where the frame shows it);
+    its verdict and the contrast to noise and its margin over ``MIN_CONTRAST_TO_NOISE``."""
     out = {}
     for name, (frame, prior, mask) in frames.items():
         grey = np.asarray(frame, dtype=np.float32)
@@ -300,6 +303,10 @@ def frame_check_cost(frames: dict, repeats: int) -> dict:
             "polarity_cpu_ms": _median_cpu_ms(lambda: quality.dense_side(grey, mask), repeats),
             "verdict": _frame_check_verdict(mask, prior, frame), "contrast_to_noise": cnr,
             "margin_over_min_contrast_to_noise": cnr - quality.MIN_CONTRAST_TO_NOISE}
+        side = quality.dense_side(grey, mask)
+        if side and "run_dense_side" in inspect.signature(quality.check_frame_mask).parameters:
+            out[name]["check_run_side_known_cpu_ms"] = _median_cpu_ms(
+                lambda: quality.check_frame_mask(mask, prior, None, frame=frame, run_dense_side=side), repeats)
     return out
 
 
