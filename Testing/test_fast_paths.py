@@ -1154,3 +1154,130 @@ def test_nearest_nodes_on_the_legs_reuse_the_legs_cost_queries_to_the_bit():
     assert len(legs) >= 2
     assert _same_bits(distance, plain_distance)
     np.testing.assert_array_equal(index, plain_index)
+
+
+def _metal_tails_written_out(grey, mask):
+    """The polarity reading's (dark, bright, floor) as first written: SciPy's grey closing and
+    opening of 2 f - 1 px and the binary dilation of the mask (:func:`quality._metal_tails`)."""
+    from FevarPlannerLib import quality
+
+    factor = quality._working_scale(mask.shape)
+    box = quality._padded_box(mask, quality.METAL_REACH * factor + 2 * factor)
+    values = ndi.gaussian_filter(np.asarray(grey[box], dtype=np.float32), quality.METAL_SMOOTH * factor)
+    near = ndi.binary_dilation(mask[box], iterations=quality.METAL_REACH * factor)
+    size = max(3, 2 * factor - 1)
+    dark = float(np.percentile((ndi.grey_closing(values, size=size) - values)[near], quality.METAL_TAIL))
+    bright = float(np.percentile((values - ndi.grey_opening(values, size=size))[near], quality.METAL_TAIL))
+    return dark, bright, quality.METAL_MIN_NOISE * quality._pixel_noise(values)
+
+
+@pytest.mark.parametrize("scale", [1, 2, 3, 4])
+def test_the_metal_tails_by_doubling_spans_equal_scipys_closing_and_opening_to_the_bit(scale):
+    """Frames of 256 scale px (working scales 1 to 4) with a dark wire and a bright marker near a
+    vessel mask, which reaches the frame's edge on some: the polarity reading's top-hats and
+    dilation by shifted slices equal SciPy's grey and binary morphology."""
+    from FevarPlannerLib import quality
+
+    rng = np.random.default_rng(20 + scale)
+    for k, small in enumerate(random_masks(seed=21 + scale, count=8)):
+        shape = (256 * scale - 7 * k, 256 * scale)
+        mask = np.zeros(shape, dtype=bool)
+        mask[:small.shape[0] * scale, 5 * k:5 * k + small.shape[1] * scale] = np.kron(small, np.ones((scale, scale)))
+        if not mask.any():
+            continue
+        grey = 900.0 - 200.0 * mask + rng.normal(0.0, 15.0, shape)
+        grey[rng.integers(0, shape[0]), :] -= 400.0                                 # a dark wire across
+        grey[shape[0] // 3:shape[0] // 3 + scale, 20 * k:20 * k + 2 * scale] += 600.0     # a bright marker
+        grey = grey.astype(np.uint16) if k % 2 else grey.astype(np.float32)
+        assert quality._metal_tails(grey, mask) == _metal_tails_written_out(grey, mask)
+
+
+def test_square_dilation_by_doubling_spans_equals_scipys_iterated_3x3_dilation():
+    from FevarPlannerLib.pipeline import visibility
+
+    rng = np.random.default_rng(30)
+    for mask in random_masks(seed=31, count=80):
+        radius = int(rng.integers(1, 10))
+        expected = ndi.binary_dilation(mask, structure=np.ones((3, 3), dtype=bool), iterations=radius)
+        assert np.array_equal(visibility._square_dilation(mask, radius), expected)
+
+
+def _round_field_with_leaves(seed: int, size: int = 320):
+    """A noisy frame inside a round field (a flat dark surround) whose top and left carry
+    collimator leaves held near the field's darkest level, their edges turned by a few degrees."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0:size, 0:size].astype(float)
+    image = 900.0 + 150.0 * np.sin(cols / 37.0 + seed) + rng.normal(0.0, 20.0, (size, size))
+    turn = np.deg2rad(rng.uniform(-5.0, 5.0))
+    top = rows * np.cos(turn) - cols * np.sin(turn) < rng.uniform(0.12, 0.22) * size
+    left = cols * np.cos(turn) + rows * np.sin(turn) < rng.uniform(0.12, 0.22) * size if seed % 2 else False
+    image[top | left] = 60.0 + rng.normal(0.0, 3.0, np.count_nonzero(top | left))
+    image[(rows - size / 2) ** 2 + (cols - size / 2) ** 2 > (0.47 * size) ** 2] = 0.0
+    return image.astype(np.float32)
+
+
+def _leaves_turn_by_turn(image, unexposed):
+    """visibility._collimator_leaves as first written: a profile per turn, side and level at a time."""
+    from FevarPlannerLib.pipeline import visibility as v
+    from FevarPlannerLib.quality import block_means
+
+    blocks = block_means(image, v.LEAF_BLOCK).astype(float)
+    field = ~unexposed[:blocks.shape[0] * v.LEAF_BLOCK:v.LEAF_BLOCK, :blocks.shape[1] * v.LEAF_BLOCK:v.LEAF_BLOCK]
+    field &= ~ndi.binary_dilation(~field, iterations=2)
+    values = blocks[field]
+    p1, p99 = np.percentile(values, [1, 99])
+    span = float(p99 - p1)
+    at_extreme = [flags for flags in (np.abs(values - level) <= v.LEAF_FLATNESS * span for level in (p1, p99))
+                  if v.LEAF_MIN_SHARE <= flags.mean() <= 0.5]
+    rr, cc = np.nonzero(field)
+    leaves = np.zeros(blocks.shape, dtype=bool)
+    for turn in np.arange(-v.LEAF_MAX_TURN_DEG, v.LEAF_MAX_TURN_DEG + 1e-9, v.LEAF_TURN_STEP_DEG):
+        c, s_ = np.cos(np.deg2rad(turn)), np.sin(np.deg2rad(turn))
+        across_rows, across_cols = rr * c - cc * s_, cc * c + rr * s_
+        for distance in (across_rows - across_rows.min(), across_rows.max() - across_rows,
+                         across_cols - across_cols.min(), across_cols.max() - across_cols):
+            for flags in at_extreme:
+                bins = np.floor(distance).astype(int)
+                counts = np.bincount(bins)
+                share = np.bincount(bins, weights=flags.astype(float)) / np.maximum(counts, 1)
+                depth = v._leaf_depth(share, counts >= v.LEAF_MIN_BIN)
+                if depth:
+                    leaves[rr[distance < depth], cc[distance < depth]] = True
+    return leaves
+
+
+def test_the_leaf_search_over_every_turn_at_once_and_the_flooded_shutter_equal_the_plain_ones():
+    """Collimator leaves inside a round field: the blade search with every turn and side in one
+    bincount finds the blocks the turn-by-turn search finds, and the shutter flooded from a corner
+    is the corner's 4-connected flat piece as ndimage.label numbers it."""
+    from FevarPlannerLib.pipeline import visibility
+
+    found = 0
+    for seed in range(6):
+        image = _round_field_with_leaves(seed)
+        unexposed = visibility._shutter(image)
+        surround = np.abs(image) <= visibility.FLAT_BAND_FRACTION * (np.percentile(image[::4, ::4], 99) -
+                                                                     np.percentile(image[::4, ::4], 1))
+        pieces, _ = ndi.label(surround)
+        assert np.array_equal(unexposed, pieces == pieces[0, 0])
+        leaves = visibility._collimator_leaves(image, unexposed)
+        plain = _leaves_turn_by_turn(image, unexposed)
+        grown = np.kron(plain, np.ones((visibility.LEAF_BLOCK, visibility.LEAF_BLOCK), dtype=bool))
+        if leaves is None:
+            assert not plain.any()
+            continue
+        assert np.array_equal(leaves[:grown.shape[0], :grown.shape[1]], grown) and not leaves[grown.shape[0]:].any()
+        found += 1
+    assert found >= 4
+
+
+def test_piece_sizes_and_centres_over_the_touching_pixels_equal_ndimage_measurements():
+    from FevarPlannerLib.pipeline import visibility
+
+    for mask in random_masks(seed=32, count=60):
+        pieces, count = ndi.label(ndi.binary_dilation(mask, iterations=2))
+        if not count:
+            continue
+        sizes, centres = visibility._piece_sizes_and_centres(mask, pieces, count)
+        np.testing.assert_array_equal(sizes, ndi.sum(mask, pieces, range(1, count + 1)))
+        np.testing.assert_array_equal(centres, np.array(ndi.center_of_mass(mask, pieces, range(1, count + 1))))

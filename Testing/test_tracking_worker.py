@@ -83,8 +83,9 @@ def test_the_checks_warnings_reach_the_frame_as_if_it_ran_here(run, monkeypatch)
 
     monkeypatch.setattr(quality, "check_frame_mask", warning_check)
     mask = np.zeros(case.fluoro.image.shape, dtype=bool)
-    error, caught = tracking._frame_check_and_warnings(preop, mask, prior, case.fluoro.image)
+    error, caught, side = tracking._frame_check_and_warnings(preop, mask, prior, case.fluoro.image)
     assert isinstance(error, quality.QualityError) and caught == [(RuntimeWarning, "contrast is low here")]
+    assert side is None
     workers.set_enabled(False)
     try:
         _, messages, _ = _frame(run, 0)

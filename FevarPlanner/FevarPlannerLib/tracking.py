@@ -5,6 +5,10 @@ of the multi-frame ``fluoro.dcm`` (NumberOfFrames) is then segmented (vesselness
 registered (:func:`pipeline.register_frame`), and its path planned. Per frame it records
 the times and the fit of the recovered centreline to that frame's own 2D skeleton (the
 2D distance of eq. 6's data term; a fit, not an error: a run has no ground truth).
+What belongs to the run rather than to a frame is judged once: the side convention (the
+mirror test, on the first registered frame) and the display's polarity (the frame check's
+reading of the metal, :func:`quality.dense_side`, taken from the first frame whose check
+passes with a verdict, then used for the frames after it).
 
 Outputs in ``OUT``: ``track.csv`` (one row per frame), ``track.json`` (per-frame times,
 their median / 95th percentile / maximum, the pre-operative time and whether it came from
@@ -93,6 +97,20 @@ class TrackResult:
                             "fit_2d_px": r.fit_2d_px} for r in self.records]}
 
 
+@dataclass
+class _RunPolarity:
+    """The display's dense side of a run (:func:`quality.dense_side`: -1 or +1), once a frame's
+    metal has shown it (None until then): the display does not change within a run, so the
+    frame check of the frames after it uses it instead of reading their metal again."""
+
+    dense_side: int | None = None
+
+    def learn(self, side: int | None) -> None:
+        """Keep the side a frame check read, when it gave a verdict and none is kept yet."""
+        if self.dense_side is None and side:
+            self.dense_side = side
+
+
 def _frame_range(n_frames: int, first: int, count: int | None, path) -> range:
     if not 0 <= first < n_frames:
         raise InputError(f"{path}: first frame {first} out of range (the file has {n_frames} frames)")
@@ -132,9 +150,11 @@ def register_run_frame(preop, case, index: int, *, method: str = "proposed", sta
 
 
 def _registered_run_frame(preop, case, index: int, *, method: str, start: str, target: str, prior,
-                          run: FluoroRun | None):
+                          run: FluoroRun | None, polarity: _RunPolarity | None = None):
     """:func:`register_run_frame`, also returning the frame read and its vessel mask: ``(PlanResult,
-    times, frame, mask)`` (the run's side check uses them again, :func:`_check_run_side`)."""
+    times, frame, mask)`` (the run's side check uses them again, :func:`_check_run_side`).
+    ``polarity``: the run's display polarity, used by the frame check when known and learnt from
+    it when not (:class:`_RunPolarity`)."""
     from .pipeline import PlanResult, register_frame, segment_frame
 
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P) if prior is None else prior
@@ -146,7 +166,7 @@ def _registered_run_frame(preop, case, index: int, *, method: str, start: str, t
     t = time.perf_counter()
     mask = segment_frame(fluoro.image, prior)
     times["segmentation"] = time.perf_counter() - t
-    check = _frame_check_job(preop, mask, prior, fluoro.image)
+    check = _frame_check_job(preop, mask, prior, fluoro.image, None if polarity is None else polarity.dense_side)
     t = time.perf_counter()
     try:
         frame, failure = register_frame(preop, mask, case.P, method=method, image=fluoro.image), None
@@ -157,8 +177,10 @@ def _registered_run_frame(preop, case, index: int, *, method: str, start: str, t
         raise
     times["registration"] = time.perf_counter() - t
     t = time.perf_counter()
-    check_error, caught = check.result()
+    check_error, caught, side = check.result()
     times["frame_check"] = time.perf_counter() - t
+    if polarity is not None:
+        polarity.learn(side)
     for category, message in caught:        # as if the check had run here
         warnings.warn(message, category, stacklevel=2)
     if isinstance(check_error, quality.QualityError):
@@ -202,24 +224,26 @@ def _run_frame(case, index: int, run: FluoroRun | None):
     return read_fluoro(case.fluoro.path, frame=index) if run is None else run.frame(index)
 
 
-def _frame_check_job(preop, mask: np.ndarray, prior, image: np.ndarray):
+def _frame_check_job(preop, mask: np.ndarray, prior, image: np.ndarray, run_dense_side: int | None = None):
     """The frame check (:func:`quality.check_frame_mask`) of ``mask`` as a job of the view worker
     (done here, when its result is asked for, if the worker is not ready): its ``result()`` is
-    (the check's error or None, its warnings as (category, message))."""
+    (the check's error or None, its warnings as (category, message), the display's dense side it
+    used: None when it failed). ``run_dense_side``: the run's, when known (:class:`_RunPolarity`)."""
     from .pipeline import workers
 
-    return workers.submit(_frame_check_and_warnings, preop, mask, prior, image)
+    return workers.submit(_frame_check_and_warnings, preop, mask, prior, image, run_dense_side)
 
 
-def _frame_check_and_warnings(preop, mask: np.ndarray, prior, image: np.ndarray) -> tuple:
-    """``pipeline.frame._frame_check`` with the warnings it gives, for :func:`_frame_check_job` (the
-    worker's warnings would not reach this process's record of the frame)."""
-    from .pipeline.frame import _frame_check
+def _frame_check_and_warnings(preop, mask: np.ndarray, prior, image: np.ndarray,
+                              run_dense_side: int | None = None) -> tuple:
+    """``pipeline.frame._frame_check`` with the warnings it gives and the dense side it used, for
+    :func:`_frame_check_job` (the worker's warnings would not reach this process's record of the frame)."""
+    from .pipeline.frame import _frame_check_report
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        error = _frame_check(preop, mask, prior, image)
-    return error, [(w.category, str(w.message)) for w in caught]
+        error, report = _frame_check_report(preop, mask, prior, image, run_dense_side)
+    return error, [(w.category, str(w.message)) for w in caught], None if report is None else report.get("dense_side")
 
 
 def track_case(case_dir, *, method: str = "proposed", start: str = "iliac_right", target: str = "renal_left",
@@ -288,6 +312,7 @@ def _track_frames(preop, case, frames, prior, run: FluoroRun, method: str, start
                   progress) -> tuple[list, object]:
     """:func:`track_case`'s loop over ``frames``: (FrameRecord per frame, the last registered frame's PlanResult)."""
     records, last, side_checked = [], None, method != "proposed"
+    polarity = _RunPolarity()
     for done, index in enumerate(frames):
         if progress is not None:
             progress(0.3 + 0.7 * done / len(frames), f"frame {index} ({done + 1}/{len(frames)})")
@@ -296,7 +321,8 @@ def _track_frames(preop, case, frames, prior, run: FluoroRun, method: str, start
             warnings.simplefilter("always")
             try:
                 last, times, fluoro, mask = _registered_run_frame(preop, case, index, method=method, start=start,
-                                                                  target=target, prior=prior, run=run)
+                                                                  target=target, prior=prior, run=run,
+                                                                  polarity=polarity)
             except (ValueError, RuntimeError) as exc:
                 records.append(FrameRecord(index, None, None, {"total": time.perf_counter() - t},
                                            [str(exc).splitlines()[0]]))

@@ -10,6 +10,12 @@ pipeline runs it:
 ==============  =========================================================================
 mask            the pre-operative prior projected through P (:class:`quality.FluoroPrior`)
                 and :func:`segmentation.segment_fluoro` with it (``pipeline.frame._source_mask``)
+frame_check     the frame check (:func:`quality.check_frame_mask`, the polarity reading
+                included), as ``plan`` runs it on every view (``ViewSource(check=True)``): in this
+                process, or (one view) in the idle view worker beside the registration, whose CPU
+                time is read off the worker's scheduler record (Linux ``/proc/PID/schedstat``) and
+                added to the total, not to ``this_process``; with two views, the second view's
+                check is part of its worker stage
 skeleton2d      :func:`skeleton.skeletonize_2d` and :meth:`graph.SkeletonGraph.from_image`
                 (with the mask's radii)
 graph2d         Algorithm 1, anatomical labels and smoothing of the 2D graph
@@ -18,7 +24,7 @@ deformation     soft assignment, deformation (eq. 6, L-BFGS) and TPS fill, per c
 plausibility    the never-worse-than-SV check of every vessel
 pose            the in-plane pose check (``pose_refinement``: its matching under the given P
                 is what the matching stage then reuses, hence matching near 0)
-worker          CPU time of the view worker process (two views: the second view's mask and
+worker          CPU time of the view worker process (two views: the second view's mask, frame check and
                 2D side, :mod:`pipeline.workers`); its stage wall times are in the stages above
 other           the rest (visibility of the frame, projections, passing the work to the worker)
 ==============  =========================================================================
@@ -43,8 +49,9 @@ when the worker keeps up. The goals: 33 ms for one view, 66 ms for two.
 
 The frame check (:func:`quality.check_frame_mask`, run on every frame beside the registration) is
 timed on its own on the two raw views and the two bench frames below (``frame_check``: the
-whole check, the pixel noise, the contrast to noise, the one-tree check; its verdict and the
-contrast to noise's margin over ``MIN_CONTRAST_TO_NOISE``); ``--frame-check-only`` times only it.
+whole check, the pixel noise, the contrast to noise, the one-tree check, the polarity reading;
+its verdict and the contrast to noise's margin over ``MIN_CONTRAST_TO_NOISE``);
+``--frame-check-only`` times only it.
 
 The mask stage is also timed on the AP anatomy rendered as a bench frame with every distractor
 (:mod:`phantom.distractors`: spine, pelvis, box, rail, table, collimator, devices, ruler, text,
@@ -62,6 +69,7 @@ from common import argument_parser, pyplot, save_figure, single_threaded_blas, w
 single_threaded_blas()      # before NumPy
 
 import functools  # noqa: E402
+import inspect  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import replace  # noqa: E402
@@ -75,7 +83,8 @@ from FevarPlannerLib.deformation import solve  # noqa: E402
 from FevarPlannerLib.pipeline import frame as frame_module, multiview, workers  # noqa: E402
 from FevarPlannerLib.quality import FluoroPrior  # noqa: E402
 
-STAGES = ("mask", "skeleton2d", "graph2d", "matching", "deformation", "plausibility", "pose", "worker", "other")
+STAGES = ("mask", "frame_check", "skeleton2d", "graph2d", "matching", "deformation", "plausibility", "pose", "worker",
+          "other")
 #: The pipeline's stage timer names of the stages that it times itself (the rest: as named).
 TIMER_NAMES = {"pose": "pose_refinement"}
 GOALS_MS = {"one_view": 33.0, "two_views": 66.0}
@@ -142,6 +151,31 @@ def _cpu_stage_timer(cpu: dict):
             module._timed = wall_timer
 
 
+def _worker_cpu_seconds() -> float | None:
+    """CPU seconds the running view worker has used (its scheduler's record, in ns: Linux), or None."""
+    worker = workers._state["worker"]
+    if worker is None:
+        return None
+    try:
+        with open(f"/proc/{worker._process.pid}/schedstat") as record:
+            return int(record.read().split()[0]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _remote_check_cpu(outcomes, worker_before: float | None) -> float:
+    """CPU seconds of the frame checks that ran as jobs of their own in the view worker (one
+    view: the check beside the registration): the worker's CPU since ``worker_before`` less the
+    views it prepared (:attr:`ViewOutcome.cpu_seconds`); collects the checks (``plan`` does, before
+    using the outcomes)."""
+    remote = any(o.check_job is not None for o in outcomes)
+    frame_module.finish_checks(outcomes)
+    worker_after = _worker_cpu_seconds()
+    if not remote or worker_before is None or worker_after is None:
+        return 0.0
+    return worker_after - worker_before - sum(o.cpu_seconds for o in outcomes if o.in_worker)
+
+
 def time_views(preop, views, worker: bool = True, priors=None) -> tuple[dict, dict, dict]:
     """One pass of the per-frame path over ``views`` (registered jointly): ({stage: wall s}, {stage: CPU s}, facts).
 
@@ -151,23 +185,29 @@ def time_views(preop, views, worker: bool = True, priors=None) -> tuple[dict, di
     (summed over the views, whichever process did it); stage CPU times are this process's,
     the worker's CPU time is the stage "worker"; ``total`` wall is the elapsed time. ``priors``
     (one :class:`FluoroPrior` per view, kept from run to run as ``track`` keeps its run's): the
-    prior's band is then rasterised once, not per frame.
+    prior's band is then rasterised once, not per frame. Each view is checked as ``plan`` checks
+    it (stage ``frame_check``); a check that failed is in the facts (``frame_check_errors``).
     """
     workers.set_enabled(worker)
     solve._preconditioner_cache.clear()     # a new frame's solves share nothing with the last frame's
     wall, cpu = {"mask": 0.0}, {}
+    worker_before = _worker_cpu_seconds()
     start = _clock()
     with _cpu_stage_timer(cpu):
         prior_start = _clock()
         priors = priors or [FluoroPrior.from_centerline(preop.centerline, P) for _, _, _, P in views]
-        sources = [frame_module.ViewSource(name, P, image, prior=prior) for (name, image, _, P), prior in zip(views, priors)]
+        sources = [frame_module.ViewSource(name, P, image, prior=prior, check=True)
+                   for (name, image, _, P), prior in zip(views, priors)]
         prior_wall, prior_cpu = _since(prior_start)
         outcomes = frame_module.prepare_views(preop, sources)
         result = frame_module.register_prepared(preop, outcomes)
+        remote_check_cpu = _remote_check_cpu(outcomes, worker_before)
     total_wall, total_cpu = _since(start)
     wall["mask"] = prior_wall + sum(o.timings.get("segmentation2d", 0.0) for o in outcomes)
     cpu["mask"] = prior_cpu + cpu.pop("segmentation2d", 0.0)
-    for stage in STAGES[1:-2]:
+    wall["frame_check"] = sum(o.timings.get("frame_check", 0.0) for o in outcomes)
+    cpu["frame_check"] = cpu.get("frame_check", 0.0)        # this process's checks; a worker's job's below
+    for stage in STAGES[2:-2]:
         wall[stage] = result.timings.get(TIMER_NAMES.get(stage, stage), 0.0)
         cpu[stage] = cpu.get(TIMER_NAMES.get(stage, stage), 0.0)
     wall["worker"] = 0.0
@@ -175,9 +215,11 @@ def time_views(preop, views, worker: bool = True, priors=None) -> tuple[dict, di
     local = [s for s in STAGES[:-2]]
     wall["other"] = max(0.0, total_wall - sum(wall[s] for s in local))
     cpu["other"] = total_cpu - sum(cpu[s] for s in local)
-    wall["total"], cpu["total"] = total_wall, total_cpu + cpu["worker"]
+    cpu["frame_check"] += remote_check_cpu
+    wall["total"], cpu["total"] = total_wall, total_cpu + cpu["worker"] + remote_check_cpu
     cpu["this_process"] = total_cpu
     facts = {"mask_pixels": [int(o.mask.sum()) for o in outcomes], "nodes_2d": len(result.skeleton2d),
+             "frame_check_errors": [None if o.check_error is None else str(o.check_error) for o in outcomes],
              "correspondence": result.correspondence, "energy": result.energy,
              "in_worker": [o.in_worker for o in outcomes], "result_sum": float(np.sum(result.deformed.points))}
     return wall, cpu, facts
@@ -246,7 +288,9 @@ def frame_check_cost(frames: dict, repeats: int) -> dict:
     """The frame check (:func:`quality.check_frame_mask`, as ``pipeline.frame._frame_check`` runs
     it on every frame) on each of ``frames`` ({name: (frame, prior, mask)}): median CPU ms of the
     whole check and of its parts (the pixel noise, the contrast to noise with it, the one-tree
-    check), its verdict and the contrast to noise and its margin over ``MIN_CONTRAST_TO_NOISE``."""
+    check, the polarity reading :func:`quality.dense_side`), and of the check as ``track`` runs it
+    once its run's polarity is known (``check_run_side_known_cpu_ms``, where the frame shows it);
+    its verdict and the contrast to noise and its margin over ``MIN_CONTRAST_TO_NOISE``."""
     out = {}
     for name, (frame, prior, mask) in frames.items():
         grey = np.asarray(frame, dtype=np.float32)
@@ -256,8 +300,13 @@ def frame_check_cost(frames: dict, repeats: int) -> dict:
             "noise_cpu_ms": _median_cpu_ms(lambda: quality._pixel_noise(grey), repeats),
             "contrast_to_noise_cpu_ms": _median_cpu_ms(lambda: quality.vessel_contrast_to_noise(frame, mask), repeats),
             "one_tree_cpu_ms": _median_cpu_ms(lambda: quality._check_one_tree(mask, prior, None), repeats),
+            "polarity_cpu_ms": _median_cpu_ms(lambda: quality.dense_side(grey, mask), repeats),
             "verdict": _frame_check_verdict(mask, prior, frame), "contrast_to_noise": cnr,
             "margin_over_min_contrast_to_noise": cnr - quality.MIN_CONTRAST_TO_NOISE}
+        side = quality.dense_side(grey, mask)
+        if side and "run_dense_side" in inspect.signature(quality.check_frame_mask).parameters:
+            out[name]["check_run_side_known_cpu_ms"] = _median_cpu_ms(
+                lambda: quality.check_frame_mask(mask, prior, None, frame=frame, run_dense_side=side), repeats)
     return out
 
 
@@ -304,7 +353,7 @@ def over_cold_passes(now: dict, cold: dict) -> dict:
 
 def plot_frame_check(ax, checked: dict) -> None:
     """Bars: the frame check's median CPU ms per frame, whole and by part (:func:`frame_check_cost`)."""
-    parts = ("check", "noise", "contrast_to_noise", "one_tree")
+    parts = ("check", "noise", "contrast_to_noise", "one_tree", "polarity")
     x = np.arange(len(checked))
     width = 0.8 / len(parts)
     for i, part in enumerate(parts):

@@ -543,13 +543,20 @@ def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pos
 
 def _frame_check(preop: Preoperative, mask: np.ndarray, prior, frame: np.ndarray | None) -> Exception | None:
     """:func:`quality.check_frame_mask` of a view's mask: its error, or None when it passes."""
+    return _frame_check_report(preop, mask, prior, frame)[0]
+
+
+def _frame_check_report(preop: Preoperative, mask: np.ndarray, prior, frame: np.ndarray | None,
+                        run_dense_side: int | None = None) -> tuple[Exception | None, dict | None]:
+    """:func:`quality.check_frame_mask` of a view's mask (``run_dense_side``: a run's display
+    polarity, when known): (its error or None, its report when it passes)."""
     from .. import quality
 
     try:
-        quality.check_frame_mask(mask, prior, None, frame=frame)
+        report = quality.check_frame_mask(mask, prior, None, frame=frame, run_dense_side=run_dense_side)
     except Exception as exc:        # noqa: BLE001  (raised by the caller, in the serial order)
-        return exc
-    return None
+        return exc, None
+    return None, report
 
 
 def _rekeyed(outcome: ViewOutcome) -> ViewOutcome:

@@ -200,6 +200,8 @@ def _shutter_levels(image: np.ndarray, corners: list, limit: float) -> list:
 
 def _shutter(image: np.ndarray) -> np.ndarray | None:
     """The flat shutter of a rectangle's ``image`` flooded from its corners, or None."""
+    from skimage.segmentation import flood
+
     if min(image.shape) < 4 * CORNER_PATCH_PX:
         return None
     corners = _flat_corners(image)
@@ -209,9 +211,8 @@ def _shutter(image: np.ndarray) -> np.ndarray | None:
     limit = FLAT_BAND_FRACTION * max(float(high - low), 1e-12)
     unexposed = np.zeros(image.shape, dtype=bool)
     for r, c, level in _shutter_levels(image, corners, limit):
-        if not unexposed[r, c]:
-            pieces, _ = ndimage.label(np.abs(image.astype(np.float32) - np.float32(level)) <= limit)
-            unexposed |= pieces == pieces[r, c]
+        if not unexposed[r, c]:         # the corner's 4-connected flat piece (ndimage.label's, 3 x faster)
+            unexposed |= flood(np.abs(image.astype(np.float32) - np.float32(level)) <= limit, (r, c), connectivity=1)
     share = float(unexposed.mean())
     return unexposed if MIN_SHUTTER_FRACTION <= share <= 1.0 - MIN_FIELD_FRACTION else None
 
@@ -241,12 +242,38 @@ LEAF_MIN_BIN = 4
 LEAF_MIN_SHARE = 0.005
 
 
-def _leaf_profile(values: np.ndarray, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean of ``values`` per whole-block ``distance`` from a side, and which bins hold enough pixels."""
+def _leaf_distances(rr: np.ndarray, cc: np.ndarray) -> np.ndarray:
+    """Distance (blocks) of each field block (``rr, cc``) from each side of the field, the sides
+    turned by each leaf turn (:data:`LEAF_MAX_TURN_DEG` in :data:`LEAF_TURN_STEP_DEG` steps): one
+    row per turn and side (top, bottom, left, right), all turns at once."""
+    turns = np.arange(-LEAF_MAX_TURN_DEG, LEAF_MAX_TURN_DEG + 1e-9, LEAF_TURN_STEP_DEG)
+    c = np.array([np.cos(np.deg2rad(turn)) for turn in turns])[:, None]
+    s_ = np.array([np.sin(np.deg2rad(turn)) for turn in turns])[:, None]
+    across_rows = rr * c - cc * s_
+    across_cols = cc * c + rr * s_
+    sides = [across_rows - across_rows.min(axis=1, keepdims=True), across_rows.max(axis=1, keepdims=True) - across_rows,
+             across_cols - across_cols.min(axis=1, keepdims=True), across_cols.max(axis=1, keepdims=True) - across_cols]
+    return np.stack(sides, axis=1).reshape(4 * len(turns), -1)
+
+
+def _leaf_profiles(distance: np.ndarray, flags_of: list) -> list:
+    """Per row of ``distance`` (:func:`_leaf_distances`) and per bool ``flags`` of ``flags_of``:
+    the share of flagged blocks per whole-block distance bin and which bins hold enough blocks
+    (:data:`LEAF_MIN_BIN`), up to the row's farthest bin: ``[[(share, valid) per row] per flags]``.
+    Every row's bins are numbered apart in one range, counted by one bincount (the flagged
+    blocks' by one more each)."""
     bins = np.floor(distance).astype(int)
-    counts = np.bincount(bins)
-    sums = np.bincount(bins, weights=values)
-    return sums / np.maximum(counts, 1), counts >= LEAF_MIN_BIN
+    lengths = bins.max(axis=1) + 1
+    width = int(lengths.max())
+    numbered = bins + width * np.arange(len(bins))[:, None]
+    counts = np.bincount(numbered.ravel(), minlength=width * len(bins)).reshape(len(bins), width)
+    valid = counts >= LEAF_MIN_BIN
+    profiles = []
+    for flags in flags_of:
+        flagged = np.bincount(numbered[:, flags].ravel(), minlength=width * len(bins)).reshape(len(bins), width)
+        share = flagged / np.maximum(counts, 1)
+        profiles.append([(share[k, :n], valid[k, :n]) for k, n in enumerate(lengths)])
+    return profiles
 
 
 def _leaf_depth(share: np.ndarray, valid: np.ndarray) -> int:
@@ -293,19 +320,14 @@ def _collimator_leaves(image: np.ndarray, unexposed: np.ndarray | None) -> np.nd
     if not at_extreme:
         return None
     rr, cc = np.nonzero(field)
+    distance = _leaf_distances(rr, cc)
     leaves = np.zeros(blocks.shape, dtype=bool)
-    for turn in np.arange(-LEAF_MAX_TURN_DEG, LEAF_MAX_TURN_DEG + 1e-9, LEAF_TURN_STEP_DEG):
-        c, s_ = np.cos(np.deg2rad(turn)), np.sin(np.deg2rad(turn))
-        across_rows = rr * c - cc * s_
-        across_cols = cc * c + rr * s_
-        for distance in (across_rows - across_rows.min(), across_rows.max() - across_rows,
-                         across_cols - across_cols.min(), across_cols.max() - across_cols):
-            for flags in at_extreme:
-                share, valid = _leaf_profile(flags.astype(float), distance)
-                depth = _leaf_depth(share, valid)
-                if depth:
-                    inside = distance < depth
-                    leaves[rr[inside], cc[inside]] = True
+    for profiles in _leaf_profiles(distance, at_extreme):
+        for row, (share, valid) in zip(distance, profiles):
+            depth = _leaf_depth(share, valid)
+            if depth:
+                inside = row < depth
+                leaves[rr[inside], cc[inside]] = True
     if not leaves.any():
         return None
     full = np.zeros((rows, cols), dtype=bool)
@@ -326,6 +348,15 @@ def _shutter_and_leaves(image: np.ndarray) -> np.ndarray | None:
     return shutter if leaves is None else shutter | leaves
 
 
+def _square_dilation(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``ndimage.binary_dilation(mask, structure=np.ones((3, 3)), iterations=radius)`` (nothing
+    beyond the grid): the (2 radius + 1)^2 square's, by doubling spans along rows then columns
+    (:func:`segmentation.fluoro._centred_square_extreme`), 10 x faster on a 1024 x 1024 frame."""
+    from ..segmentation.fluoro import _centred_square_extreme
+
+    return _centred_square_extreme(np.asarray(mask, dtype=bool), radius, np.maximum, False)
+
+
 def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
     """The largest half-width (px) of ``mask`` at the pixels ``where``: its distance to the
     background, on the box around them padded by the mask's extent there (the caller counts
@@ -337,15 +368,26 @@ def _half_width(mask: np.ndarray, where: np.ndarray) -> float:
     return float(ndimage.distance_transform_edt(box)[rows - r0, cols - c0].max())
 
 
+def _piece_sizes_and_centres(touching: np.ndarray, pieces: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per piece 1 ... ``count`` of ``pieces``, its number of ``touching`` pixels and their mean
+    (row, col): ``ndimage.sum`` and ``ndimage.center_of_mass`` of ``touching`` by ``pieces`` (the
+    same sums of whole numbers), counted over the touching pixels only, not the whole frame."""
+    rows, cols = np.nonzero(touching)
+    at = pieces[rows, cols]
+    sizes = np.bincount(at, minlength=count + 1)[1:].astype(float)
+    centres = np.column_stack([np.bincount(at, weights=rows.astype(float), minlength=count + 1)[1:] / sizes,
+                               np.bincount(at, weights=cols.astype(float), minlength=count + 1)[1:] / sizes])
+    return sizes, centres
+
+
 def _sides_towards(touching: np.ndarray, exposed: tuple) -> list:
     """Sides ("top" ... "right") of the rectangle ``exposed`` towards which the ``touching``
     pixels lie, each piece (fragments a few pixels apart joined; pieces under
     :data:`MIN_TOUCH_PX`, a compressed frame's specks along the edge, left out) by its
     direction from the rectangle's centre; each side once."""
-    joined = ndimage.binary_dilation(touching, structure=np.ones((3, 3), dtype=bool), iterations=SHUTTER_REACH_PX)
+    joined = _square_dilation(touching, SHUTTER_REACH_PX)
     pieces, count = ndimage.label(joined)
-    sizes = ndimage.sum(touching, pieces, range(1, count + 1))
-    centres = ndimage.center_of_mass(touching, pieces, range(1, count + 1))
+    sizes, centres = _piece_sizes_and_centres(touching, pieces, count)
     r0, r1, c0, c1 = exposed
     sides = []
     for (row, col), size in zip(centres, sizes):
@@ -376,7 +418,7 @@ def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     if shutter is None:
         return image, None
     inside = image[r0:r1 + 1, c0:c1 + 1]
-    edge = ndimage.binary_dilation(shutter, structure=np.ones((3, 3), dtype=bool), iterations=EDGE_RING_PX) & ~shutter
+    edge = _square_dilation(shutter, EDGE_RING_PX) & ~shutter
     unexposed = _unexposed(shutter, image.shape, (r0, r1, c0, c1))
     filled = image.copy()
     filled[unexposed] = np.median(inside[edge]).astype(image.dtype)
@@ -427,8 +469,7 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     if shutter is not None:         # a round or shaped field inside the rectangle
         inner = _placed(shutter, (rows, cols), (r0, r1, c0, c1))
         unexposed = _unexposed(shutter, (rows, cols), (r0, r1, c0, c1))
-        touching = mask & ndimage.binary_dilation(inner, structure=np.ones((3, 3), dtype=bool),
-                                                  iterations=SHUTTER_REACH_PX)
+        touching = mask & _square_dilation(inner, SHUTTER_REACH_PX)
         distance = ndimage.distance_transform_edt(~unexposed[::FIELD_STEP, ::FIELD_STEP]) * FIELD_STEP
         field = Field(unexposed, distance, _half_width(mask | unexposed, touching) if touching.any() else 0.0)
         clipped += [side for side in _sides_towards(touching, (r0, r1, c0, c1)) if side not in clipped]
