@@ -543,11 +543,22 @@ def _within_expected_width(vessel: np.ndarray, radius: np.ndarray, slack: float 
     """Pixels no farther from the mask's centre line than ``slack`` times the expected radius
     (+1 px): a vessel cannot be wider than the pre-operative lumen allows, a vertebra or a
     bowel loop touching it can. ``spine``: the centre line's (distance, (rows, cols)) from
-    :func:`_spine_lookup` when already at hand (default: that of ``vessel``)."""
+    :func:`_spine_lookup` when already at hand (default: that of ``vessel``).
+
+    The radius is read at the nearest centre-line pixel, and also at the nearest pixel of a wide
+    vessel's centre line (:data:`WIDE_RADIUS_PX`): where a renal's centre line stops short of
+    the aorta and a thin vessel projected along the aorta (the superior mesenteric) gives the
+    aorta's half its thin radius, the aorta's wall beside the renal's ostium is nearer to the
+    renal's line and would be cut at the renal's width."""
     if not vessel.any():
         return vessel
     distance, (ri, ci) = _spine_lookup(vessel) if spine is None else spine
-    return distance <= slack * radius[ri, ci] + 1.0
+    within = distance <= slack * radius[ri, ci] + 1.0
+    wide = (distance == 0) & (radius >= WIDE_RADIUS_PX)
+    if wide.any():
+        wide_distance, (wi, wj) = ndi.distance_transform_edt(~wide, return_indices=True)
+        within |= wide_distance <= slack * radius[wi, wj] + 1.0
+    return within
 
 
 def _spine_lookup(region: np.ndarray):
