@@ -399,7 +399,7 @@ RENAL_OVERHANG_WARN_MM = 5.0
 #: swap with its geometry 7.1 mm (7.0 mm off); the 13 answered right frames of that run: 0.
 #: Right image-only frames beyond it, measured after: the older development bench frame 249
 #: (6.4 mm, 4.8 mm off the truth: a warning it had not), held-out bench frame 551 (6.8 mm) and
-#: bench-phantom seed 491 (8.4 mm), both warned already; the other 16 / 12 / 8: 0-5.8 mm.
+#: bench-phantom seed 491 (8.4 mm), both warned already; the other 16 / 12 / 19 answered: 0-5.8 mm.
 RENAL_CONTINUATION_WARN_MM = 6.3
 RENAL_ON_VESSEL_MM = 1.5
 #: How many doubts together refuse a registration.
