@@ -24,7 +24,7 @@ from .fallback import _never_worse_than_sv
 from .multiview import (MAX_CANDIDATE_COMBINATIONS, _deform_with, follow_anchor, outside_silhouette_warnings,
                         score_floor)
 from .results import FrameResult, METHODS, ViewFrame
-from .visibility import Visibility, frame_visibility, shutter_filled
+from .visibility import FieldSearch, Visibility, find_field, frame_visibility, shutter_filled
 
 
 def _skeleton2d_graph(mask: np.ndarray, mm_per_pixel: float) -> graph.SkeletonGraph:
@@ -483,24 +483,37 @@ class ViewOutcome:
 
 def _source_mask(source: ViewSource) -> np.ndarray:
     """The view's vessel mask: as given, a given one repaired, or the frame segmented."""
+    return _source_mask_and_field(source)[0]
+
+
+def _source_mask_and_field(source: ViewSource) -> tuple[np.ndarray, FieldSearch | None]:
+    """:func:`_source_mask` and, when it segmented the frame, the frame's surround search
+    (:func:`find_field`) the segmentation used, for the visibility to reuse; else None."""
     if source.mask is not None:
-        return source.mask
+        return source.mask, None
     if source.given_mask is not None:
         from ..given_mask import condition_given_mask
 
-        return condition_given_mask(source.given_mask)
-    return segment_frame(source.image, source.prior)
+        return condition_given_mask(source.given_mask), None
+    return _segmented(source.image, source.prior)
 
 
 def segment_frame(image: np.ndarray, prior) -> np.ndarray:
     """A raw frame's vessel mask, as ``plan`` and ``track`` both take it: segmented with the
     projected tree ``prior`` (:func:`segmentation.segment_fluoro`) on the frame whose round or
     shaped field's surround is filled (:func:`shutter_filled`), and no vessel kept there."""
+    return _segmented(image, prior)[0]
+
+
+def _segmented(image: np.ndarray, prior) -> tuple[np.ndarray, FieldSearch | None]:
+    """:func:`segment_frame`'s mask and the surround search it was filled by (:func:`find_field`;
+    None for a run of frames)."""
     from .. import segmentation
 
-    frame, unexposed = shutter_filled(image)
+    search = find_field(image)
+    frame, unexposed = shutter_filled(image, search)
     mask = segmentation.segment_fluoro(frame, prior)
-    return mask & ~unexposed if unexposed is not None else mask
+    return (mask & ~unexposed if unexposed is not None else mask), search
 
 
 def _view_stage(preop: Preoperative, source: ViewSource, method: str, refine_pose, centre: bool = True) -> ViewOutcome:
@@ -519,7 +532,7 @@ def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pos
     """The steps of :func:`_view_stage`, each result or error written into ``outcome``."""
     try:
         with _timed(outcome.timings, "segmentation2d"):
-            outcome.mask = _source_mask(source)
+            outcome.mask, search = _source_mask_and_field(source)
     except Exception as exc:        # noqa: BLE001  (raised by the caller, in the serial order)
         outcome.mask_error = exc
         return
@@ -536,7 +549,8 @@ def _view_steps(preop: Preoperative, source: ViewSource, method: str, refine_pos
     try:
         with _threadpools().limit(limits=1, user_api="blas"):
             outcome.view = _prepare_view(preop, outcome.mask, source.P, source.name, source.frame, method,
-                                         refine_pose, outcome.timings, centre)
+                                         refine_pose, outcome.timings, centre,
+                                         search if source.frame is not None else None)
     except Exception as exc:        # noqa: BLE001
         outcome.view_error = exc
 
@@ -604,10 +618,13 @@ def finish_checks(outcomes) -> None:
         outcome.finish_check()
 
 
-def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings, centre: bool = True) -> _ViewState:
+def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings, centre: bool = True,
+                  search: FieldSearch | None = None) -> _ViewState:
     """One view's 2D side: skeleton graph, classification (Alg. 1), pose, visibility; with
     ``centre`` the 2D nodes centred between the vessel's walls, where a single view's targets lie
-    (:func:`_centred_targets`; a view of several would drop them, :func:`_uncentred`)."""
+    (:func:`_centred_targets`; a view of several would drop them, :func:`_uncentred`). ``search``:
+    ``image``'s surround search when the segmentation did it (:func:`_segmented`), so that the
+    visibility does not search the frame a second time."""
     with _timed(timings, "skeleton2d"):
         g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
     c2 = unclassified = centred = None
@@ -622,7 +639,7 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings, c
             # pixel staircase smoothed away: eq. (4) compares path lengths along it
             g2 = graph.smooth_positions(g2, SMOOTHING_ITERATIONS)
             centred = matching.centre_in_outline(g2, mask2d) if centre else None
-    visibility = frame_visibility(mask2d, image)
+    visibility = frame_visibility(mask2d, image, search)
     pose = kept = None
     if c2 is not None and (mode == "on" or (mode == "auto" and method == "proposed")):
         with _timed(timings, "pose_refinement"):

@@ -398,7 +398,38 @@ def _sides_towards(touching: np.ndarray, exposed: tuple) -> list:
     return sides
 
 
-def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+@dataclass(frozen=True, eq=False)
+class FieldSearch:
+    """The surround search of one raw frame (:func:`find_field`): done once per frame, it serves
+    both the segmentation (:func:`shutter_filled`) and the visibility (:func:`frame_visibility`).
+
+    Attributes
+    ----------
+    exposed : (row_min, row_max, col_min, col_max)
+        The frame less its collimated bands (:func:`_exposed_rectangle`).
+    shutter : (rows, cols) bool array (read-only) or None
+        The shaped field's flat shutter and collimator leaves inside ``exposed``
+        (:func:`_shutter_and_leaves`, on the rectangle's own pixels); None without a shaped field.
+    """
+
+    exposed: tuple
+    shutter: np.ndarray | None
+
+
+def find_field(image: np.ndarray) -> FieldSearch | None:
+    """The collimated bands and the shaped field's shutter of a raw frame (:class:`FieldSearch`),
+    or None for a run of frames (3D), which neither use searches."""
+    image = np.asarray(image)
+    if image.ndim != 2:
+        return None
+    r0, r1, c0, c1 = exposed = _exposed_rectangle(image)
+    shutter = _shutter_and_leaves(image[r0:r1 + 1, c0:c1 + 1])
+    if shutter is not None:
+        shutter.flags.writeable = False         # shared by both uses
+    return FieldSearch(exposed, shutter)
+
+
+def shutter_filled(image: np.ndarray, search: FieldSearch | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """A raw frame with its shaped field's shutter (a round image intensifier's dark surround)
     set to the exposed field's level along the shutter's edge, for the vessel segmentation;
     and the shutter's pixels (None when the frame has none), which no vessel mask may hold.
@@ -408,15 +439,17 @@ def shutter_filled(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     (subtracted) background, and a faint renal was lost. Collimator bands along the sides stay
     as they are on a frame without a shaped field; with one, they are filled too (a white
     surround's bands otherwise reach the segmentation's box as its brightest pixels); a run of
-    frames (3D) is returned unchanged.
+    frames (3D) is returned unchanged. ``search``: the frame's :func:`find_field`, when done
+    already (the visibility uses it too).
     """
     image = np.asarray(image)
     if image.ndim != 2:
         return image, None
-    r0, r1, c0, c1 = _exposed_rectangle(image)
-    shutter = _shutter_and_leaves(image[r0:r1 + 1, c0:c1 + 1])
-    if shutter is None:
+    search = find_field(image) if search is None else search
+    if search.shutter is None:
         return image, None
+    r0, r1, c0, c1 = search.exposed
+    shutter = search.shutter
     inside = image[r0:r1 + 1, c0:c1 + 1]
     edge = _square_dilation(shutter, EDGE_RING_PX) & ~shutter
     unexposed = _unexposed(shutter, image.shape, (r0, r1, c0, c1))
@@ -433,7 +466,8 @@ def _exposed_rectangle(image: np.ndarray) -> tuple:
     return (r0, r1, c0, c1) if r0 <= r1 and c0 <= c1 else (0, rows - 1, 0, cols - 1)
 
 
-def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Visibility:
+def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None,
+                     search: FieldSearch | None = None) -> Visibility:
     """Where a frame shows anatomy and where its vessels run out of it.
 
     Parameters
@@ -444,6 +478,9 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
         The raw frame; flat bands along its borders are collimator shutters
         (:data:`FLAT_BAND_FRACTION`) and are excluded from the exposed rectangle. Without it
         the whole frame is exposed.
+    search : FieldSearch, optional
+        ``image``'s :func:`find_field`, when done already (the segmentation's,
+        :func:`shutter_filled`); found here when not given. Unused without ``image``.
 
     Returns
     -------
@@ -454,7 +491,9 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
     mask = np.asarray(mask2d, dtype=bool)
     rows, cols = mask.shape
     has_image = image is not None and np.shape(image) == mask.shape
-    r0, r1, c0, c1 = _exposed_rectangle(np.asarray(image)) if has_image else (0, rows - 1, 0, cols - 1)
+    if has_image and search is None:
+        search = find_field(image)
+    r0, r1, c0, c1 = search.exposed if has_image else (0, rows - 1, 0, cols - 1)
     shown = mask[r0:r1 + 1, c0:c1 + 1]
     sides = {"top": (0, slice(None)), "bottom": (-1, slice(None)), "left": (slice(None), 0),
              "right": (slice(None), -1)}
@@ -464,7 +503,7 @@ def frame_visibility(mask2d: np.ndarray, image: np.ndarray | None = None) -> Vis
         if np.count_nonzero(on_border) >= MIN_BORDER_PIXELS:
             clipped.append(side)
             margin[side] = _half_width_at_border(shown, side, index, on_border)
-    shutter = _shutter_and_leaves(np.asarray(image)[r0:r1 + 1, c0:c1 + 1]) if has_image else None
+    shutter = search.shutter if has_image else None
     field = None
     if shutter is not None:         # a round or shaped field inside the rectangle
         inner = _placed(shutter, (rows, cols), (r0, r1, c0, c1))
