@@ -93,3 +93,24 @@ def test_a_given_search_gives_the_visibility_and_fill_of_a_new_one(round_frame):
     for shared, fresh in zip(visibility.shutter_filled(image, search), visibility.shutter_filled(image)):
         np.testing.assert_array_equal(shared, fresh)
     assert visibility.find_field(np.zeros((3, 8, 8))) is None     # a run of frames: nothing to search
+
+
+def test_a_tracked_frame_hands_its_search_to_the_registration(round_frame, monkeypatch):
+    """``track``'s route (``segment_frame_and_field``, then ``register_frame(..., search=)``) searches
+    the frame once and registers it as the route that searches it twice."""
+    from FevarPlannerLib.pipeline import register_frame, segment_frame_and_field
+
+    preop, P, image, prior = round_frame
+    workers.set_enabled(False)
+    try:
+        mask, _ = segment_frame_and_field(image, prior)
+        twice = register_frame(preop, mask, P, image=image)
+        searches = _counting(monkeypatch, "_shutter_and_leaves")
+        mask_once, search = segment_frame_and_field(image, prior)
+        once = register_frame(preop, mask_once, P, image=image, search=search)
+    finally:
+        workers.set_enabled(None)
+    assert len(searches) == 1
+    np.testing.assert_array_equal(mask_once, mask)
+    _assert_same_visibility(once.views[0].visibility, twice.views[0].visibility)
+    np.testing.assert_array_equal(once.deformed.points, twice.deformed.points)

@@ -155,7 +155,7 @@ def _registered_run_frame(preop, case, index: int, *, method: str, start: str, t
     times, frame, mask)`` (the run's side check uses them again, :func:`_check_run_side`).
     ``polarity``: the run's display polarity, used by the frame check when known and learnt from
     it when not (:class:`_RunPolarity`)."""
-    from .pipeline import PlanResult, register_frame, segment_frame
+    from .pipeline import PlanResult, register_frame, segment_frame_and_field
 
     prior = quality.FluoroPrior.from_centerline(preop.centerline, case.P) if prior is None else prior
     times = {}
@@ -164,12 +164,13 @@ def _registered_run_frame(preop, case, index: int, *, method: str, start: str, t
     frame_path = f"{case.fluoro.path} (frame {index})"
     times["read"] = time.perf_counter() - t
     t = time.perf_counter()
-    mask = segment_frame(fluoro.image, prior)
+    mask, search = segment_frame_and_field(fluoro.image, prior)
     times["segmentation"] = time.perf_counter() - t
     check = _frame_check_job(preop, mask, prior, fluoro.image, None if polarity is None else polarity.dense_side)
     t = time.perf_counter()
     try:
-        frame, failure = register_frame(preop, mask, case.P, method=method, image=fluoro.image), None
+        frame, failure = register_frame(preop, mask, case.P, method=method, image=fluoro.image,
+                                        search=search), None
     except Exception as exc:        # noqa: BLE001  (raised after the frame check's failure)
         frame, failure = None, exc
     except BaseException:           # interrupted: the worker's answer must not be left in its pipe

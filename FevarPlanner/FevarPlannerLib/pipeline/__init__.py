@@ -31,7 +31,7 @@ from .case import _read_ground_truth, _vessel_mask, check_result, plan_case, pre
 from .fallback import FIT_TOLERANCE_PX, LENGTH_TOLERANCE, SV_NAME, _never_worse_than_sv, _vessels
 from .frame import (POSE_MODES, STABLE_VESSELS, ViewSource, _classify_2d, _prepare_view, _skeleton2d_graph,
                     prepare_views, register_flipped, register_frame, register_prepared, register_view_flipped,
-                    register_views, segment_frame)
+                    register_views, segment_frame, segment_frame_and_field)
 from .multiview import (CLOSEST_POINT_OUTLIER, CLOSEST_POINT_PASSES, CLOSEST_POINT_SETTLED_MM,
                         MAX_CANDIDATE_COMBINATIONS, TANGENT_MM)
 from .outputs import (DRR_NAME, OUTPUT_NAMES, OUTPUT_SUFFIXES, QC_NAME, check_output_folder, picture_title,
@@ -42,5 +42,6 @@ from .visibility import FLAT_BAND_FRACTION, MIN_BORDER_PIXELS, Visibility, frame
 __all__ = ["METHODS", "Preoperative", "Visibility", "ViewFrame", "ViewDrawing", "FrameResult", "PlanResult",
            "preop_from_skeleton", "preop_from_lumen", "build_preop", "prepare_preop", "picture_title",
            "frame_visibility", "register_frame", "register_flipped", "register_view_flipped", "register_views",
-           "ViewSource", "prepare_views", "register_prepared", "segment_frame", "run_case", "check_result", "plan_case",
+           "ViewSource", "prepare_views", "register_prepared", "segment_frame", "segment_frame_and_field",
+           "run_case", "check_result", "plan_case",
            "write_outputs", "refusal_picture"]

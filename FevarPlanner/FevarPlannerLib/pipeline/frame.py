@@ -289,7 +289,8 @@ def _threadpools() -> ThreadpoolController:
 
 def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, method: str = "proposed",
                    refine_pose="auto", alpha: float = 500.0, beta: float = 10.0,
-                   image: np.ndarray | None = None, name: str = "main") -> FrameResult:
+                   image: np.ndarray | None = None, name: str = "main",
+                   search: FieldSearch | None = None) -> FrameResult:
     """Register the pre-operative skeleton to one frame's 2D vessel mask (the per-frame part).
 
     Parameters
@@ -313,9 +314,12 @@ def register_frame(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, me
         The raw frame, to find collimated borders (:func:`frame_visibility`).
     name : str
         The view's name in the result.
+    search : FieldSearch, optional
+        ``image``'s surround search when the segmentation did it already
+        (:func:`segment_frame_and_field`), so that the visibility does not search the frame again.
     """
     return register_views(preop, [(mask2d, P)], names=[name], images=[image], method=method,
-                          refine_pose=refine_pose, alpha=alpha, beta=beta)
+                          refine_pose=refine_pose, alpha=alpha, beta=beta, searches=[search])
 
 
 def register_flipped(preop: Preoperative, mask2d: np.ndarray, P: np.ndarray, *, image: np.ndarray | None = None,
@@ -354,7 +358,7 @@ def register_view_flipped(preop: Preoperative, frames, flip: int, *, names=None,
 
 
 def register_views(preop: Preoperative, frames, *, names=None, images=None, method: str = "proposed",
-                   refine_pose="auto", alpha: float = 500.0, beta: float = 10.0) -> FrameResult:
+                   refine_pose="auto", alpha: float = 500.0, beta: float = 10.0, searches=None) -> FrameResult:
     """Register the pre-operative skeleton to several frames of the same anatomy at once.
 
     Each view gets its own 2D skeleton graph and classification (Algorithm 1). The first
@@ -387,6 +391,8 @@ def register_views(preop: Preoperative, frames, *, names=None, images=None, meth
         Raw frames, for the collimator detection.
     method, refine_pose, alpha, beta
         As in :func:`register_frame`. ``icp-tps`` uses the first view only.
+    searches : sequence of FieldSearch or None, optional
+        Each image's surround search when it was done already (:func:`register_frame`).
 
     Returns
     -------
@@ -400,9 +406,12 @@ def register_views(preop: Preoperative, frames, *, names=None, images=None, meth
         raise ValueError("register_views: no view given")
     names = list(names) if names is not None else ["main"] + [f"view{k + 1}" for k in range(1, len(frames))]
     images = list(images) if images is not None else [None] * len(frames)
-    if len(names) != len(frames) or len(images) != len(frames) or len(set(names)) != len(names):
+    searches = list(searches) if searches is not None else [None] * len(frames)
+    if len(names) != len(frames) or len(images) != len(frames) or len(searches) != len(frames) \
+            or len(set(names)) != len(names):
         raise ValueError("register_views: need one distinct name (and one image or None) per view")
-    sources = [ViewSource(name, P, image, mask=mask2d) for (mask2d, P), name, image in zip(frames, names, images)]
+    sources = [ViewSource(name, P, image, mask=mask2d, search=search)
+               for (mask2d, P), name, image, search in zip(frames, names, images, searches)]
     return register_prepared(preop, prepare_views(preop, sources, method=method, refine_pose=refine_pose),
                              method=method, alpha=alpha, beta=beta)
 
@@ -437,6 +446,9 @@ class ViewSource:
         Run the frame check (:func:`quality.check_frame_mask`) on the mask.
     real_frame : bool
         ``image`` is a real frame (not a stand-in drawn from the mask).
+    search : FieldSearch or None
+        ``image``'s surround search, when done already with ``mask``
+        (:func:`segment_frame_and_field`).
     """
 
     name: str
@@ -447,6 +459,7 @@ class ViewSource:
     prior: object | None = None
     check: bool = False
     real_frame: bool = True
+    search: FieldSearch | None = None
 
     @property
     def frame(self) -> np.ndarray | None:
@@ -488,26 +501,28 @@ def _source_mask(source: ViewSource) -> np.ndarray:
 
 def _source_mask_and_field(source: ViewSource) -> tuple[np.ndarray, FieldSearch | None]:
     """:func:`_source_mask` and, when it segmented the frame, the frame's surround search
-    (:func:`find_field`) the segmentation used, for the visibility to reuse; else None."""
+    (:func:`find_field`) the segmentation used, for the visibility to reuse; with a mask given,
+    the search given with it (``ViewSource.search``); else None."""
     if source.mask is not None:
-        return source.mask, None
+        return source.mask, source.search
     if source.given_mask is not None:
         from ..given_mask import condition_given_mask
 
         return condition_given_mask(source.given_mask), None
-    return _segmented(source.image, source.prior)
+    return segment_frame_and_field(source.image, source.prior)
 
 
 def segment_frame(image: np.ndarray, prior) -> np.ndarray:
     """A raw frame's vessel mask, as ``plan`` and ``track`` both take it: segmented with the
     projected tree ``prior`` (:func:`segmentation.segment_fluoro`) on the frame whose round or
     shaped field's surround is filled (:func:`shutter_filled`), and no vessel kept there."""
-    return _segmented(image, prior)[0]
+    return segment_frame_and_field(image, prior)[0]
 
 
-def _segmented(image: np.ndarray, prior) -> tuple[np.ndarray, FieldSearch | None]:
-    """:func:`segment_frame`'s mask and the surround search it was filled by (:func:`find_field`;
-    None for a run of frames)."""
+def segment_frame_and_field(image: np.ndarray, prior) -> tuple[np.ndarray, FieldSearch | None]:
+    """:func:`segment_frame`'s mask and the surround search its frame was filled by
+    (:func:`find_field`; None for a run of frames), which :func:`register_frame` takes back
+    (``search``) so that a frame's round field or shutters are searched once."""
     from .. import segmentation
 
     search = find_field(image)
@@ -623,8 +638,8 @@ def _prepare_view(preop, mask2d, P, name, image, method, refine_pose, timings, c
     """One view's 2D side: skeleton graph, classification (Alg. 1), pose, visibility; with
     ``centre`` the 2D nodes centred between the vessel's walls, where a single view's targets lie
     (:func:`_centred_targets`; a view of several would drop them, :func:`_uncentred`). ``search``:
-    ``image``'s surround search when the segmentation did it (:func:`_segmented`), so that the
-    visibility does not search the frame a second time."""
+    ``image``'s surround search when the segmentation did it (:func:`segment_frame_and_field`), so
+    that the visibility does not search the frame a second time."""
     with _timed(timings, "skeleton2d"):
         g2 = _skeleton2d_graph(mask2d, 1.0 / pixels_per_mm(P, preop.centre))
     c2 = unclassified = centred = None
