@@ -1210,8 +1210,9 @@ def _renals_tracked(tree: np.ndarray, response: np.ndarray, prior: FluoroPrior, 
     outer part whose vesselness (relative to the renal's own, :func:`_per_vessel_reference`)
     dips below ``low`` somewhere, at a bubble, a crossing wire or where the renal thins out.
 
-    Within :data:`RENAL_TRACK_RADII` of a projected renal the response averaged along the
-    renal's projected direction (:data:`RENAL_TRACK_SPAN_PX`) is thresholded at
+    Within :data:`RENAL_TRACK_RADII` of a projected renal the response, closed over gaps
+    (:data:`RENAL_TRACK_GAP_PX`) and averaged (:data:`RENAL_TRACK_SPAN_PX`) along the renal's
+    projected direction (:func:`_mean_along`), is thresholded at
     :data:`RENAL_TRACK_LOW` times ``low``; the pieces of it that touch the tree are returned
     (the later steps set their width and drop what is no vessel).
     """
