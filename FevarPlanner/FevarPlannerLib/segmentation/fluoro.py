@@ -1190,7 +1190,10 @@ def _box_around(region: np.ndarray, reach) -> tuple:
 #: Dice 0.932 / 0.910 / 0.953 / 0.958 -> 0.937 / 0.911 / 0.968 / 0.973 (the rest of the renal
 #: sat 4-7 px of the reduced grid off its projection); ``bench_frame_masks.py`` seeds 231-250
 #: (every / every_dsa, both polarities, 80 frames): mean Dice 0.9334 -> 0.9354, 24 frames up by
-#: 0.001-0.037, 2 down by 0.003.
+#: 0.001-0.037, 2 down by 0.003. A wrong frame whose refusal rested on a lost renal may now be
+#: answered: development bench 242's swap (another bench phantom's frame, whose faint renal lies
+#: along this case's projected renal) was refused "renal_right not found in the frame" and is
+#: answered 12.1 mm off with only a pose warning (``bench_wrong_frames.py``, branch renalend).
 RENAL_TRACK_RADII = 2.5
 #: The vesselness is averaged over this many pixels either side along the projected renal
 #: (the :data:`LINE_STEPS` direction nearest to it), so that an air bubble or a wire across the
