@@ -247,8 +247,7 @@ def _leaf_distances(rr: np.ndarray, cc: np.ndarray) -> np.ndarray:
     turned by each leaf turn (:data:`LEAF_MAX_TURN_DEG` in :data:`LEAF_TURN_STEP_DEG` steps): one
     row per turn and side (top, bottom, left, right), all turns at once."""
     turns = np.arange(-LEAF_MAX_TURN_DEG, LEAF_MAX_TURN_DEG + 1e-9, LEAF_TURN_STEP_DEG)
-    c = np.array([np.cos(np.deg2rad(turn)) for turn in turns])[:, None]
-    s_ = np.array([np.sin(np.deg2rad(turn)) for turn in turns])[:, None]
+    c, s_ = np.cos(np.deg2rad(turns))[:, None], np.sin(np.deg2rad(turns))[:, None]
     across_rows = rr * c - cc * s_
     across_cols = cc * c + rr * s_
     sides = [across_rows - across_rows.min(axis=1, keepdims=True), across_rows.max(axis=1, keepdims=True) - across_rows,
